@@ -1,0 +1,14 @@
+#!/usr/bin/env bash
+# Runs every test: installs what is missing, builds, then the C++ suites
+# (ctest) and the Python suites (pytest). Exit code non-zero on any failure.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+scripts/setup.sh
+scripts/build.sh
+echo "== C++ tests (ctest)"
+ctest --test-dir "${BUILD_DIR:-build}" --output-on-failure -j "$(nproc)" --timeout 600
+if ls client_py/tests/*.py examples/dqn/tests/*.py >/dev/null 2>&1; then
+  echo "== Python tests (pytest)"
+  export MLL_SERVER_BIN="$PWD/${BUILD_DIR:-build}/server/service/mll_server"
+  .venv/bin/python -m pytest -q $(ls -d client_py/tests examples/dqn/tests 2>/dev/null)
+fi
