@@ -38,12 +38,14 @@ inline constexpr int kContinuousActionSize = 2;
 enum class Outcome : uint8_t {
   kNone = 0,
   kLanded = 1,
-  kCrashed = 2,        // Damaged by contact, or terminated by another's damage.
-  kOutOfBounds = 3,    // abs(observation[0]) >= 1.
-  kTruncated = 4,      // Reached max_cycles.
+  kCrashed = 2,      // Damaged by a contact (ENV_SPEC "One step", 3).
+  kOutOfBounds = 3,  // abs(observation[0]) >= 1.
+  kTruncated = 4,    // Reached max_cycles.
+  kAborted = 5,      // Terminated because another lander was damaged
+                     // (terminate_on_damage).
 };
 
-// "none", "landed", "crashed", "out_of_bounds", "truncated".
+// "none", "landed", "crashed", "out_of_bounds", "truncated", "aborted".
 absl::string_view OutcomeName(Outcome outcome);
 
 // `lander_<index>`.
