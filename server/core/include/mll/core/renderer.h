@@ -4,6 +4,7 @@
 #ifndef MLL_CORE_RENDERER_H_
 #define MLL_CORE_RENDERER_H_
 
+#include <array>
 #include <cstdint>
 #include <string>
 #include <vector>
