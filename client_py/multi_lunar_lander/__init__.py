@@ -1,0 +1,66 @@
+"""Python client of the Multi Lunar Lander server: PettingZoo AEC and parallel environments and
+a batched vector environment, each a thin client of an `mll_server`.
+
+    import multi_lunar_lander as mll
+    env = mll.env(n_landers=3)                  # AEC; an embedded server is started
+    penv = mll.parallel_env(address="127.0.0.1:50051", continuous=True)
+    venv = mll.vector_env(64, n_landers=3)
+
+Options (shared/ENV_SPEC.md): n_landers, continuous, max_cycles, gravity, enable_wind,
+wind_power, turbulence_power, remove_on_damage, terminate_on_damage, shared_reward,
+damage_reward, successful_reward, terminate_reward; plus address= and render_mode= (None,
+"rgb_array", "human"; not for vector_env).
+
+address=None (the default) uses this process's embedded server: one `mll_server` child on a
+free loopback port (binary from $MLL_SERVER_BIN, else PATH, else the repository's
+build/server/service/mll_server), shared by all environments of the process that use it and
+stopped when the last of them is closed or garbage-collected, and at interpreter exit.
+
+Errors reported by the server raise MLLError (attributes `code`, a grpc.StatusCode, and
+`message`, the server's message).
+"""
+
+from __future__ import annotations
+
+from ._errors import MLLError
+from ._remote import CONFIG_OPTIONS, OUTCOMES
+from ._server import ServerProcess, embedded_server, find_server_binary
+from .aec import MultiLunarLanderEnv
+from .heuristic import heuristic
+from .parallel import MultiLunarLanderParallelEnv
+from .vector import VectorEnv
+
+__all__ = [
+    "CONFIG_OPTIONS",
+    "MLLError",
+    "MultiLunarLanderEnv",
+    "MultiLunarLanderParallelEnv",
+    "OUTCOMES",
+    "ServerProcess",
+    "VectorEnv",
+    "embedded_server",
+    "env",
+    "find_server_binary",
+    "heuristic",
+    "parallel_env",
+    "raw_env",
+    "vector_env",
+]
+
+
+def env(address: str | None = None, render_mode: str | None = None, **options) -> MultiLunarLanderEnv:
+    """The AEC environment (pettingzoo.AECEnv)."""
+    return MultiLunarLanderEnv(address=address, render_mode=render_mode, **options)
+
+
+raw_env = env  # PettingZoo's naming; the env has no wrappers to strip.
+
+
+def parallel_env(address: str | None = None, render_mode: str | None = None, **options) -> MultiLunarLanderParallelEnv:
+    """The parallel environment (pettingzoo.ParallelEnv)."""
+    return MultiLunarLanderParallelEnv(address=address, render_mode=render_mode, **options)
+
+
+def vector_env(num_envs: int, address: str | None = None, **options) -> VectorEnv:
+    """`num_envs` environments stepped with one StepBatch call per step (see VectorEnv)."""
+    return VectorEnv(num_envs, address=address, **options)

@@ -1,0 +1,88 @@
+"""The one place where numpy arrays and the wire's `Array` message meet.
+
+An `Array` is little-endian element bytes, row-major, with a dtype and a shape. Decoding is one
+`np.frombuffer` with an explicit little-endian dtype per array (never a per-element loop); the
+result is converted to the native byte order and copied, so callers get ordinary writable arrays
+that do not keep the message alive.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from ._errors import invalid_argument
+from ._stubs import pb
+
+# Wire dtype -> little-endian numpy dtype.
+_WIRE_TO_NUMPY = {
+    pb.DTYPE_FLOAT32: np.dtype("<f4"),
+    pb.DTYPE_UINT8: np.dtype("<u1"),
+    pb.DTYPE_INT32: np.dtype("<i4"),
+}
+_NUMPY_TO_WIRE = {dtype.newbyteorder("="): wire for wire, dtype in _WIRE_TO_NUMPY.items()}
+
+
+def wire_dtype_to_numpy(dtype: int) -> np.dtype:
+    """The native-order numpy dtype of a wire DType."""
+    try:
+        return _WIRE_TO_NUMPY[dtype].newbyteorder("=")
+    except KeyError:
+        raise invalid_argument(
+            f"Array.dtype is {pb.DType.Name(dtype) if dtype in pb.DType.values() else dtype}; "
+            "expected one of DTYPE_FLOAT32, DTYPE_UINT8, DTYPE_INT32"
+        ) from None
+
+
+def from_bytes(data: bytes, dtype: int, shape: Sequence[int]) -> np.ndarray:
+    """Decodes little-endian bytes of a wire dtype into a native, writable array of `shape`."""
+    little = _WIRE_TO_NUMPY.get(dtype)
+    if little is None:
+        wire_dtype_to_numpy(dtype)  # Raises the error naming the dtype.
+    count = int(np.prod(shape, dtype=np.int64))
+    if len(data) != count * little.itemsize:
+        raise invalid_argument(
+            f"Array.data has {len(data)} bytes; shape {list(shape)} of "
+            f"{pb.DType.Name(dtype)} needs {count * little.itemsize}"
+        )
+    return np.frombuffer(data, dtype=little).astype(little.newbyteorder("="), copy=True).reshape(shape)
+
+
+def to_numpy(array: "pb.Array") -> np.ndarray:
+    """Decodes one `Array` message."""
+    return from_bytes(array.data, array.dtype, array.shape)
+
+
+def to_proto(values, dtype: int, out: "pb.Array | None" = None) -> "pb.Array":
+    """Encodes `values` (anything np.asarray accepts) as an `Array` of the wire dtype `dtype`.
+
+    Fills `out` in place when given (e.g. a field of a request), else returns a new message.
+    Values are cast to the wire dtype; casting that changes a value (e.g. 2.5 -> int32) is an
+    INVALID_ARGUMENT error rather than a silent truncation.
+    """
+    little = _WIRE_TO_NUMPY.get(dtype)
+    if little is None:
+        wire_dtype_to_numpy(dtype)
+    source = np.asarray(values)
+    converted = source.astype(little, copy=False)
+    if source.dtype.kind in "fc" and little.kind in "iu":
+        finite = np.isfinite(source)
+        if not finite.all() or not np.array_equal(converted, source):
+            raise invalid_argument(
+                f"actions: {source.ravel()[:8].tolist()} cannot be encoded as "
+                f"{pb.DType.Name(dtype)} without changing a value; discrete actions are integers"
+            )
+    if out is None:
+        out = pb.Array()
+    out.dtype = dtype
+    del out.shape[:]
+    out.shape.extend(converted.shape)
+    out.data = np.ascontiguousarray(converted).tobytes()
+    return out
+
+
+def stack_bytes(chunks: Sequence[bytes], dtype: int, shape: Sequence[int]) -> np.ndarray:
+    """Decodes many same-shaped arrays' bytes (e.g. one field of every env of a batch) with one
+    join and one frombuffer; `shape` is the shape of the stacked result."""
+    return from_bytes(b"".join(chunks), dtype, shape)

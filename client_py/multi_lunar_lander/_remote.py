@@ -1,0 +1,195 @@
+"""What every client class shares: the connection to a server (embedded or given), the
+config message built from keyword arguments, gymnasium spaces from the server's spec, action
+encoding and the per-agent info dicts."""
+
+from __future__ import annotations
+
+import numbers
+import weakref
+from typing import Any, Callable
+
+import grpc
+import numpy as np
+from gymnasium import spaces
+
+from . import _arrays
+from ._errors import MLLError, from_rpc_error, invalid_argument
+from ._server import acquire_embedded
+from ._stubs import pb, pb_grpc
+
+# StepData.outcomes / AecState.outcomes codes -> info["outcome"] (None while flying).
+OUTCOMES = (None, "landed", "crashed", "out_of_bounds", "truncated", "aborted")
+
+# The options of shared/ENV_SPEC.md, in EnvConfig field order.
+CONFIG_OPTIONS = (
+    "n_landers",
+    "continuous",
+    "max_cycles",
+    "gravity",
+    "enable_wind",
+    "wind_power",
+    "turbulence_power",
+    "remove_on_damage",
+    "terminate_on_damage",
+    "shared_reward",
+    "damage_reward",
+    "successful_reward",
+    "terminate_reward",
+)
+RENDER_MODES = ("human", "rgb_array")
+
+_CHANNEL_OPTIONS = [
+    ("grpc.max_receive_message_length", 64 * 1024 * 1024),
+    ("grpc.max_send_message_length", 64 * 1024 * 1024),
+]
+
+
+def make_config(render_mode: str | None, auto_reset: bool, options: dict[str, Any]) -> "pb.EnvConfig":
+    """EnvConfig from keyword arguments; unset options take the server's defaults. Values are
+    only type-checked here: their ranges are the server's to check (one place for the rules)."""
+    unknown = sorted(set(options) - set(CONFIG_OPTIONS))
+    if unknown:
+        raise TypeError(f"unknown option(s) {unknown}; the options are {list(CONFIG_OPTIONS)}")
+    if render_mode is not None and render_mode not in RENDER_MODES:
+        raise invalid_argument(
+            f"render_mode is {render_mode!r}; allowed: None, {', '.join(map(repr, RENDER_MODES))}"
+        )
+    config = pb.EnvConfig(
+        render_mode=pb.RENDER_MODE_RGB_ARRAY if render_mode else pb.RENDER_MODE_NONE,
+        auto_reset=auto_reset,
+    )
+    fields = pb.EnvConfig.DESCRIPTOR.fields_by_name
+    for key, value in options.items():
+        kind = fields[key].cpp_type
+        if kind == fields[key].CPPTYPE_BOOL:
+            if not isinstance(value, (bool, np.bool_)):
+                raise invalid_argument(f"{key} is {value!r}; expected True or False")
+            setattr(config, key, bool(value))
+        elif kind == fields[key].CPPTYPE_INT32:
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
+                raise invalid_argument(f"{key} is {value!r}; expected an integer")
+            if not -(2**31) <= int(value) < 2**31:
+                raise invalid_argument(f"{key} is {value}; expected a 32-bit integer")
+            setattr(config, key, int(value))
+        else:
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+                raise invalid_argument(f"{key} is {value!r}; expected a number")
+            setattr(config, key, float(value))
+    return config
+
+
+def config_dict(config: "pb.EnvConfig") -> dict[str, Any]:
+    """The server's filled-in config as keyword arguments."""
+    return {key: getattr(config, key) for key in CONFIG_OPTIONS}
+
+
+def space_from_proto(space: "pb.Space") -> spaces.Space:
+    if space.kind == pb.Space.KIND_DISCRETE:
+        return spaces.Discrete(int(space.n))
+    if space.kind == pb.Space.KIND_BOX:
+        dtype = _arrays.wire_dtype_to_numpy(space.dtype)
+        shape = tuple(space.shape)
+        low = np.asarray(space.low, dtype=np.float64).reshape(shape)
+        high = np.asarray(space.high, dtype=np.float64).reshape(shape)
+        return spaces.Box(low=low.astype(dtype), high=high.astype(dtype), shape=shape, dtype=dtype)
+    raise MLLError(grpc.StatusCode.INTERNAL, f"server sent a Space of unknown kind {space.kind}")
+
+
+def seed_value(seed) -> int | None:
+    if seed is None:
+        return None
+    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, numbers.Integral) or not 0 <= seed < 2**64:
+        raise invalid_argument(f"seed is {seed!r}; expected None or an integer in [0, 2**64)")
+    return int(seed)
+
+
+def agent_info(outcome: int, done: bool, episode_return: float, episode_length: int) -> dict:
+    """infos[agent]: "outcome" once decided; "episode_return"/"episode_length" when done."""
+    info: dict[str, Any] = {}
+    if outcome:
+        info["outcome"] = OUTCOMES[outcome] if outcome < len(OUTCOMES) else f"outcome_{outcome}"
+    if done:
+        info["episode_return"] = float(episode_return)
+        info["episode_length"] = int(episode_length)
+    return info
+
+
+def action_array(actions, continuous: bool, shape_prefix: tuple[int, ...], what: str) -> np.ndarray:
+    """Checks the shape of a block of actions and casts it to the wire's element type
+    (int32 [..] discrete, float32 [.., 2] continuous); values are the server's to check."""
+    expected = shape_prefix + ((2,) if continuous else ())
+    array = np.asarray(actions)
+    if array.shape != expected:
+        raise invalid_argument(
+            f"{what} have shape {array.shape}; expected {expected} "
+            f"({'continuous [main, lateral] per agent' if continuous else 'one discrete action 0..3 per agent'})"
+        )
+    if continuous:
+        return np.ascontiguousarray(array, dtype=np.float32)
+    if array.dtype.kind not in "iub":
+        rounded = array.astype(np.int64) if np.isfinite(array).all() else None
+        if rounded is None or not np.array_equal(rounded, array):
+            raise invalid_argument(f"{what} are {array.ravel()[:8].tolist()}; discrete actions are integers 0..3")
+    return np.ascontiguousarray(array, dtype=np.int32)
+
+
+def encode_agent_action(action, continuous: bool, agent: str, out: "pb.AgentAction") -> None:
+    """Fills an AEC AgentAction from one agent's action."""
+    values = action_array(action, continuous, (), f"the action of {agent}")
+    if continuous:
+        _arrays.to_proto(values, pb.DTYPE_FLOAT32, out.continuous)
+    else:
+        out.discrete = int(values)
+
+
+class Connection:
+    """A channel and stub to one server. `address=None` leases the shared embedded server."""
+
+    def __init__(self, address: str | None):
+        self._lease = None
+        if address is None:
+            self._lease = acquire_embedded()
+            address = self._lease.address
+            self._what = f"embedded mll_server at {address}"
+        else:
+            self._what = (
+                f"mll_server at {address} (start one with `mll_server --address={address}`, or pass "
+                "address=None for an embedded server)"
+            )
+        self.address = address
+        self.channel = grpc.insecure_channel(address, options=_CHANNEL_OPTIONS)
+        self.stub = pb_grpc.MultiLunarLanderStub(self.channel)
+        # Closing on garbage collection too, without referencing self.
+        self._finalizer = weakref.finalize(self, Connection._close, self.channel, self._lease)
+
+    def call(self, method: str, request, timeout: float | None = None):
+        """Calls a unary method; a failure raises MLLError with the server's code and message."""
+        try:
+            return getattr(self.stub, method)(request, timeout=timeout)
+        except grpc.RpcError as error:
+            raise from_rpc_error(error, self._what) from None
+
+    def future(self, method: str, request) -> Callable[[], Any]:
+        """Starts a unary call; the returned function waits for it (raising MLLError)."""
+        call = getattr(self.stub, method).future(request)
+
+        def result():
+            try:
+                return call.result()
+            except grpc.RpcError as error:
+                raise from_rpc_error(error, self._what) from None
+
+        return result
+
+    @staticmethod
+    def _close(channel, lease) -> None:
+        channel.close()
+        if lease is not None:
+            lease.release()
+
+    def close(self) -> None:
+        self._finalizer()
+
+    @property
+    def closed(self) -> bool:
+        return not self._finalizer.alive

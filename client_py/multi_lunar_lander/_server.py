@@ -1,0 +1,262 @@
+"""Finding, starting and stopping `mll_server` processes on loopback.
+
+`ServerProcess` runs one server on a free 127.0.0.1 port (`--address=127.0.0.1:0
+--port_file=F`), waits until its gRPC health service answers SERVING, and stops it (SIGTERM,
+then SIGKILL after a grace period) on `stop()`, when garbage-collected, or at interpreter exit
+(`weakref.finalize`, which registers with atexit). When started from the main thread on Linux
+the child also gets PR_SET_PDEATHSIG, so a parent killed with SIGKILL does not leave it behind.
+
+The embedded default of the environments (`address=None`) is ONE server per Python process,
+shared by every environment that uses it and reference-counted: `acquire_embedded()` starts it
+on first use, and it stops when the last lease is released (the environment's `close()`, or its
+garbage collection).
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import weakref
+
+import grpc
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+from ._errors import MLLError
+
+SERVER_BIN_ENV = "MLL_SERVER_BIN"
+_REPO_BUILD_BIN = pathlib.Path(__file__).resolve().parents[2] / "build" / "server" / "service" / "mll_server"
+
+
+def find_server_binary() -> str:
+    """$MLL_SERVER_BIN, else `mll_server` on PATH, else the repository's build tree."""
+    tried = []
+    from_env = os.environ.get(SERVER_BIN_ENV)
+    if from_env:
+        if os.access(from_env, os.X_OK) and os.path.isfile(from_env):
+            return from_env
+        tried.append(f"${SERVER_BIN_ENV}={from_env} (not an executable file)")
+    else:
+        tried.append(f"${SERVER_BIN_ENV} (unset)")
+    on_path = shutil.which("mll_server")
+    if on_path:
+        return on_path
+    tried.append("mll_server on PATH (not found)")
+    if os.access(_REPO_BUILD_BIN, os.X_OK):
+        return str(_REPO_BUILD_BIN)
+    tried.append(f"{_REPO_BUILD_BIN} (not built)")
+    raise MLLError(
+        grpc.StatusCode.UNAVAILABLE,
+        "cannot start an embedded mll_server: tried " + "; ".join(tried) + ". Build it with "
+        "scripts/build.sh, set MLL_SERVER_BIN to its path, or pass address='host:port' of a "
+        "running server.",
+    )
+
+
+def _set_parent_death_signal() -> None:  # Runs in the child between fork and exec.
+    import ctypes
+
+    pr_set_pdeathsig = 1
+    ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGTERM)
+
+
+def _terminate(process: subprocess.Popen, workdir: str, grace_s: float) -> None:
+    """Stops `process` and removes its work directory; safe to call more than once."""
+    if process.poll() is None:
+        process.send_signal(signal.SIGTERM)
+        try:
+            process.wait(timeout=grace_s)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+    shutil.rmtree(workdir, ignore_errors=True)
+
+
+def wait_until_serving(address: str, timeout_s: float) -> None:
+    """Blocks until the server's grpc.health.v1 service answers SERVING."""
+    deadline = time.monotonic() + timeout_s
+    with grpc.insecure_channel(address) as channel:
+        stub = health_pb2_grpc.HealthStub(channel)
+        while True:
+            remaining = deadline - time.monotonic()
+            try:
+                reply = stub.Check(
+                    health_pb2.HealthCheckRequest(), timeout=max(remaining, 0.01), wait_for_ready=True
+                )
+                if reply.status == health_pb2.HealthCheckResponse.SERVING:
+                    return
+            except grpc.RpcError as error:
+                if time.monotonic() >= deadline:
+                    raise MLLError(
+                        grpc.StatusCode.UNAVAILABLE,
+                        f"mll_server at {address} did not answer its health check within "
+                        f"{timeout_s} s: {error.code().name} {error.details()}",
+                    ) from None
+            if time.monotonic() >= deadline:
+                raise MLLError(
+                    grpc.StatusCode.UNAVAILABLE,
+                    f"mll_server at {address} reports {reply.status} instead of SERVING",
+                )
+            time.sleep(0.01)
+
+
+class ServerProcess:
+    """One `mll_server` child process on a free loopback port."""
+
+    def __init__(
+        self,
+        binary: str | None = None,
+        *,
+        threads: int | None = None,
+        max_envs: int | None = None,
+        idle_timeout_s: float | None = None,
+        extra_args: tuple[str, ...] = (),
+        startup_timeout_s: float = 30.0,
+        grace_s: float = 5.0,
+    ):
+        self.binary = binary or find_server_binary()
+        self._workdir = tempfile.mkdtemp(prefix="mll_server_")
+        port_file = os.path.join(self._workdir, "port")
+        self._log_path = os.path.join(self._workdir, "server.log")
+        args = [self.binary, "--address=127.0.0.1:0", f"--port_file={port_file}"]
+        if threads is not None:
+            args.append(f"--threads={threads}")
+        if max_envs is not None:
+            args.append(f"--max_envs={max_envs}")
+        if idle_timeout_s is not None:
+            args.append(f"--idle_timeout_s={idle_timeout_s:g}")
+        args.extend(extra_args)
+        self.args = args
+        in_main_thread = threading.current_thread() is threading.main_thread()
+        with open(self._log_path, "wb") as log:
+            try:
+                self._process = subprocess.Popen(
+                    args,
+                    stdin=subprocess.DEVNULL,
+                    stdout=log,
+                    stderr=subprocess.STDOUT,
+                    preexec_fn=_set_parent_death_signal
+                    if sys.platform.startswith("linux") and in_main_thread
+                    else None,
+                )
+            except OSError as error:
+                shutil.rmtree(self._workdir, ignore_errors=True)
+                raise MLLError(
+                    grpc.StatusCode.UNAVAILABLE,
+                    f"cannot run {self.binary}: {error}. Set MLL_SERVER_BIN to a built mll_server.",
+                ) from None
+        self._finalizer = weakref.finalize(self, _terminate, self._process, self._workdir, grace_s)
+        try:
+            port = self._wait_for_port(port_file, startup_timeout_s)
+            self.address = f"127.0.0.1:{port}"
+            wait_until_serving(self.address, startup_timeout_s)
+        except BaseException:
+            self.stop()
+            raise
+
+    @property
+    def pid(self) -> int:
+        return self._process.pid
+
+    @property
+    def running(self) -> bool:
+        return self._process.poll() is None
+
+    def log_tail(self, limit: int = 2000) -> str:
+        try:
+            with open(self._log_path, "rb") as log:
+                return log.read()[-limit:].decode(errors="replace")
+        except OSError:
+            return ""
+
+    def _wait_for_port(self, port_file: str, timeout_s: float) -> int:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self._process.poll() is not None:
+                raise MLLError(
+                    grpc.StatusCode.UNAVAILABLE,
+                    f"{' '.join(self.args)} exited with status {self._process.returncode} before "
+                    f"serving; its output: {self.log_tail()!r}",
+                )
+            try:
+                text = pathlib.Path(port_file).read_text().strip()
+                if text and int(text) > 0:
+                    return int(text)
+            except (OSError, ValueError):
+                pass  # Not written yet, or written partially.
+            time.sleep(0.005)
+        raise MLLError(
+            grpc.StatusCode.UNAVAILABLE,
+            f"{' '.join(self.args)} wrote no port to {port_file} within {timeout_s} s; "
+            f"its output: {self.log_tail()!r}",
+        )
+
+    def stop(self) -> None:
+        """SIGTERM, wait (SIGKILL after the grace period); idempotent."""
+        self._finalizer()
+
+    def __enter__(self) -> "ServerProcess":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+class _SharedServer:
+    """The process-wide embedded server and its reference count."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._server: ServerProcess | None = None
+        self._leases = 0
+
+    def acquire(self) -> "Lease":
+        with self._lock:
+            if self._server is None or not self._server.running:
+                self._server = ServerProcess()
+            self._leases += 1
+            return Lease(self, self._server.address)
+
+    def release(self) -> None:
+        with self._lock:
+            self._leases -= 1
+            if self._leases == 0 and self._server is not None:
+                self._server.stop()
+                self._server = None
+
+    @property
+    def server(self) -> ServerProcess | None:
+        return self._server
+
+
+class Lease:
+    """One user's share of the embedded server; `release()` is idempotent."""
+
+    def __init__(self, owner: _SharedServer, address: str):
+        self.address = address
+        self._owner = owner
+        self._released = False
+
+    def release(self) -> None:
+        if not self._released:
+            self._released = True
+            self._owner.release()
+
+
+_SHARED = _SharedServer()
+
+
+def acquire_embedded() -> Lease:
+    """A lease on this process's embedded server, starting it if needed."""
+    return _SHARED.acquire()
+
+
+def embedded_server() -> ServerProcess | None:
+    """The running embedded server, if any (for tests and diagnostics)."""
+    return _SHARED.server

@@ -1,0 +1,80 @@
+"""The PettingZoo parallel environment: one StepEnv call per step."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from pettingzoo import ParallelEnv
+
+from . import _arrays
+from ._base import RemoteEnvBase
+from ._errors import invalid_argument
+from ._remote import action_array, agent_info, seed_value
+from ._stubs import pb
+
+
+def decode_step(data: "pb.StepData", names: list[str]):
+    """(observations, rewards, terminations, truncations, infos) dicts of the agents stepped."""
+    observations = _arrays.to_numpy(data.observations)
+    rewards = _arrays.to_numpy(data.rewards).tolist()
+    terminations = _arrays.to_numpy(data.terminations).astype(bool).tolist()
+    truncations = _arrays.to_numpy(data.truncations).astype(bool).tolist()
+    stepped = np.flatnonzero(_arrays.to_numpy(data.stepped)).tolist()
+    outcomes = _arrays.to_numpy(data.outcomes).tolist()
+    returns = _arrays.to_numpy(data.episode_returns).tolist()
+    lengths = _arrays.to_numpy(data.episode_lengths).tolist()
+    return (
+        {names[i]: observations[i] for i in stepped},
+        {names[i]: rewards[i] for i in stepped},
+        {names[i]: terminations[i] for i in stepped},
+        {names[i]: truncations[i] for i in stepped},
+        {
+            names[i]: agent_info(outcomes[i], terminations[i] or truncations[i], returns[i], lengths[i])
+            for i in stepped
+        },
+    )
+
+
+class MultiLunarLanderParallelEnv(RemoteEnvBase, ParallelEnv):
+    """All active landers act at once. Spaces, options and infos as in MultiLunarLanderEnv.
+
+    step(actions) needs an action for every agent in `agents`; it returns dicts over those
+    agents, and afterwards `agents` is the previous list minus the agents just terminated or
+    truncated.
+    """
+
+    def __init__(self, address: str | None = None, render_mode: str | None = None, **options: Any):
+        self._open(address, render_mode, options)
+        self.agents: list[str] = []
+        n = len(self.possible_agents)
+        self._actions = np.zeros((n, 2) if self.continuous else (n,), np.float32 if self.continuous else np.int32)
+
+    def reset(self, seed: int | None = None, options: dict | None = None):
+        request = pb.ResetEnvRequest(name=self._name)
+        seed = seed_value(seed)
+        if seed is not None:
+            request.seed = seed
+        data = self._connection.call("ResetEnv", request).data
+        observations, _, _, _, infos = decode_step(data, self.possible_agents)
+        self.agents = list(self.possible_agents)
+        self._show_if_human()
+        return observations, infos
+
+    def step(self, actions: dict):
+        missing = [agent for agent in self.agents if agent not in actions]
+        if missing:
+            raise invalid_argument(f"actions has no entry for active agent(s) {missing}")
+        self._actions.fill(0)
+        for agent in self.agents:
+            self._actions[self._agent_index[agent]] = action_array(
+                actions[agent], self.continuous, (), f"the action of {agent}"
+            )
+        request = pb.StepEnvRequest(name=self._name)
+        _arrays.to_proto(self._actions, pb.DTYPE_FLOAT32 if self.continuous else pb.DTYPE_INT32, request.actions)
+        data = self._connection.call("StepEnv", request).data
+        result = decode_step(data, self.possible_agents)
+        terminations, truncations = result[2], result[3]
+        self.agents = [a for a in self.agents if not (terminations.get(a) or truncations.get(a))]
+        self._show_if_human()
+        return result
