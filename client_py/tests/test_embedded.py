@@ -1,0 +1,98 @@
+"""The embedded default (address=None): one shared, reference-counted server per process that
+stops with its last user, at interpreter exit, and with a killed parent."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import grpc
+import pytest
+
+import multi_lunar_lander as mll
+from multi_lunar_lander import _server
+
+
+def _gone(pid, timeout_s=10.0):
+    """True once `pid` no longer exists (reaped or never our child)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return True
+        with open(f"/proc/{pid}/stat") as stat:  # A zombie still answers kill(0).
+            if stat.read().split(") ")[-1].startswith("Z"):
+                return False
+        time.sleep(0.02)
+    return False
+
+
+def test_shared_server_starts_with_the_first_env_and_stops_with_the_last():
+    assert mll.embedded_server() is None
+    first = mll.env(n_landers=1)
+    server = mll.embedded_server()
+    assert server is not None and server.running
+    second = mll.parallel_env(continuous=True)
+    assert mll.embedded_server() is server and second.address == first.address == server.address
+    second.reset(seed=1)
+    first.close()
+    assert server.running  # Still leased by `second`.
+    second.close()
+    assert not server.running and mll.embedded_server() is None
+    assert _gone(server.pid)
+
+
+def test_garbage_collected_env_releases_the_server():
+    env = mll.parallel_env()
+    server = mll.embedded_server()
+    del env
+    import gc
+
+    gc.collect()
+    assert not server.running and mll.embedded_server() is None
+
+
+_CHILD = """
+import multi_lunar_lander as mll, os, sys, time
+env = mll.parallel_env()
+env.reset(seed=0)
+print(mll.embedded_server().pid, flush=True)
+if sys.argv[1] == "hang":
+    time.sleep(60)
+"""
+
+
+def test_no_server_left_after_interpreter_exit_without_close():
+    child = subprocess.run(
+        [sys.executable, "-c", _CHILD, "exit"], capture_output=True, text=True, timeout=60, check=True
+    )
+    assert _gone(int(child.stdout.split()[0]))
+
+
+def test_no_server_left_after_the_parent_is_killed():
+    child = subprocess.Popen([sys.executable, "-c", _CHILD, "hang"], stdout=subprocess.PIPE, text=True)
+    try:
+        server_pid = int(child.stdout.readline())
+        os.kill(server_pid, 0)  # Running.
+        child.send_signal(signal.SIGKILL)
+        child.wait(timeout=10)
+        assert _gone(server_pid)
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+
+
+def test_missing_binary_names_every_path_tried(monkeypatch, tmp_path):
+    monkeypatch.setenv("MLL_SERVER_BIN", str(tmp_path / "no_such_server"))
+    monkeypatch.setenv("PATH", str(tmp_path))
+    monkeypatch.setattr(_server, "_REPO_BUILD_BIN", tmp_path / "build" / "mll_server")
+    with pytest.raises(mll.MLLError) as caught:
+        mll.env()
+    message = caught.value.message
+    assert caught.value.code == grpc.StatusCode.UNAVAILABLE
+    assert str(tmp_path / "no_such_server") in message and str(tmp_path / "build" / "mll_server") in message
+    assert "MLL_SERVER_BIN" in message and "address=" in message
+    assert mll.embedded_server() is None
