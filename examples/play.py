@@ -1,0 +1,75 @@
+#!/usr/bin/env python3
+"""Flies Multi Lunar Landers with Gymnasium's heuristic pilot: in a pygame window (default),
+or into an animated GIF (--gif out.gif, written with Pillow).
+
+    .venv/bin/python examples/play.py --n_landers 3 --episodes 2
+    .venv/bin/python examples/play.py --n_landers 5 --continuous --gif out/landers.gif
+
+Without --address an embedded mll_server is started (MLL_SERVER_BIN, PATH or build/).
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+
+import multi_lunar_lander as mll
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--n_landers", type=int, default=3)
+    parser.add_argument("--continuous", action="store_true")
+    parser.add_argument("--enable_wind", action="store_true")
+    parser.add_argument("--episodes", type=int, default=1)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--max_cycles", type=int, default=500)
+    parser.add_argument("--address", default=None, help="host:port of a running mll_server")
+    parser.add_argument("--gif", type=pathlib.Path, help="write an animated GIF here instead of opening a window")
+    parser.add_argument("--frame_skip", type=int, default=2, help="GIF: keep every k-th frame (default 2)")
+    args = parser.parse_args(argv)
+    if args.frame_skip < 1:
+        parser.error(f"--frame_skip is {args.frame_skip}; must be >= 1")
+
+    env = mll.parallel_env(
+        address=args.address,
+        render_mode="rgb_array" if args.gif else "human",
+        n_landers=args.n_landers,
+        continuous=args.continuous,
+        enable_wind=args.enable_wind,
+        max_cycles=args.max_cycles,
+    )
+    frames = []
+    try:
+        for episode in range(args.episodes):
+            observations, _ = env.reset(seed=args.seed + episode)
+            step, returns, outcomes = 0, dict.fromkeys(env.possible_agents, 0.0), {}
+            while env.agents:
+                if args.gif and step % args.frame_skip == 0:
+                    frames.append(env.render())
+                actions = {agent: mll.heuristic(observations[agent], args.continuous) for agent in env.agents}
+                observations, rewards, _, _, infos = env.step(actions)
+                for agent, reward in rewards.items():
+                    returns[agent] += reward
+                    if "outcome" in infos[agent]:
+                        outcomes[agent] = infos[agent]["outcome"]
+                step += 1
+            summary = ", ".join(f"{agent} {outcomes.get(agent)} {returns[agent]:.1f}" for agent in env.possible_agents)
+            print(f"episode {episode} (seed {args.seed + episode}): {step} steps; {summary}")
+    finally:
+        env.close()
+
+    if args.gif:
+        from PIL import Image
+
+        args.gif.parent.mkdir(parents=True, exist_ok=True)
+        images = [Image.fromarray(frame) for frame in frames]
+        frame_ms = round(1000 * args.frame_skip / env.metadata["render_fps"])
+        images[0].save(args.gif, save_all=True, append_images=images[1:], duration=frame_ms, loop=0, optimize=False)
+        print(f"wrote {args.gif} ({len(images)} frames, {frame_ms} ms each)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
