@@ -1,0 +1,141 @@
+"""Command line: train, evaluate, plot, gif.
+
+  python -m mll_dqn train --preset fast --out runs/fast
+  python -m mll_dqn train --preset paper --out runs/paper --resume
+  python -m mll_dqn evaluate --checkpoint runs/fast/checkpoint.pt
+  python -m mll_dqn evaluate --policy heuristic
+  python -m mll_dqn plot runs/fast/episodes.csv --out fig.png
+  python -m mll_dqn gif --checkpoint runs/fast/checkpoint.pt --out fast.gif
+
+Every command takes --address host:port; without it the client starts an
+embedded server for the run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+
+from mll_dqn.config import PAPER_ENV_CONFIG, PRESETS, TrainConfig, preset
+
+# Fields of TrainConfig that are not plain scalars, set by other means.
+_NOT_FLAGS = ("env_config", "hidden")
+
+
+def _parse_bool(text: str) -> bool:
+    if text.lower() in ("1", "true", "yes", "on"):
+        return True
+    if text.lower() in ("0", "false", "no", "off"):
+        return False
+    raise argparse.ArgumentTypeError(
+        f"{text!r} is not a boolean; allowed: true/false")
+
+
+def _add_config_flags(parser: argparse.ArgumentParser) -> None:
+    """One --flag per scalar TrainConfig field, overriding the preset."""
+    defaults = TrainConfig()
+    for field in dataclasses.fields(TrainConfig):
+        if field.name in _NOT_FLAGS:
+            continue
+        default = getattr(defaults, field.name)
+        kind = {bool: _parse_bool, int: int, float: float,
+                str: str}.get(type(default), int)
+        parser.add_argument("--" + field.name.replace("_", "-"),
+                            dest=field.name, type=kind, default=None,
+                            help=f"overrides the preset (paper: {default})")
+
+
+def _config_from_args(args) -> TrainConfig:
+    config = preset(args.preset)
+    overrides = {f.name: getattr(args, f.name)
+                 for f in dataclasses.fields(TrainConfig)
+                 if f.name not in _NOT_FLAGS
+                 and getattr(args, f.name) is not None}
+    return dataclasses.replace(config, **overrides)
+
+
+def _policy(args):
+    """(policy, env_config) for evaluate and gif."""
+    from mll_dqn import evaluate
+    if args.checkpoint:
+        policy, config = evaluate.load_policy(args.checkpoint)
+        return policy, config.env_config
+    if args.policy == "heuristic":
+        return evaluate.heuristic_policy, dict(PAPER_ENV_CONFIG)
+    if args.policy == "random":
+        return evaluate.random_policy(args.seed), dict(PAPER_ENV_CONFIG)
+    raise SystemExit("give --checkpoint PATH or --policy heuristic|random")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m mll_dqn",
+                                     description=__doc__.split("\n")[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    train_cmd = commands.add_parser("train", help="train a shared DQN")
+    train_cmd.add_argument("--preset", default="paper", choices=sorted(PRESETS))
+    train_cmd.add_argument("--out", required=True, help="run directory")
+    train_cmd.add_argument("--resume", action="store_true",
+                           help="continue from OUT/checkpoint.pt")
+    train_cmd.add_argument("--no-progress", action="store_true",
+                           help="no tqdm bar")
+    _add_config_flags(train_cmd)
+
+    for name, help_text in (("evaluate", "greedy evaluation"),
+                            ("gif", "animated GIF of one episode")):
+        cmd = commands.add_parser(name, help=help_text)
+        cmd.add_argument("--checkpoint", help="a training checkpoint")
+        cmd.add_argument("--policy", choices=("heuristic", "random"),
+                         help="a baseline instead of a checkpoint")
+        cmd.add_argument("--seed", type=int, default=None,
+                         help="first episode's seed")
+    commands.choices["evaluate"].add_argument("--episodes", type=int,
+                                              default=100)
+    commands.choices["evaluate"].add_argument("--json",
+                                              help="also write results here")
+    commands.choices["gif"].add_argument("--out", required=True)
+
+    plot_cmd = commands.add_parser("plot", help="score per episode (figure 2)")
+    plot_cmd.add_argument("logs", nargs="+", help="episodes.csv files")
+    plot_cmd.add_argument("--labels", nargs="*")
+    plot_cmd.add_argument("--title", default="")
+    plot_cmd.add_argument("--out", required=True)
+
+    for cmd in commands.choices.values():
+        cmd.add_argument("--address", default=None,
+                         help="host:port of a server (default: embedded)")
+    args = parser.parse_args(argv)
+
+    if args.command == "train":
+        from mll_dqn.train import train
+        summary = train(_config_from_args(args), args.out, args.address,
+                        resume=args.resume, progress_bar=not args.no_progress)
+        summary.pop("config")
+        print(json.dumps(summary, indent=2))
+    elif args.command in ("evaluate", "gif"):
+        from mll_dqn import evaluate
+        from mll_dqn.train import use_one_thread
+        use_one_thread()
+        policy, env_config = _policy(args)
+        seed = evaluate.EVAL_SEED if args.seed is None else args.seed
+        if args.command == "evaluate":
+            result = evaluate.evaluate(policy, env_config, args.episodes,
+                                       args.address, seed)
+            if args.json:
+                with open(args.json, "w") as f:
+                    json.dump(result, f, indent=2)
+        else:
+            result = evaluate.save_gif(policy, env_config, args.out,
+                                       args.address, seed)
+        print(json.dumps(result, indent=2))
+    else:
+        from mll_dqn.plot import plot
+        plot(args.logs, args.out, args.labels, args.title)
+        print(args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,6 @@
+"""Makes the mll_dqn package importable from examples/dqn."""
+
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))

@@ -1,0 +1,109 @@
+"""The shared Q-network's learning step and the config's validation."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from mll_dqn.agent import DQNAgent
+from mll_dqn.config import TrainConfig, preset
+from mll_dqn.train import epsilon_after
+
+
+def _batch(rng, size=64):
+    return (rng.normal(size=(size, 12)).astype(np.float32),
+            rng.integers(0, 4, size), rng.normal(size=size).astype(np.float32),
+            rng.normal(size=(size, 12)).astype(np.float32),
+            np.where(rng.random(size) < 0.1, 0.0, 0.99).astype(np.float32))
+
+
+def test_network_shape_is_the_papers():
+    agent = DQNAgent(preset("paper"))
+    shapes = [tuple(p.shape) for p in agent.online.parameters()]
+    assert shapes == [(256, 12), (256,), (64, 256), (64,), (4, 64), (4,)]
+
+
+@pytest.mark.parametrize("double_dqn,loss", [(False, "mse"), (True, "huber")])
+def test_learning_fits_a_fixed_batch(double_dqn, loss):
+    torch.set_num_threads(1)
+    config = dataclasses.replace(preset("paper"), double_dqn=double_dqn,
+                                 loss=loss, lr=1e-3)
+    agent = DQNAgent(config)
+    batch = _batch(np.random.default_rng(0))
+    first = agent.learn(batch)
+    for _ in range(300):
+        last = agent.learn(batch)
+    assert last < 0.2 * first
+    assert agent.updates == 301
+
+
+def test_target_network_follows_by_soft_updates():
+    config = dataclasses.replace(preset("paper"), tau=0.25)
+    agent = DQNAgent(config)
+    before = [p.clone() for p in agent.target.parameters()]
+    agent.learn(_batch(np.random.default_rng(1)))
+    for old, target, online in zip(before, agent.target.parameters(),
+                                   agent.online.parameters()):
+        torch.testing.assert_close(target, 0.75 * old + 0.25 * online)
+
+
+def test_double_dqn_target_uses_online_argmax():
+    """With a frozen online net, one step's target must be
+    r + d * Q_target(s', argmax_a Q_online(s', a))."""
+    config = dataclasses.replace(preset("paper"), double_dqn=True, lr=1e-12)
+    agent = DQNAgent(config)
+    # Make the two networks differ.
+    with torch.no_grad():
+        for p in agent.target.parameters():
+            p.mul_(-1.5)
+    obs, actions, rewards, next_obs, discounts = _batch(
+        np.random.default_rng(2), 8)
+    with torch.no_grad():
+        best = agent.online(torch.from_numpy(next_obs)).argmax(1)
+        value = agent.target(torch.from_numpy(next_obs))[torch.arange(8), best]
+        want = torch.from_numpy(rewards) + torch.from_numpy(discounts) * value
+        q = agent.online(torch.from_numpy(obs))[torch.arange(8),
+                                                torch.from_numpy(actions)]
+        want_loss = torch.nn.functional.mse_loss(q, want)
+    loss = agent.learn((obs, actions, rewards, next_obs, discounts))
+    assert loss == pytest.approx(float(want_loss), rel=1e-5)
+
+
+def test_epsilon_greedy_extremes():
+    agent = DQNAgent(preset("paper"))
+    rng = np.random.default_rng(3)
+    obs = rng.normal(size=(500, 12)).astype(np.float32)
+    np.testing.assert_array_equal(agent.act(obs, 0.0, rng), agent.greedy(obs))
+    random_actions = agent.act(obs, 1.0, rng)
+    assert set(np.unique(random_actions)) == {0, 1, 2, 3}
+
+
+def test_epsilon_schedule_is_the_papers():
+    config = preset("paper")
+    assert epsilon_after(config, 0) == 1.0
+    assert epsilon_after(config, 100) == pytest.approx(0.995 ** 100)
+    assert epsilon_after(config, 1000) == 0.01
+
+
+def test_paper_preset_is_table_iv():
+    config = preset("paper")
+    assert (config.lr, config.buffer_size, config.batch_size, config.gamma,
+            config.tau, config.update_every, config.episodes) == (
+                5e-4, 100_000, 128, 0.99, 1e-3, 4, 1000)
+    assert config.hidden == (256, 64) and config.mode == "parallel"
+    assert not config.double_dqn and config.loss == "mse" and config.n_step == 1
+    assert config.env_config["max_cycles"] == 2000
+    assert config.env_config["successful_reward"] == 700
+
+
+@pytest.mark.parametrize("field,value,message", [
+    ("n_step", 0, "n_step = 0 is out of range; allowed: >= 1"),
+    ("mode", "async", "mode = 'async' is out of range; allowed: parallel or"),
+    ("gamma", 1.5, "gamma = 1.5 is out of range; allowed: [0, 1]"),
+])
+def test_bad_config_names_field_value_and_range(field, value, message):
+    config = dataclasses.replace(TrainConfig(), **{field: value})
+    with pytest.raises(ValueError) as error:
+        config.validate()
+    assert message in str(error.value)

@@ -1,0 +1,103 @@
+"""The quick preset end to end against the real embedded server
+(MLL_SERVER_BIN, set by scripts/test.sh): training in both collection modes,
+resume, evaluation, GIF and plot."""
+
+import csv
+import dataclasses
+import json
+import os
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from mll_dqn import evaluate
+from mll_dqn.__main__ import main
+from mll_dqn.config import preset
+from mll_dqn.train import CHECKPOINT, LOG, SUMMARY, train
+
+OUTCOME_NAMES = {"landed", "crashed", "out_of_bounds", "truncated", "aborted"}
+
+
+def _rows(run_dir):
+    with open(os.path.join(run_dir, LOG), newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _check_log(rows, config):
+    n = config.env_config["n_landers"]
+    assert [int(r["episode"]) for r in rows] == list(range(1, len(rows) + 1))
+    for r in rows:
+        returns = [float(r[f"return_{i}"]) for i in range(n)]
+        assert float(r["score"]) == pytest.approx(sum(returns), abs=0.01)
+        assert {r[f"outcome_{i}"] for i in range(n)} <= OUTCOME_NAMES
+        assert 1 <= int(r["steps"]) <= config.env_config["max_cycles"]
+    assert int(rows[-1]["updates"]) > 0
+    env_steps = [int(r["env_steps"]) for r in rows]
+    assert env_steps == sorted(env_steps)
+
+
+@pytest.mark.parametrize("mode", ["parallel", "vector"])
+def test_quick_training_logs_and_checkpoints(tmp_path, mode):
+    config = preset("quick")
+    if mode == "vector":
+        config = dataclasses.replace(config, mode="vector", num_envs=3,
+                                     n_step=3, double_dqn=True, loss="huber")
+    summary = train(config, str(tmp_path), progress_bar=False)
+    rows = _rows(tmp_path)
+    assert len(rows) == config.episodes
+    _check_log(rows, config)
+    assert os.path.exists(tmp_path / CHECKPOINT)
+    saved = json.loads((tmp_path / SUMMARY).read_text())
+    assert saved["episodes"] == config.episodes
+    assert summary["updates"] == int(rows[-1]["updates"]) or mode == "vector"
+    assert summary["env_steps"] >= int(rows[-1]["env_steps"])
+    split = summary["time_split_s"]
+    assert {"env", "act", "sample", "learn"} <= set(split)
+
+
+def test_same_seed_same_scores(tmp_path):
+    config = dataclasses.replace(preset("quick"), episodes=3)
+    train(config, str(tmp_path / "a"), progress_bar=False)
+    train(config, str(tmp_path / "b"), progress_bar=False)
+    scores = [[r["score"] for r in _rows(tmp_path / d)] for d in "ab"]
+    assert scores[0] == scores[1]
+
+
+def test_resume_continues_the_run(tmp_path):
+    short = dataclasses.replace(preset("quick"), episodes=3)
+    first = train(short, str(tmp_path), progress_bar=False)
+    longer = dataclasses.replace(short, episodes=6)
+    second = train(longer, str(tmp_path), resume=True, progress_bar=False)
+    rows = _rows(tmp_path)
+    assert len(rows) == 6
+    _check_log(rows, longer)
+    assert second["updates"] > first["updates"]
+    assert second["env_steps"] > first["env_steps"]
+    changed = dataclasses.replace(longer, lr=1e-3)
+    with pytest.raises(ValueError, match=r"other values of \['lr'\]"):
+        train(changed, str(tmp_path), resume=True, progress_bar=False)
+
+
+def test_command_line_evaluate_gif_and_plot(tmp_path, capsys):
+    run = tmp_path / "run"
+    assert main(["train", "--preset", "quick", "--episodes", "2", "--out",
+                 str(run), "--no-progress"]) == 0
+    policy, config = evaluate.load_policy(str(run / CHECKPOINT))
+    result = evaluate.evaluate(policy, config.env_config, episodes=2)
+    assert result["episodes"] == 2
+    rates = (result["landing_rate"] + result["crash_rate"]
+             + result["out_of_bounds_rate"] + result["truncated_rate"])
+    assert rates == pytest.approx(1.0)
+    heuristic = evaluate.evaluate(evaluate.heuristic_policy,
+                                  config.env_config, episodes=2)
+    assert np.isfinite(heuristic["mean_score"])
+    gif = tmp_path / "episode.gif"
+    info = evaluate.save_gif(policy, config.env_config, str(gif))
+    with Image.open(gif) as image:
+        assert image.size == (600, 400)
+        assert image.n_frames == info["frames"] > 1
+    png = tmp_path / "fig.png"
+    capsys.readouterr()
+    assert main(["plot", str(run / LOG), "--out", str(png)]) == 0
+    assert png.stat().st_size > 1000
