@@ -1,0 +1,122 @@
+// The in-process floor of bench/python/bench_client.py: steps --envs
+// environments of --n_landers landers with the core alone on --threads
+// threads, with uniformly random actions, resetting an environment on the step
+// after its episode ended (what the server's auto_reset does), and prints
+// agent-steps per second as one JSON line. Bounded by --steps and --seconds.
+//
+// The client benchmark compares the Python vector env against this figure
+// measured in the same run, on the same machine and load.
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cstdint>
+#include <cstdio>
+#include <memory>
+#include <optional>
+#include <random>
+#include <thread>
+#include <vector>
+
+#include "absl/flags/flag.h"
+#include "absl/flags/parse.h"
+#include "absl/status/status.h"
+#include "mll/core/env.h"
+#include "mll/core/env_config.h"
+
+ABSL_FLAG(int, envs, 64, "Environments, >= 1.");
+ABSL_FLAG(int, n_landers, 3, "Landers per environment, 1..32.");
+ABSL_FLAG(int, threads, 2, "Worker threads; environments are split evenly.");
+ABSL_FLAG(int, steps, 2000, "Steps per environment at most.");
+ABSL_FLAG(double, seconds, 20.0, "Wall-time bound in seconds.");
+ABSL_FLAG(uint64_t, seed, 0, "Env i is first reset with seed + i.");
+
+namespace mll {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+struct Slot {
+  std::unique_ptr<Env> env;
+  StepResult result;
+  std::vector<int32_t> actions;
+};
+
+// Steps `slots` until `steps` or `deadline`; returns the agent-steps taken.
+int64_t StepSlots(std::vector<Slot*> slots, int steps, Clock::time_point deadline,
+                  uint64_t seed) {
+  std::mt19937_64 rng(seed);
+  int64_t agent_steps = 0;
+  for (int step = 0; step < steps && Clock::now() < deadline; ++step) {
+    for (Slot* slot : slots) {
+      if (slot->env->episode_over()) {
+        slot->env->Reset(std::nullopt, &slot->result);
+        continue;
+      }
+      for (int32_t& action : slot->actions) {
+        action = static_cast<int32_t>(rng() % kDiscreteActionCount);
+      }
+      ActionsView view;
+      view.discrete = slot->actions;
+      absl::Status status = slot->env->Step(view, &slot->result);
+      if (!status.ok()) {
+        std::fprintf(stderr, "step failed: %s\n", status.ToString().c_str());
+        std::exit(1);
+      }
+      agent_steps += std::count(slot->result.stepped.begin(),
+                                slot->result.stepped.end(), 1);
+    }
+  }
+  return agent_steps;
+}
+
+int Run() {
+  const int envs = absl::GetFlag(FLAGS_envs);
+  const int threads = std::max(1, absl::GetFlag(FLAGS_threads));
+  EnvConfig config;
+  config.n_landers = absl::GetFlag(FLAGS_n_landers);
+  std::vector<Slot> slots(std::max(envs, 0));
+  for (int i = 0; i < envs; ++i) {
+    absl::StatusOr<std::unique_ptr<Env>> env = Env::Create(config);
+    if (!env.ok()) {
+      std::fprintf(stderr, "%s\n", env.status().ToString().c_str());
+      return 2;
+    }
+    slots[i].env = *std::move(env);
+    slots[i].actions.assign(config.n_landers, 0);
+    slots[i].env->Reset(absl::GetFlag(FLAGS_seed) + i, &slots[i].result);
+  }
+  std::vector<std::vector<Slot*>> shards(threads);
+  for (int i = 0; i < envs; ++i) shards[i % threads].push_back(&slots[i]);
+
+  const auto start = Clock::now();
+  const auto deadline =
+      start + std::chrono::duration_cast<Clock::duration>(
+                  std::chrono::duration<double>(absl::GetFlag(FLAGS_seconds)));
+  std::vector<int64_t> counts(threads, 0);
+  std::vector<std::thread> workers;
+  for (int t = 0; t < threads; ++t) {
+    workers.emplace_back([&, t] {
+      counts[t] = StepSlots(shards[t], absl::GetFlag(FLAGS_steps), deadline,
+                            absl::GetFlag(FLAGS_seed) + 1000 + t);
+    });
+  }
+  for (std::thread& worker : workers) worker.join();
+  const double seconds =
+      std::chrono::duration<double>(Clock::now() - start).count();
+  int64_t agent_steps = 0;
+  for (int64_t count : counts) agent_steps += count;
+  std::printf(
+      "{\"envs\": %d, \"n_landers\": %d, \"threads\": %d, \"agent_steps\": %lld, "
+      "\"seconds\": %.6f, \"agent_steps_per_s\": %.1f}\n",
+      envs, config.n_landers, threads, static_cast<long long>(agent_steps),
+      seconds, agent_steps / seconds);
+  return 0;
+}
+
+}  // namespace
+}  // namespace mll
+
+int main(int argc, char** argv) {
+  absl::ParseCommandLine(argc, argv);
+  return mll::Run();
+}
