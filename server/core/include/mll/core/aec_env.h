@@ -48,10 +48,27 @@ class AecEnv {
   const Env& env() const;
 
  private:
-  // ... bookkeeping members, see aec_env.cc.
+  // pettingzoo.AECEnv's helpers, same names, same behaviour.
+  void WasDeadStep();
+  void DeadsStepFirst();
+  void ClearRewards();
+  void AccumulateRewards();
+  // pettingzoo.utils.AgentSelector: reinit(order) and next().
+  void SelectorReinit(std::vector<int> order);
+  int SelectorNext();
+
   Env* env_;
   std::vector<int> agents_;
   int agent_selection_ = -1;
+  // PettingZoo's _skip_agent_selection (-1 for None): the live agent to
+  // resume with once the dead agents have taken their dead steps.
+  int skip_agent_selection_ = -1;
+  // AgentSelector state: the live agents of the current cycle, the index of
+  // the next one and the one last returned.
+  std::vector<int> selector_order_;
+  int selector_current_ = 0;
+  int selector_selected_ = -1;
+  // Indexed by agent; entries of agents not in agents_ are stale.
   std::vector<float> rewards_;
   std::vector<float> cumulative_rewards_;
   std::vector<uint8_t> terminations_;

@@ -139,6 +139,16 @@ class Env {
   // and removes the expired ones. No-op without a render mode.
   void AgeParticlesForFrame();
 
+  // Test-only hook: places an agent still in the world (active or a wreck)
+  // at body position (x, y) m, angle rad, with linear velocity (vx, vy) m/s
+  // and angular velocity omega rad/s; its legs move rigidly with the body.
+  // Lets tests set up exact contact scenarios. Changes no rule and draws no
+  // random number. FAILED_PRECONDITION before Reset or when the agent's
+  // bodies are gone; INVALID_ARGUMENT for a bad index or non-finite value.
+  absl::Status SetLanderStateForTest(int agent, double x, double y,
+                                     double angle, double vx, double vy,
+                                     double omega);
+
  private:
   class Impl;
   explicit Env(std::unique_ptr<Impl> impl);
