@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numbers
 import weakref
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import grpc
 import numpy as np
@@ -103,15 +103,40 @@ def seed_value(seed) -> int | None:
     return int(seed)
 
 
-def agent_info(outcome: int, done: bool, episode_return: float, episode_length: int) -> dict:
-    """infos[agent]: "outcome" once decided; "episode_return"/"episode_length" when done."""
-    info: dict[str, Any] = {}
-    if outcome:
-        info["outcome"] = OUTCOMES[outcome] if outcome < len(OUTCOMES) else f"outcome_{outcome}"
-    if done:
-        info["episode_return"] = float(episode_return)
-        info["episode_length"] = int(episode_length)
-    return info
+class Columns(NamedTuple):
+    """The per-agent columns that StepData and AecState share, decoded: observations as a
+    float32 [n, 12] array, the rest as Python lists indexed by agent."""
+
+    observations: np.ndarray
+    rewards: list
+    terminations: list
+    truncations: list
+    outcomes: list
+    episode_returns: list
+    episode_lengths: list
+
+    @classmethod
+    def decode(cls, message) -> "Columns":
+        return cls(
+            _arrays.to_numpy(message.observations),
+            _arrays.to_numpy(message.rewards).tolist(),
+            _arrays.to_numpy(message.terminations).astype(bool).tolist(),
+            _arrays.to_numpy(message.truncations).astype(bool).tolist(),
+            _arrays.to_numpy(message.outcomes).tolist(),
+            _arrays.to_numpy(message.episode_returns).tolist(),
+            _arrays.to_numpy(message.episode_lengths).tolist(),
+        )
+
+    def info(self, i: int) -> dict:
+        """infos[agent i]: "outcome" once decided; "episode_return"/"episode_length" when done."""
+        info: dict[str, Any] = {}
+        outcome = self.outcomes[i]
+        if outcome:
+            info["outcome"] = OUTCOMES[outcome] if outcome < len(OUTCOMES) else f"outcome_{outcome}"
+        if self.terminations[i] or self.truncations[i]:
+            info["episode_return"] = float(self.episode_returns[i])
+            info["episode_length"] = int(self.episode_lengths[i])
+        return info
 
 
 def action_array(actions, continuous: bool, shape_prefix: tuple[int, ...], what: str) -> np.ndarray:

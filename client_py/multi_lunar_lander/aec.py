@@ -14,7 +14,7 @@ from pettingzoo import AECEnv
 
 from . import _arrays
 from ._base import RemoteEnvBase
-from ._remote import agent_info, encode_agent_action, seed_value
+from ._remote import Columns, encode_agent_action, seed_value
 from ._stubs import pb
 
 
@@ -63,24 +63,16 @@ class MultiLunarLanderEnv(RemoteEnvBase, AECEnv):
 
     def _apply(self, aec: "pb.AecState") -> None:
         """Copies the server's AEC state into PettingZoo's attributes."""
-        self._observations = _arrays.to_numpy(aec.observations)
-        rewards = _arrays.to_numpy(aec.rewards).tolist()
-        cumulative = _arrays.to_numpy(aec.cumulative_rewards).tolist()
-        terminations = _arrays.to_numpy(aec.terminations).astype(bool).tolist()
-        truncations = _arrays.to_numpy(aec.truncations).astype(bool).tolist()
-        outcomes = _arrays.to_numpy(aec.outcomes).tolist()
-        returns = _arrays.to_numpy(aec.episode_returns).tolist()
-        lengths = _arrays.to_numpy(aec.episode_lengths).tolist()
+        columns = Columns.decode(aec)
+        self._observations = columns.observations
         names = self.possible_agents
         indices = list(aec.agents)
         self.agents = [names[i] for i in indices]
         if aec.agent_selection >= 0:
             self.agent_selection = names[aec.agent_selection]
-        self.rewards = {names[i]: rewards[i] for i in indices}
+        cumulative = _arrays.to_numpy(aec.cumulative_rewards).tolist()
+        self.rewards = {names[i]: columns.rewards[i] for i in indices}
         self._cumulative_rewards = {names[i]: cumulative[i] for i in indices}
-        self.terminations = {names[i]: terminations[i] for i in indices}
-        self.truncations = {names[i]: truncations[i] for i in indices}
-        self.infos = {
-            names[i]: agent_info(outcomes[i], terminations[i] or truncations[i], returns[i], lengths[i])
-            for i in indices
-        }
+        self.terminations = {names[i]: columns.terminations[i] for i in indices}
+        self.truncations = {names[i]: columns.truncations[i] for i in indices}
+        self.infos = {names[i]: columns.info(i) for i in indices}

@@ -10,29 +10,20 @@ from pettingzoo import ParallelEnv
 from . import _arrays
 from ._base import RemoteEnvBase
 from ._errors import invalid_argument
-from ._remote import action_array, agent_info, seed_value
+from ._remote import Columns, action_array, seed_value
 from ._stubs import pb
 
 
 def decode_step(data: "pb.StepData", names: list[str]):
     """(observations, rewards, terminations, truncations, infos) dicts of the agents stepped."""
-    observations = _arrays.to_numpy(data.observations)
-    rewards = _arrays.to_numpy(data.rewards).tolist()
-    terminations = _arrays.to_numpy(data.terminations).astype(bool).tolist()
-    truncations = _arrays.to_numpy(data.truncations).astype(bool).tolist()
+    columns = Columns.decode(data)
     stepped = np.flatnonzero(_arrays.to_numpy(data.stepped)).tolist()
-    outcomes = _arrays.to_numpy(data.outcomes).tolist()
-    returns = _arrays.to_numpy(data.episode_returns).tolist()
-    lengths = _arrays.to_numpy(data.episode_lengths).tolist()
     return (
-        {names[i]: observations[i] for i in stepped},
-        {names[i]: rewards[i] for i in stepped},
-        {names[i]: terminations[i] for i in stepped},
-        {names[i]: truncations[i] for i in stepped},
-        {
-            names[i]: agent_info(outcomes[i], terminations[i] or truncations[i], returns[i], lengths[i])
-            for i in stepped
-        },
+        {names[i]: columns.observations[i] for i in stepped},
+        {names[i]: columns.rewards[i] for i in stepped},
+        {names[i]: columns.terminations[i] for i in stepped},
+        {names[i]: columns.truncations[i] for i in stepped},
+        {names[i]: columns.info(i) for i in stepped},
     )
 
 
