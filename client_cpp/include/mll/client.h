@@ -1,0 +1,356 @@
+// C++ client of the Multi Lunar Lander server (proto/mll/v1).
+//
+// A `Client` is made from an address; it creates environments on the server
+// and hands back `RemoteEnv` handles, which delete their environment when
+// destroyed unless released. Every call has a unary form; `Client::
+// OpenSession()` returns a client whose calls travel over one bidirectional
+// `Session` stream instead (the lowest latency), with the same methods.
+//
+// Results are plain C++ types; no protobuf or gRPC type appears here. Errors
+// are absl::Status values carrying the server's canonical code and message
+// (INVALID_ARGUMENT, NOT_FOUND, FAILED_PRECONDITION, UNAVAILABLE, ...).
+//
+// Threading: a unary Client and its handles may be used from many threads
+// (one RemoteEnv at a time per env, as the server serialises each env anyway).
+// A session client serialises its calls on its one stream.
+//
+// Names do not clash with the core (mll::Env, mll::StepResult, mll::Outcome,
+// mll::Frame): a program may link both, as the equivalence test does.
+#ifndef MLL_CLIENT_H_
+#define MLL_CLIENT_H_
+
+#include <array>
+#include <chrono>
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "absl/strings/string_view.h"
+#include "absl/types/span.h"
+
+namespace mll {
+
+namespace client_internal {
+class Transport;
+}  // namespace client_internal
+
+// How the client reaches the server.
+struct ClientOptions {
+  // TLS instead of a plaintext channel.
+  bool use_tls = false;
+  // PEM root certificates for TLS; empty uses gRPC's default roots.
+  std::string tls_root_certificates;
+  // When non-empty, sent as `authorization: Bearer <token>` on every call
+  // (the server answers UNAUTHENTICATED when it wants one and this is wrong).
+  std::string token;
+  // Deadline of each unary call; zero means none. Session calls have none:
+  // the stream lives as long as the session.
+  std::chrono::milliseconds call_timeout{0};
+  // Largest message the client accepts (a batch of many 32-lander envs, or a
+  // raw frame, exceeds gRPC's 4 MB default).
+  int max_receive_message_bytes = 256 << 20;
+};
+
+// How a lander's episode ended (wire codes of StepData.outcomes).
+enum class LanderOutcome : uint8_t {
+  kNone = 0,
+  kLanded = 1,
+  kCrashed = 2,
+  kOutOfBounds = 3,
+  kTruncated = 4,
+  kAborted = 5,  // Terminated because another lander was damaged.
+};
+
+// "none", "landed", "crashed", "out_of_bounds", "truncated", "aborted".
+absl::string_view LanderOutcomeName(LanderOutcome outcome);
+
+// Element type of a space.
+enum class ElementType { kUnspecified = 0, kFloat32, kUint8, kInt32 };
+
+// A gymnasium space as the server describes it.
+struct SpaceSpec {
+  enum class Kind { kUnspecified = 0, kBox, kDiscrete };
+  Kind kind = Kind::kUnspecified;
+  ElementType dtype = ElementType::kUnspecified;
+  // Shape of one element (empty for Discrete).
+  std::vector<int> shape;
+  // Box bounds per element (may be infinite).
+  std::vector<double> low;
+  std::vector<double> high;
+  // Discrete: number of actions.
+  int64_t n = 0;
+};
+
+// Options of a new environment (shared/ENV_SPEC.md). An unset field takes the
+// server's default; the server validates every value (INVALID_ARGUMENT naming
+// the field, the value and the range).
+struct RemoteEnvConfig {
+  std::optional<int> n_landers;            // 1..32, default 3.
+  std::optional<bool> continuous;          // Default false (Discrete(4)).
+  std::optional<int> max_cycles;           // >= 1, default 500.
+  std::optional<double> gravity;           // (-12, 0), default -10.
+  std::optional<bool> enable_wind;         // Default false.
+  std::optional<double> wind_power;        // [0, 20], default 15.
+  std::optional<double> turbulence_power;  // [0, 2], default 1.5.
+  std::optional<bool> remove_on_damage;    // Default true.
+  std::optional<bool> terminate_on_damage;  // Default true.
+  std::optional<bool> shared_reward;       // Default true.
+  std::optional<double> damage_reward;     // Finite, default -100.
+  std::optional<double> successful_reward;  // Finite, default +100.
+  std::optional<double> terminate_reward;  // Finite, default -100.
+  // render_mode rgb_array (frames through Render) instead of none.
+  bool render_rgb_array = false;
+  // The step after an episode ends starts a new one instead of failing.
+  bool auto_reset = false;
+};
+
+// An environment's resource as the server reports it.
+struct EnvInfo {
+  // `envs/{id}`.
+  std::string name;
+  // Every field filled in by the server.
+  RemoteEnvConfig config;
+  // `lander_0` .. `lander_{n-1}`.
+  std::vector<std::string> possible_agents;
+  SpaceSpec observation_space;
+  SpaceSpec action_space;
+  int render_fps = 0;
+  bool episode_started = false;
+  bool episode_over = false;
+  int cycles = 0;
+  int64_t episodes = 0;
+  bool session_bound = false;
+  // The whole resource in protobuf's JSON mapping (field names as in the
+  // proto), for logs and tools such as mll_cli.
+  std::string json;
+
+  int n_landers() const { return config.n_landers.value_or(0); }
+  bool continuous() const { return config.continuous.value_or(false); }
+};
+
+inline constexpr int kRemoteObservationSize = 12;
+inline constexpr int kRemoteContinuousActionSize = 2;
+
+// The result of a reset or a parallel step, indexed by agent. Rows of agents
+// not stepped (done before this step) are zero.
+struct StepData {
+  int n_landers = 0;
+  // [n_landers * 12], row-major.
+  std::vector<float> observations;
+  std::vector<float> rewards;
+  std::vector<uint8_t> terminations;
+  std::vector<uint8_t> truncations;
+  // 1 when the agent was active at the start of the step (its row is valid).
+  std::vector<uint8_t> stepped;
+  std::vector<LanderOutcome> outcomes;
+  // Each agent's return and length so far in this episode.
+  std::vector<float> episode_returns;
+  std::vector<int32_t> episode_lengths;
+  bool episode_over = false;
+  // auto_reset: the actions were ignored; this is the new episode's start.
+  bool auto_reset = false;
+  // Steps taken in the current episode.
+  int cycles = 0;
+  // Reset only: the seed used when the reset reseeded.
+  std::optional<uint64_t> seed;
+
+  absl::Span<const float> observation(int agent) const {
+    return absl::MakeConstSpan(observations)
+        .subspan(static_cast<size_t>(agent) * kRemoteObservationSize,
+                 kRemoteObservationSize);
+  }
+  // Not terminated and not truncated.
+  bool active(int agent) const {
+    return !terminations[agent] && !truncations[agent];
+  }
+};
+
+// PettingZoo's last(): what agent_selection sees before it acts.
+struct AecTurn {
+  int agent = -1;
+  absl::Span<const float> observation;
+  float cumulative_reward = 0.0f;
+  bool termination = false;
+  bool truncation = false;
+  LanderOutcome outcome = LanderOutcome::kNone;
+  float episode_return = 0.0f;
+  int32_t episode_length = 0;
+  // A done agent must take a dead step (StepAgentDead).
+  bool done() const { return termination || truncation; }
+};
+
+// The state a pettingzoo.AECEnv exposes, after a reset or an AEC step.
+struct AecState {
+  int n_landers = 0;
+  // Agent indices still in the cycle (done ones until their dead step).
+  std::vector<int> agents;
+  // -1 when `agents` is empty.
+  int agent_selection = -1;
+  std::vector<float> observations;  // [n_landers * 12]
+  std::vector<float> rewards;
+  std::vector<float> cumulative_rewards;
+  std::vector<uint8_t> terminations;
+  std::vector<uint8_t> truncations;
+  std::vector<LanderOutcome> outcomes;
+  std::vector<float> episode_returns;
+  std::vector<int32_t> episode_lengths;
+  // The last live agent acted and the world stepped.
+  bool world_stepped = false;
+
+  absl::Span<const float> observation(int agent) const {
+    return absl::MakeConstSpan(observations)
+        .subspan(static_cast<size_t>(agent) * kRemoteObservationSize,
+                 kRemoteObservationSize);
+  }
+  // last() for `agent` (agent_selection by default); agent must be valid.
+  AecTurn Last(int agent) const;
+  AecTurn Last() const { return Last(agent_selection); }
+};
+
+// Encoding of a rendered frame.
+enum class FrameFormat { kRgb, kPng };
+
+// A rendered frame: raw RGB rows top to bottom ([height][width][3]) or PNG.
+struct RenderedFrame {
+  int width = 0;
+  int height = 0;
+  FrameFormat format = FrameFormat::kRgb;
+  std::string data;
+};
+
+// The actions of one parallel step, a view. Set exactly the member matching
+// the env's action space: `discrete` [n_landers] values 0..3, or `continuous`
+// [n_landers * 2] row-major [main, lateral]. Entries of done agents are
+// ignored by the server.
+struct Actions {
+  absl::Span<const int32_t> discrete;
+  absl::Span<const float> continuous;
+
+  static Actions Discrete(absl::Span<const int32_t> values) {
+    return {values, {}};
+  }
+  static Actions Continuous(absl::Span<const float> values) {
+    return {{}, values};
+  }
+};
+
+// A handle to one environment on the server. Move-only. When it owns its
+// environment, destroying it deletes the environment (errors are ignored
+// there; call Delete() to see them).
+class RemoteEnv {
+ public:
+  RemoteEnv(RemoteEnv&& other) noexcept;
+  RemoteEnv& operator=(RemoteEnv&& other) noexcept;
+  RemoteEnv(const RemoteEnv&) = delete;
+  RemoteEnv& operator=(const RemoteEnv&) = delete;
+  ~RemoteEnv();
+
+  const std::string& name() const { return info_.name; }
+  // The resource as of creation (or the last Refresh()).
+  const EnvInfo& info() const { return info_; }
+  int n_landers() const { return info_.n_landers(); }
+  bool continuous() const { return info_.continuous(); }
+  // Whether destruction deletes the environment.
+  bool owned() const { return owned_; }
+
+  // Starts an episode; `seed` reseeds, absent continues the generator's
+  // stream. Also starts the AEC view (aec()).
+  absl::StatusOr<StepData> Reset(std::optional<uint64_t> seed = std::nullopt);
+  // One parallel step.
+  absl::StatusOr<StepData> Step(const Actions& actions);
+
+  // AEC: the action of agent_selection (discrete or continuous), or a dead
+  // step for a done agent. The client also tells the server which agent it
+  // believes is agent_selection, so a stale view fails with
+  // FAILED_PRECONDITION instead of acting for the wrong lander.
+  absl::Status StepAgent(int32_t discrete_action);
+  absl::Status StepAgent(std::array<float, kRemoteContinuousActionSize> action);
+  absl::Status StepAgentDead();
+  // The AEC view after the latest Reset or StepAgent on this handle.
+  const AecState& aec() const { return aec_; }
+  // PettingZoo's last() for agent_selection; FAILED_PRECONDITION before the
+  // first Reset through this handle or when no agent is left.
+  absl::StatusOr<AecTurn> Last() const;
+
+  absl::StatusOr<RenderedFrame> Render(FrameFormat format = FrameFormat::kRgb);
+  // GetEnv: re-reads the resource (episode state) into info().
+  absl::StatusOr<EnvInfo> Refresh();
+  // Deletes the environment now; the handle is then empty.
+  absl::Status Delete();
+  // Gives up ownership: destruction will not delete. Returns the name.
+  std::string Release();
+
+ private:
+  friend class Client;
+  RemoteEnv(std::shared_ptr<client_internal::Transport> transport,
+            EnvInfo info, bool owned);
+  // The action of one AEC step: none (dead step), discrete or continuous.
+  struct AgentMove {
+    enum class Kind { kDead, kDiscrete, kContinuous };
+    Kind kind = Kind::kDead;
+    int32_t discrete = 0;
+    std::array<float, kRemoteContinuousActionSize> continuous = {0.0f, 0.0f};
+  };
+  absl::Status StepAgentImpl(const AgentMove& move);
+
+  std::shared_ptr<client_internal::Transport> transport_;
+  EnvInfo info_;
+  bool owned_ = false;
+  AecState aec_;
+};
+
+// One item of Client::StepBatch.
+struct BatchStep {
+  const RemoteEnv* env = nullptr;
+  Actions actions;
+};
+
+class Client {
+ public:
+  // A client for the server at `address` ("host:port"). Connects lazily: an
+  // unreachable server shows as UNAVAILABLE on the first call.
+  static absl::StatusOr<Client> Create(absl::string_view address,
+                                       const ClientOptions& options = {});
+
+  Client(Client&&) noexcept;
+  Client& operator=(Client&&) noexcept;
+  ~Client();
+
+  // A client with the same methods whose environment calls go over one
+  // Session stream. Environments it creates die with the stream (when the
+  // session client and all its handles are gone) unless created detached.
+  absl::StatusOr<Client> OpenSession() const;
+  bool is_session() const;
+
+  // grpc.health.v1 Check of `service` ("" is the whole server): OK when
+  // SERVING, UNAVAILABLE otherwise.
+  absl::Status CheckHealth(absl::string_view service = "") const;
+
+  // Creates an environment; the handle owns it. `detached` matters on a
+  // session only: the env outlives the stream.
+  absl::StatusOr<RemoteEnv> CreateEnv(const RemoteEnvConfig& config = {},
+                                       bool detached = false) const;
+  // A handle to an existing environment that does not own it.
+  absl::StatusOr<RemoteEnv> Attach(absl::string_view name) const;
+  absl::StatusOr<EnvInfo> GetEnv(absl::string_view name) const;
+  // Every environment, following the pages (always unary).
+  absl::StatusOr<std::vector<EnvInfo>> ListEnvs() const;
+  absl::Status DeleteEnv(absl::string_view name) const;
+  // One parallel step of many environments in one call. The outer status is
+  // the call's; each item has its own (errors of one env leave the others).
+  absl::StatusOr<std::vector<absl::StatusOr<StepData>>> StepBatch(
+      absl::Span<const BatchStep> steps) const;
+
+ private:
+  friend class RemoteEnv;
+  explicit Client(std::shared_ptr<client_internal::Transport> transport);
+  std::shared_ptr<client_internal::Transport> transport_;
+};
+
+}  // namespace mll
+
+#endif  // MLL_CLIENT_H_

@@ -1,0 +1,293 @@
+#include "transport.h"
+
+#include <future>
+#include <string>
+#include <utility>
+
+#include "absl/base/thread_annotations.h"
+#include "absl/strings/str_cat.h"
+#include "absl/synchronization/mutex.h"
+#include "google/protobuf/io/coded_stream.h"
+#include "google/protobuf/io/zero_copy_stream_impl_lite.h"
+#include "google/protobuf/wire_format_lite.h"
+#include "grpcpp/create_channel.h"
+#include "grpcpp/generic/generic_stub.h"
+#include "grpcpp/security/credentials.h"
+#include "grpcpp/support/byte_buffer.h"
+#include "grpcpp/support/channel_arguments.h"
+
+namespace mll {
+namespace client_internal {
+namespace {
+
+using ::google::protobuf::internal::WireFormatLite;
+
+constexpr char kHealthCheckMethod[] = "/grpc.health.v1.Health/Check";
+// grpc.health.v1.HealthCheckResponse.ServingStatus.SERVING.
+constexpr uint32_t kServing = 1;
+
+// grpc.health.v1 messages are encoded by hand (two fields), so the client
+// registers no second copy of health.proto in the process's descriptor pool,
+// which would abort a program that links a server beside the client.
+std::string EncodeHealthCheckRequest(absl::string_view service) {
+  std::string bytes;
+  {
+    google::protobuf::io::StringOutputStream output(&bytes);
+    google::protobuf::io::CodedOutputStream coded(&output);
+    if (!service.empty()) {
+      WireFormatLite::WriteString(1, std::string(service), &coded);
+    }
+  }
+  return bytes;
+}
+
+// The `status` field (1) of a HealthCheckResponse; 0 (UNKNOWN) if absent.
+absl::StatusOr<uint32_t> DecodeHealthStatus(const std::string& bytes) {
+  google::protobuf::io::CodedInputStream input(
+      reinterpret_cast<const uint8_t*>(bytes.data()),
+      static_cast<int>(bytes.size()));
+  uint32_t status = 0;
+  while (uint32_t tag = input.ReadTag()) {
+    const bool ok = WireFormatLite::GetTagFieldNumber(tag) == 1 &&
+                            WireFormatLite::GetTagWireType(tag) ==
+                                WireFormatLite::WIRETYPE_VARINT
+                        ? input.ReadVarint32(&status)
+                        : WireFormatLite::SkipField(&input, tag);
+    if (!ok) {
+      return absl::InternalError("malformed grpc.health.v1.HealthCheckResponse");
+    }
+  }
+  return status;
+}
+
+absl::string_view HealthStatusName(uint32_t status) {
+  switch (status) {
+    case 0:
+      return "UNKNOWN";
+    case 1:
+      return "SERVING";
+    case 2:
+      return "NOT_SERVING";
+    case 3:
+      return "SERVICE_UNKNOWN";
+    default:
+      return "unrecognised";
+  }
+}
+
+class UnaryTransport final : public Transport {
+ public:
+  using Transport::Transport;
+
+  absl::Status Call(v1::SessionRequest& request,
+                    v1::SessionResponse* response) override {
+    using Stub = v1::MultiLunarLander::Stub;
+    switch (request.op_case()) {
+      case v1::SessionRequest::kCreateEnv:
+        return Unary(&Stub::CreateEnv, request.create_env(),
+                     response->mutable_env());
+      case v1::SessionRequest::kGetEnv:
+        return Unary(&Stub::GetEnv, request.get_env(), response->mutable_env());
+      case v1::SessionRequest::kDeleteEnv:
+        return Unary(&Stub::DeleteEnv, request.delete_env(),
+                     response->mutable_delete_env());
+      case v1::SessionRequest::kResetEnv:
+        return Unary(&Stub::ResetEnv, request.reset_env(),
+                     response->mutable_reset_env());
+      case v1::SessionRequest::kStepEnv:
+        return Unary(&Stub::StepEnv, request.step_env(),
+                     response->mutable_step_env());
+      case v1::SessionRequest::kStepAgent:
+        return Unary(&Stub::StepAgent, request.step_agent(),
+                     response->mutable_step_agent());
+      case v1::SessionRequest::kStepBatch:
+        return Unary(&Stub::StepBatch, request.step_batch(),
+                     response->mutable_step_batch());
+      case v1::SessionRequest::kRenderEnv:
+        return Unary(&Stub::RenderEnv, request.render_env(),
+                     response->mutable_frame());
+      case v1::SessionRequest::OP_NOT_SET:
+        break;
+    }
+    return absl::InternalError("client bug: SessionRequest without an op");
+  }
+
+  bool is_session() const override { return false; }
+
+ private:
+  template <typename Request, typename Response>
+  absl::Status Unary(grpc::Status (v1::MultiLunarLander::Stub::*method)(
+                         grpc::ClientContext*, const Request&, Response*),
+                     const Request& request, Response* response) {
+    grpc::ClientContext context;
+    Prepare(&context, /*unary=*/true);
+    return FromGrpc((stub_.get()->*method)(&context, request, response));
+  }
+};
+
+// One Session stream; calls are serialised on it (a request, then its
+// response), which is what keeps responses in request order.
+class SessionTransport final : public Transport {
+ public:
+  SessionTransport(std::shared_ptr<grpc::Channel> channel,
+                   ClientOptions options)
+      : Transport(std::move(channel), std::move(options)) {
+    Prepare(&context_, /*unary=*/false);
+    stream_ = stub_->Session(&context_);
+  }
+
+  // Half-closes and waits for the server's end of stream: the server then
+  // destroys the session's environments before this returns.
+  ~SessionTransport() override {
+    absl::MutexLock lock(&mu_);
+    if (!finished_) {
+      stream_->WritesDone();
+      (void)FinishLocked();
+    }
+  }
+
+  absl::Status Call(v1::SessionRequest& request,
+                    v1::SessionResponse* response) override {
+    absl::MutexLock lock(&mu_);
+    if (finished_) return end_status_;
+    const uint64_t sequence = ++last_sequence_;
+    request.set_sequence(sequence);
+    if (!stream_->Write(request) || !stream_->Read(response)) {
+      return FinishLocked();
+    }
+    if (response->sequence() != sequence) {
+      return absl::InternalError(absl::StrCat(
+          "session response has sequence ", response->sequence(),
+          "; expected ", sequence));
+    }
+    if (response->has_error()) return FromItemError(response->error());
+    return absl::OkStatus();
+  }
+
+  bool is_session() const override { return true; }
+
+ private:
+  // The stream has ended: its final status, or UNAVAILABLE if the server
+  // closed it cleanly while a call was waiting.
+  absl::Status FinishLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_) {
+    finished_ = true;
+    end_status_ = FromGrpc(stream_->Finish());
+    if (end_status_.ok()) {
+      end_status_ = absl::UnavailableError("the server ended the session");
+    }
+    return end_status_;
+  }
+
+  absl::Mutex mu_;
+  grpc::ClientContext context_;
+  std::unique_ptr<
+      grpc::ClientReaderWriter<v1::SessionRequest, v1::SessionResponse>>
+      stream_;
+  uint64_t last_sequence_ ABSL_GUARDED_BY(mu_) = 0;
+  bool finished_ ABSL_GUARDED_BY(mu_) = false;
+  absl::Status end_status_ ABSL_GUARDED_BY(mu_);
+};
+
+}  // namespace
+
+absl::Status FromGrpc(const grpc::Status& status) {
+  return absl::Status(static_cast<absl::StatusCode>(status.error_code()),
+                      status.error_message());
+}
+
+absl::Status FromItemError(const v1::ItemError& error) {
+  if (error.code() == 0) {
+    return absl::InternalError(absl::StrCat(
+        "server reported an error with code OK: ", error.message()));
+  }
+  return absl::Status(static_cast<absl::StatusCode>(error.code()),
+                      error.message());
+}
+
+Transport::Transport(std::shared_ptr<grpc::Channel> channel,
+                     ClientOptions options)
+    : channel_(std::move(channel)),
+      options_(std::move(options)),
+      stub_(v1::MultiLunarLander::NewStub(channel_)) {}
+
+void Transport::Prepare(grpc::ClientContext* context, bool unary) const {
+  if (!options_.token.empty()) {
+    context->AddMetadata("authorization",
+                         absl::StrCat("Bearer ", options_.token));
+  }
+  if (unary && options_.call_timeout.count() > 0) {
+    context->set_deadline(std::chrono::system_clock::now() +
+                          options_.call_timeout);
+  }
+}
+
+absl::Status Transport::ListEnvs(const v1::ListEnvsRequest& request,
+                                 v1::ListEnvsResponse* response) const {
+  grpc::ClientContext context;
+  Prepare(&context, /*unary=*/true);
+  return FromGrpc(stub_->ListEnvs(&context, request, response));
+}
+
+absl::Status Transport::CheckHealth(absl::string_view service) const {
+  const std::string request_bytes = EncodeHealthCheckRequest(service);
+  grpc::Slice request_slice(request_bytes);
+  grpc::ByteBuffer request(&request_slice, 1);
+  grpc::ByteBuffer response;
+  grpc::ClientContext context;
+  Prepare(&context, /*unary=*/true);
+  grpc::GenericStub stub(channel_);
+  std::promise<grpc::Status> done;
+  stub.UnaryCall(&context, kHealthCheckMethod, grpc::StubOptions(), &request,
+                 &response,
+                 [&done](grpc::Status status) { done.set_value(status); });
+  absl::Status status = FromGrpc(done.get_future().get());
+  if (!status.ok()) return status;
+  grpc::Slice response_slice;
+  status = FromGrpc(response.DumpToSingleSlice(&response_slice));
+  if (!status.ok()) return status;
+  absl::StatusOr<uint32_t> serving = DecodeHealthStatus(std::string(
+      reinterpret_cast<const char*>(response_slice.begin()),
+      response_slice.size()));
+  if (!serving.ok()) return serving.status();
+  if (*serving != kServing) {
+    return absl::UnavailableError(
+        absl::StrCat("health of service \"", service, "\" is ",
+                     HealthStatusName(*serving), "; expected SERVING"));
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::shared_ptr<Transport>> Transport::OpenSession() const {
+  return std::shared_ptr<Transport>(
+      std::make_shared<SessionTransport>(channel_, options_));
+}
+
+absl::StatusOr<std::shared_ptr<Transport>> MakeUnaryTransport(
+    absl::string_view address, const ClientOptions& options) {
+  if (address.empty()) {
+    return absl::InvalidArgumentError(
+        "address is empty; expected host:port, e.g. 127.0.0.1:50051");
+  }
+  if (options.max_receive_message_bytes <= 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("max_receive_message_bytes is ",
+                     options.max_receive_message_bytes, "; must be > 0"));
+  }
+  std::shared_ptr<grpc::ChannelCredentials> credentials;
+  if (options.use_tls) {
+    grpc::SslCredentialsOptions ssl;
+    ssl.pem_root_certs = options.tls_root_certificates;
+    credentials = grpc::SslCredentials(ssl);
+  } else {
+    credentials = grpc::InsecureChannelCredentials();
+  }
+  grpc::ChannelArguments arguments;
+  arguments.SetMaxReceiveMessageSize(options.max_receive_message_bytes);
+  std::shared_ptr<grpc::Channel> channel = grpc::CreateCustomChannel(
+      std::string(address), credentials, arguments);
+  return std::shared_ptr<Transport>(
+      std::make_shared<UnaryTransport>(std::move(channel), options));
+}
+
+}  // namespace client_internal
+}  // namespace mll

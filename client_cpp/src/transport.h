@@ -1,0 +1,64 @@
+// How the client's operations reach the server: unary RPCs or one Session
+// stream. Both take the operation as a SessionRequest (whose oneof names every
+// environment operation) and fill a SessionResponse, so that everything above
+// (building requests, decoding results, handles) exists once for both modes.
+#ifndef MLL_CLIENT_SRC_TRANSPORT_H_
+#define MLL_CLIENT_SRC_TRANSPORT_H_
+
+#include <memory>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "absl/strings/string_view.h"
+#include "grpcpp/channel.h"
+#include "grpcpp/client_context.h"
+#include "grpcpp/support/status.h"
+#include "mll/client.h"
+#include "mll/v1/multi_lunar_lander.grpc.pb.h"
+
+namespace mll {
+namespace client_internal {
+
+// The server's code and message, unchanged (gRPC and absl share the codes).
+absl::Status FromGrpc(const grpc::Status& status);
+absl::Status FromItemError(const v1::ItemError& error);
+
+class Transport {
+ public:
+  Transport(std::shared_ptr<grpc::Channel> channel, ClientOptions options);
+  virtual ~Transport() = default;
+  Transport(const Transport&) = delete;
+  Transport& operator=(const Transport&) = delete;
+
+  // Runs the operation set in `request.op` and fills the matching member of
+  // `response.result`. The returned status is the operation's (a server error
+  // or a transport failure such as UNAVAILABLE).
+  virtual absl::Status Call(v1::SessionRequest& request,
+                            v1::SessionResponse* response) = 0;
+  virtual bool is_session() const = 0;
+
+  // Operations that exist only as unary RPCs, whatever the mode.
+  absl::Status ListEnvs(const v1::ListEnvsRequest& request,
+                        v1::ListEnvsResponse* response) const;
+  absl::Status CheckHealth(absl::string_view service) const;
+
+  // A new session stream on the same channel.
+  absl::StatusOr<std::shared_ptr<Transport>> OpenSession() const;
+
+ protected:
+  // Adds the token and, for unary calls, the deadline.
+  void Prepare(grpc::ClientContext* context, bool unary) const;
+
+  std::shared_ptr<grpc::Channel> channel_;
+  ClientOptions options_;
+  std::unique_ptr<v1::MultiLunarLander::Stub> stub_;
+};
+
+// A unary transport for `address`.
+absl::StatusOr<std::shared_ptr<Transport>> MakeUnaryTransport(
+    absl::string_view address, const ClientOptions& options);
+
+}  // namespace client_internal
+}  // namespace mll
+
+#endif  // MLL_CLIENT_SRC_TRANSPORT_H_

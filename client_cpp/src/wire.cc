@@ -1,0 +1,368 @@
+#include "wire.h"
+
+#include <algorithm>
+#include <array>
+#include <cstring>
+#include <string>
+#include <type_traits>
+#include <variant>
+#include <vector>
+
+#include "absl/base/config.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "google/protobuf/descriptor.h"
+#include "google/protobuf/util/json_util.h"
+
+namespace mll {
+namespace client_internal {
+namespace {
+
+// Arrays travel little-endian and are copied as they are.
+#ifndef ABSL_IS_LITTLE_ENDIAN
+#error "The client copies little-endian wire arrays verbatim."
+#endif
+
+// The optional members of RemoteEnvConfig, each named as its field of
+// mll.v1.EnvConfig; encoding and decoding both walk this one list, through
+// protobuf reflection by name.
+using ConfigMember =
+    std::variant<std::optional<int> RemoteEnvConfig::*,
+                 std::optional<bool> RemoteEnvConfig::*,
+                 std::optional<double> RemoteEnvConfig::*>;
+struct ConfigField {
+  const char* name;
+  ConfigMember member;
+};
+const std::array<ConfigField, 13>& ConfigFields() {
+  static const std::array<ConfigField, 13> kFields = {{
+      {"n_landers", &RemoteEnvConfig::n_landers},
+      {"continuous", &RemoteEnvConfig::continuous},
+      {"max_cycles", &RemoteEnvConfig::max_cycles},
+      {"gravity", &RemoteEnvConfig::gravity},
+      {"enable_wind", &RemoteEnvConfig::enable_wind},
+      {"wind_power", &RemoteEnvConfig::wind_power},
+      {"turbulence_power", &RemoteEnvConfig::turbulence_power},
+      {"remove_on_damage", &RemoteEnvConfig::remove_on_damage},
+      {"terminate_on_damage", &RemoteEnvConfig::terminate_on_damage},
+      {"shared_reward", &RemoteEnvConfig::shared_reward},
+      {"damage_reward", &RemoteEnvConfig::damage_reward},
+      {"successful_reward", &RemoteEnvConfig::successful_reward},
+      {"terminate_reward", &RemoteEnvConfig::terminate_reward},
+  }};
+  return kFields;
+}
+
+const google::protobuf::FieldDescriptor& ConfigFieldDescriptor(
+    const char* name) {
+  const google::protobuf::FieldDescriptor* field =
+      v1::EnvConfig::descriptor()->FindFieldByName(name);
+  // The list above and the proto are compiled together; a missing name is a
+  // programming error caught by every test that creates an env.
+  if (field == nullptr) std::abort();
+  return *field;
+}
+
+void SetField(const google::protobuf::FieldDescriptor& field, int value,
+              v1::EnvConfig* proto) {
+  proto->GetReflection()->SetInt32(proto, &field, value);
+}
+void SetField(const google::protobuf::FieldDescriptor& field, bool value,
+              v1::EnvConfig* proto) {
+  proto->GetReflection()->SetBool(proto, &field, value);
+}
+void SetField(const google::protobuf::FieldDescriptor& field, double value,
+              v1::EnvConfig* proto) {
+  proto->GetReflection()->SetDouble(proto, &field, value);
+}
+
+template <typename T>
+T GetField(const google::protobuf::FieldDescriptor& field,
+           const v1::EnvConfig& proto) {
+  const google::protobuf::Reflection& reflection = *proto.GetReflection();
+  if constexpr (std::is_same_v<T, int>) {
+    return reflection.GetInt32(proto, &field);
+  } else if constexpr (std::is_same_v<T, bool>) {
+    return reflection.GetBool(proto, &field);
+  } else {
+    return reflection.GetDouble(proto, &field);
+  }
+}
+
+template <typename T>
+constexpr v1::DType DTypeOf() {
+  if constexpr (std::is_same_v<T, float>) {
+    return v1::DTYPE_FLOAT32;
+  } else if constexpr (std::is_same_v<T, uint8_t>) {
+    return v1::DTYPE_UINT8;
+  } else {
+    static_assert(std::is_same_v<T, int32_t>);
+    return v1::DTYPE_INT32;
+  }
+}
+
+// Copies a column the server sent, checking its dtype and that its shape is
+// `shape` (the documented one for this field).
+template <typename T>
+absl::Status DecodeColumn(const v1::Array& array, absl::string_view field,
+                          std::initializer_list<int> shape,
+                          std::vector<T>* out) {
+  size_t count = 1;
+  for (int dimension : shape) count *= static_cast<size_t>(dimension);
+  const bool shape_ok = std::equal(shape.begin(), shape.end(),
+                                   array.shape().begin(), array.shape().end());
+  if (array.dtype() != DTypeOf<T>() || !shape_ok ||
+      array.data().size() != count * sizeof(T)) {
+    return absl::InternalError(absl::StrCat(
+        "server sent ", field, " with dtype ", v1::DType_Name(array.dtype()),
+        ", shape [", absl::StrJoin(array.shape(), ","), "] and ",
+        array.data().size(), " bytes; expected ",
+        v1::DType_Name(DTypeOf<T>()), " [", absl::StrJoin(shape, ","), "]"));
+  }
+  out->resize(count);
+  if (count > 0) std::memcpy(out->data(), array.data().data(), count * sizeof(T));
+  return absl::OkStatus();
+}
+
+template <typename T>
+void EncodeColumn(absl::Span<const T> values,
+                  std::initializer_list<int> shape, v1::Array* proto) {
+  proto->set_dtype(DTypeOf<T>());
+  proto->mutable_shape()->Assign(shape.begin(), shape.end());
+  proto->set_data(reinterpret_cast<const char*>(values.data()),
+                  values.size() * sizeof(T));
+}
+
+std::vector<LanderOutcome> ToOutcomes(const std::vector<uint8_t>& codes) {
+  std::vector<LanderOutcome> outcomes(codes.size());
+  for (size_t i = 0; i < codes.size(); ++i) {
+    outcomes[i] = static_cast<LanderOutcome>(codes[i]);
+  }
+  return outcomes;
+}
+
+// The columns StepData and AecState share.
+struct AgentColumns {
+  std::vector<float> observations;
+  std::vector<float> rewards;
+  std::vector<uint8_t> terminations;
+  std::vector<uint8_t> truncations;
+  std::vector<uint8_t> outcomes;
+  std::vector<float> episode_returns;
+  std::vector<int32_t> episode_lengths;
+};
+
+// Decodes the shared columns of a StepData or AecState message; the number of
+// agents is read from the observations' shape.
+template <typename Message>
+absl::StatusOr<int> DecodeAgentColumns(const Message& proto,
+                                       AgentColumns* columns) {
+  const int n = proto.observations().shape_size() > 0
+                    ? proto.observations().shape(0)
+                    : 0;
+  absl::Status status = DecodeColumn(proto.observations(), "observations",
+                                     {n, kRemoteObservationSize},
+                                     &columns->observations);
+  if (status.ok()) {
+    status = DecodeColumn(proto.rewards(), "rewards", {n}, &columns->rewards);
+  }
+  if (status.ok()) {
+    status = DecodeColumn(proto.terminations(), "terminations", {n},
+                          &columns->terminations);
+  }
+  if (status.ok()) {
+    status = DecodeColumn(proto.truncations(), "truncations", {n},
+                          &columns->truncations);
+  }
+  if (status.ok()) {
+    status =
+        DecodeColumn(proto.outcomes(), "outcomes", {n}, &columns->outcomes);
+  }
+  if (status.ok()) {
+    status = DecodeColumn(proto.episode_returns(), "episode_returns", {n},
+                          &columns->episode_returns);
+  }
+  if (status.ok()) {
+    status = DecodeColumn(proto.episode_lengths(), "episode_lengths", {n},
+                          &columns->episode_lengths);
+  }
+  if (!status.ok()) return status;
+  return n;
+}
+
+// Moves the shared columns into a StepData or AecState.
+template <typename Result>
+void MoveColumns(int n, AgentColumns& columns, Result* result) {
+  result->n_landers = n;
+  result->observations = std::move(columns.observations);
+  result->rewards = std::move(columns.rewards);
+  result->terminations = std::move(columns.terminations);
+  result->truncations = std::move(columns.truncations);
+  result->outcomes = ToOutcomes(columns.outcomes);
+  result->episode_returns = std::move(columns.episode_returns);
+  result->episode_lengths = std::move(columns.episode_lengths);
+}
+
+ElementType DecodeDType(v1::DType dtype) {
+  switch (dtype) {
+    case v1::DTYPE_FLOAT32:
+      return ElementType::kFloat32;
+    case v1::DTYPE_UINT8:
+      return ElementType::kUint8;
+    case v1::DTYPE_INT32:
+      return ElementType::kInt32;
+    default:
+      return ElementType::kUnspecified;
+  }
+}
+
+SpaceSpec DecodeSpace(const v1::Space& proto) {
+  SpaceSpec space;
+  switch (proto.kind()) {
+    case v1::Space::KIND_BOX:
+      space.kind = SpaceSpec::Kind::kBox;
+      break;
+    case v1::Space::KIND_DISCRETE:
+      space.kind = SpaceSpec::Kind::kDiscrete;
+      break;
+    default:
+      space.kind = SpaceSpec::Kind::kUnspecified;
+  }
+  space.dtype = DecodeDType(proto.dtype());
+  space.shape.assign(proto.shape().begin(), proto.shape().end());
+  space.low.assign(proto.low().begin(), proto.low().end());
+  space.high.assign(proto.high().begin(), proto.high().end());
+  space.n = proto.n();
+  return space;
+}
+
+}  // namespace
+
+void EncodeConfig(const RemoteEnvConfig& config, v1::EnvConfig* proto) {
+  for (const ConfigField& field : ConfigFields()) {
+    std::visit(
+        [&](auto member) {
+          const auto& value = config.*member;
+          if (value.has_value()) {
+            SetField(ConfigFieldDescriptor(field.name), *value, proto);
+          }
+        },
+        field.member);
+  }
+  proto->set_render_mode(config.render_rgb_array ? v1::RENDER_MODE_RGB_ARRAY
+                                                 : v1::RENDER_MODE_NONE);
+  proto->set_auto_reset(config.auto_reset);
+}
+
+RemoteEnvConfig DecodeConfig(const v1::EnvConfig& proto) {
+  RemoteEnvConfig config;
+  for (const ConfigField& field : ConfigFields()) {
+    std::visit(
+        [&](auto member) {
+          const google::protobuf::FieldDescriptor& descriptor =
+              ConfigFieldDescriptor(field.name);
+          if (!proto.GetReflection()->HasField(proto, &descriptor)) return;
+          using Value = typename std::decay_t<decltype(config.*member)>::
+              value_type;
+          config.*member = GetField<Value>(descriptor, proto);
+        },
+        field.member);
+  }
+  config.render_rgb_array = proto.render_mode() == v1::RENDER_MODE_RGB_ARRAY;
+  config.auto_reset = proto.auto_reset();
+  return config;
+}
+
+EnvInfo DecodeEnv(const v1::Env& proto) {
+  EnvInfo info;
+  info.name = proto.name();
+  info.config = DecodeConfig(proto.config());
+  info.possible_agents.assign(proto.possible_agents().begin(),
+                              proto.possible_agents().end());
+  info.observation_space = DecodeSpace(proto.observation_space());
+  info.action_space = DecodeSpace(proto.action_space());
+  info.render_fps = proto.render_fps();
+  info.episode_started = proto.episode_started();
+  info.episode_over = proto.episode_over();
+  info.cycles = proto.cycles();
+  info.episodes = proto.episodes();
+  info.session_bound = proto.session_bound();
+  google::protobuf::util::JsonPrintOptions options;
+  options.preserve_proto_field_names = true;
+  options.always_print_primitive_fields = true;
+  // Printing a well-formed message cannot fail; an empty string would only
+  // make the JSON field empty.
+  (void)google::protobuf::util::MessageToJsonString(proto, &info.json,
+                                                    options);
+  return info;
+}
+
+absl::Status EncodeActions(const Actions& actions, v1::Array* proto) {
+  if (actions.discrete.empty() == actions.continuous.empty()) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "actions: set exactly one of discrete (has ", actions.discrete.size(),
+        " values) and continuous (has ", actions.continuous.size(),
+        " values)"));
+  }
+  if (!actions.discrete.empty()) {
+    EncodeColumn(actions.discrete, {static_cast<int>(actions.discrete.size())},
+                 proto);
+    return absl::OkStatus();
+  }
+  // [n, 2] for a whole number of rows; otherwise the flat shape goes to the
+  // server, which names the wrong count in its error.
+  const int size = static_cast<int>(actions.continuous.size());
+  if (size % kRemoteContinuousActionSize == 0) {
+    EncodeColumn(actions.continuous,
+                 {size / kRemoteContinuousActionSize,
+                  kRemoteContinuousActionSize},
+                 proto);
+  } else {
+    EncodeColumn(actions.continuous, {size}, proto);
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<StepData> DecodeStepData(const v1::StepData& proto) {
+  AgentColumns columns;
+  absl::StatusOr<int> n = DecodeAgentColumns(proto, &columns);
+  if (!n.ok()) return n.status();
+  StepData data;
+  absl::Status status =
+      DecodeColumn(proto.stepped(), "stepped", {*n}, &data.stepped);
+  if (!status.ok()) return status;
+  MoveColumns(*n, columns, &data);
+  data.episode_over = proto.episode_over();
+  data.auto_reset = proto.auto_reset();
+  data.cycles = proto.cycles();
+  return data;
+}
+
+absl::StatusOr<AecState> DecodeAecState(const v1::AecState& proto) {
+  AgentColumns columns;
+  absl::StatusOr<int> n = DecodeAgentColumns(proto, &columns);
+  if (!n.ok()) return n.status();
+  AecState state;
+  absl::Status status = DecodeColumn(proto.cumulative_rewards(),
+                                     "cumulative_rewards", {*n},
+                                     &state.cumulative_rewards);
+  if (!status.ok()) return status;
+  MoveColumns(*n, columns, &state);
+  state.agents.assign(proto.agents().begin(), proto.agents().end());
+  state.agent_selection = proto.agent_selection();
+  state.world_stepped = proto.world_stepped();
+  return state;
+}
+
+RenderedFrame DecodeFrame(const v1::Frame& proto) {
+  RenderedFrame frame;
+  frame.width = proto.width();
+  frame.height = proto.height();
+  frame.format = proto.format() == v1::FRAME_FORMAT_PNG ? FrameFormat::kPng
+                                                        : FrameFormat::kRgb;
+  frame.data = proto.data();
+  return frame;
+}
+
+}  // namespace client_internal
+}  // namespace mll

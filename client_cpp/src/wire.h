@@ -1,0 +1,33 @@
+// The one place where the client converts between its plain C++ types and the
+// wire messages of proto/mll/v1.
+#ifndef MLL_CLIENT_SRC_WIRE_H_
+#define MLL_CLIENT_SRC_WIRE_H_
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "mll/client.h"
+#include "mll/v1/multi_lunar_lander.pb.h"
+
+namespace mll {
+namespace client_internal {
+
+// Only the fields that are set travel; the server fills the defaults.
+void EncodeConfig(const RemoteEnvConfig& config, v1::EnvConfig* proto);
+RemoteEnvConfig DecodeConfig(const v1::EnvConfig& proto);
+
+EnvInfo DecodeEnv(const v1::Env& proto);
+
+// INVALID_ARGUMENT unless exactly one of the members is set.
+absl::Status EncodeActions(const Actions& actions, v1::Array* proto);
+
+// INTERNAL when the server's arrays do not have the documented dtype and
+// shape (a version mismatch, never a user error).
+absl::StatusOr<StepData> DecodeStepData(const v1::StepData& proto);
+absl::StatusOr<AecState> DecodeAecState(const v1::AecState& proto);
+
+RenderedFrame DecodeFrame(const v1::Frame& proto);
+
+}  // namespace client_internal
+}  // namespace mll
+
+#endif  // MLL_CLIENT_SRC_WIRE_H_

@@ -1,0 +1,79 @@
+#include "core_bridge.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include "absl/strings/str_cat.h"
+#include "mll/core/heuristic.h"
+
+namespace mll {
+
+RemoteEnvConfig RemoteConfigFrom(const EnvConfig& config) {
+  RemoteEnvConfig remote;
+  remote.n_landers = config.n_landers;
+  remote.continuous = config.continuous;
+  remote.max_cycles = config.max_cycles;
+  remote.gravity = config.gravity;
+  remote.enable_wind = config.enable_wind;
+  remote.wind_power = config.wind_power;
+  remote.turbulence_power = config.turbulence_power;
+  remote.remove_on_damage = config.remove_on_damage;
+  remote.terminate_on_damage = config.terminate_on_damage;
+  remote.shared_reward = config.shared_reward;
+  remote.damage_reward = config.damage_reward;
+  remote.successful_reward = config.successful_reward;
+  remote.terminate_reward = config.terminate_reward;
+  remote.render_rgb_array = config.render_mode == RenderMode::kRgbArray;
+  return remote;
+}
+
+absl::StatusOr<PilotPolicy> ParsePilotPolicy(absl::string_view name) {
+  if (name == "heuristic") return PilotPolicy::kHeuristic;
+  if (name == "random") return PilotPolicy::kRandom;
+  return absl::InvalidArgumentError(absl::StrCat(
+      "policy is \"", name, "\"; allowed: \"heuristic\", \"random\""));
+}
+
+RemotePilot::RemotePilot(PilotPolicy policy, int n_landers, bool continuous,
+                         uint64_t seed)
+    : policy_(policy),
+      continuous_(continuous),
+      rng_(seed),
+      discrete_(n_landers, 0),
+      continuous_actions_(kContinuousActionSize * n_landers, 0.0f) {}
+
+Actions RemotePilot::Act(const StepData& last) {
+  std::fill(discrete_.begin(), discrete_.end(), 0);
+  std::fill(continuous_actions_.begin(), continuous_actions_.end(), 0.0f);
+  const int n = std::min<int>(last.n_landers, discrete_.size());
+  for (int agent = 0; agent < n; ++agent) {
+    if (!last.stepped[agent] || !last.active(agent)) continue;
+    const AgentAction action =
+        policy_ == PilotPolicy::kHeuristic
+            ? HeuristicAction(last.observation(agent), continuous_)
+            : RandomAction();
+    discrete_[agent] = action.discrete;
+    std::copy(action.continuous.begin(), action.continuous.end(),
+              continuous_actions_.begin() + kContinuousActionSize * agent);
+  }
+  return continuous_ ? Actions::Continuous(continuous_actions_)
+                     : Actions::Discrete(discrete_);
+}
+
+// Raw 64-bit draws, not std distributions (whose algorithms differ between
+// standard libraries), so a seed means the same actions everywhere.
+AgentAction RemotePilot::RandomAction() {
+  AgentAction action;
+  if (!continuous_) {
+    action.discrete = static_cast<int32_t>(rng_() % kDiscreteActionCount);
+    return action;
+  }
+  for (float& value : action.continuous) {
+    value = static_cast<float>(std::ldexp(static_cast<double>(rng_() >> 11),
+                                          -52) -
+                               1.0);
+  }
+  return action;
+}
+
+}  // namespace mll
