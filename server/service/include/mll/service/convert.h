@@ -1,0 +1,124 @@
+// The one place where proto (mll.v1) and core (mll) types meet: configs,
+// specs, step results, AEC state, actions and statuses. Handlers call these
+// and contain no conversion of their own.
+#ifndef MLL_SERVICE_CONVERT_H_
+#define MLL_SERVICE_CONVERT_H_
+
+#include <cstdint>
+#include <cstring>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "absl/strings/string_view.h"
+#include "absl/types/span.h"
+#include "grpcpp/support/status.h"
+#include "mll/core/aec_env.h"
+#include "mll/core/env.h"
+#include "mll/core/env_config.h"
+#include "mll/v1/multi_lunar_lander.pb.h"
+
+namespace mll {
+
+// Arrays travel as little-endian bytes; copying them verbatim is only right
+// on a little-endian host, which is all the platforms we build for.
+static_assert(__BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__,
+              "proto Array bytes are little-endian; add byte swapping");
+
+// The one mapping from the core's absl::Status to the wire's grpc::Status.
+// The canonical codes share their numbers; anything else becomes INTERNAL.
+grpc::Status ToGrpcStatus(const absl::Status& status);
+
+// A failed item of a batch or a Session request, with the status's code and
+// message.
+void FillItemError(const absl::Status& status, v1::ItemError* out);
+
+// The element type tag of T in a proto Array.
+template <typename T>
+constexpr v1::DType DTypeOf();
+template <>
+constexpr v1::DType DTypeOf<float>() { return v1::DTYPE_FLOAT32; }
+template <>
+constexpr v1::DType DTypeOf<uint8_t>() { return v1::DTYPE_UINT8; }
+template <>
+constexpr v1::DType DTypeOf<int32_t>() { return v1::DTYPE_INT32; }
+
+// "[3, 12]".
+std::string ShapeString(absl::Span<const int> shape);
+
+// Writes `values` as a `shape`-d array of T into `out`.
+template <typename T>
+void FillArray(absl::Span<const T> values, absl::Span<const int> shape,
+               v1::Array* out) {
+  out->set_dtype(DTypeOf<T>());
+  out->mutable_shape()->Assign(shape.begin(), shape.end());
+  out->mutable_data()->assign(reinterpret_cast<const char*>(values.data()),
+                              values.size() * sizeof(T));
+}
+
+// INVALID_ARGUMENT naming `field` unless `array` has exactly dtype T and
+// `shape`, with the matching number of bytes. `what` explains the expected
+// shape to the reader of the error, e.g. "one int32 per agent of n_landers =
+// 3".
+absl::Status CheckArray(const v1::Array& array, v1::DType dtype,
+                        absl::Span<const int> shape, absl::string_view field,
+                        absl::string_view what);
+
+// The elements of `array` if it is a T array of `shape` (see CheckArray).
+template <typename T>
+absl::StatusOr<std::vector<T>> DecodeArray(const v1::Array& array,
+                                           absl::Span<const int> shape,
+                                           absl::string_view field) {
+  absl::Status status = CheckArray(array, DTypeOf<T>(), shape, field,
+                                   "as the server sends it");
+  if (!status.ok()) return status;
+  std::vector<T> values(array.data().size() / sizeof(T));
+  std::memcpy(values.data(), array.data().data(), array.data().size());
+  return values;
+}
+
+// Proto config -> core config, every unset field taking the core's default,
+// validated by the core (INVALID_ARGUMENT naming the field).
+absl::StatusOr<EnvConfig> EnvConfigFromProto(const v1::EnvConfig& proto);
+
+// Core config (+ the service's auto_reset) -> proto with every field set.
+v1::EnvConfig EnvConfigToProto(const EnvConfig& config, bool auto_reset);
+
+// The per-agent observation and action spaces of `config`.
+v1::Space ObservationSpace();
+v1::Space ActionSpace(const EnvConfig& config);
+
+// Storage for actions decoded from the wire; view() borrows it.
+struct ActionBuffer {
+  std::vector<int32_t> discrete;
+  std::vector<float> continuous;
+  ActionsView view() const { return ActionsView{discrete, continuous}; }
+};
+
+// Checks the dtype and shape of `array` for `config` (int32 [n_landers] or
+// float32 [n_landers, 2]) and copies it into `out`. Values are the core's to
+// check. Errors are INVALID_ARGUMENT naming `field`.
+absl::Status ParseActions(const v1::Array& array, const EnvConfig& config,
+                          absl::string_view field, ActionBuffer* out);
+
+// The AEC action of a StepAgentRequest: nullopt when absent (a dead step).
+absl::StatusOr<std::optional<AgentAction>> ParseAgentAction(
+    const v1::StepAgentRequest& request, const EnvConfig& config);
+
+// Step (or reset) results as proto columns; the episode bookkeeping
+// (returns, lengths, cycles) comes from `env`.
+void FillStepData(const StepResult& result, const Env& env, bool auto_reset,
+                  v1::StepData* out);
+
+// The state of a PettingZoo AECEnv, as `aec` holds it.
+void FillAecState(const AecEnv& aec, bool world_stepped, v1::AecState* out);
+
+// What a step result looks like right after Env/AecEnv reset: the env's
+// observations, zero rewards, every agent stepped.
+void ResultAfterReset(const Env& env, StepResult* out);
+
+}  // namespace mll
+
+#endif  // MLL_SERVICE_CONVERT_H_

@@ -1,0 +1,56 @@
+// What each RPC does, independent of how it arrived (unary call or Session
+// stream): parse, look up, call the core, convert. Every method validates its
+// request completely before touching an environment and reports failures as
+// absl::Status with the field, the value and what is allowed.
+#ifndef MLL_SERVICE_OPERATIONS_H_
+#define MLL_SERVICE_OPERATIONS_H_
+
+#include <functional>
+
+#include "absl/status/status.h"
+#include "absl/strings/string_view.h"
+#include "mll/service/registry.h"
+#include "mll/service/worker_pool.h"
+#include "mll/v1/multi_lunar_lander.pb.h"
+
+namespace mll {
+
+class Operations {
+ public:
+  // Neither is owned; both must outlive this object.
+  Operations(Registry* registry, WorkerPool* pool);
+
+  // `session_bound`: the env dies with the session creating it.
+  absl::Status CreateEnv(const v1::CreateEnvRequest& request,
+                         bool session_bound, v1::Env* out);
+  absl::Status GetEnv(const v1::GetEnvRequest& request, v1::Env* out);
+  absl::Status ListEnvs(const v1::ListEnvsRequest& request,
+                        v1::ListEnvsResponse* out);
+  absl::Status DeleteEnv(const v1::DeleteEnvRequest& request);
+  absl::Status ResetEnv(const v1::ResetEnvRequest& request,
+                        v1::ResetEnvResponse* out);
+  // `field` prefixes the request's field names in errors ("" for a single
+  // call, "steps[3]." inside a batch).
+  absl::Status StepEnv(const v1::StepEnvRequest& request,
+                       absl::string_view field, v1::StepData* out);
+  absl::Status StepAgent(const v1::StepAgentRequest& request,
+                         v1::StepAgentResponse* out);
+  absl::Status RenderEnv(const v1::RenderEnvRequest& request, v1::Frame* out);
+
+  // Steps the batch's envs on the worker pool and calls done() with the
+  // call's status once every item has its result or error in `out`. Returns
+  // at once. A request-level error (duplicate names) calls done() before
+  // returning, with no env stepped. `request` and `out` must live until
+  // done() runs.
+  void StepBatch(const v1::StepBatchRequest& request,
+                 v1::StepBatchResponse* out,
+                 std::function<void(absl::Status)> done);
+
+ private:
+  Registry* registry_;
+  WorkerPool* pool_;
+};
+
+}  // namespace mll
+
+#endif  // MLL_SERVICE_OPERATIONS_H_

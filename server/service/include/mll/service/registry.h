@@ -1,0 +1,128 @@
+// The registry owns every environment of a server. Its map is guarded by one
+// mutex that is never held while an environment steps; each environment has
+// its own lock. Environments untouched for the idle timeout are destroyed by
+// a reaper thread that sleeps on a condition variable between deadlines.
+#ifndef MLL_SERVICE_REGISTRY_H_
+#define MLL_SERVICE_REGISTRY_H_
+
+#include <atomic>
+#include <cstdint>
+#include <map>
+#include <memory>
+#include <optional>
+#include <random>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "absl/base/thread_annotations.h"
+#include "absl/container/flat_hash_map.h"
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "absl/strings/string_view.h"
+#include "absl/synchronization/mutex.h"
+#include "absl/time/time.h"
+#include "mll/core/aec_env.h"
+#include "mll/core/env.h"
+#include "mll/core/env_config.h"
+
+namespace mll {
+
+// Which API steps an env in its current episode. The AEC adapter buffers
+// actions between world steps, so the two step APIs cannot interleave within
+// one episode; a reset lets the client choose again.
+enum class StepMode { kUnset, kParallel, kAec };
+
+// One hosted environment. Immutable members may be read without the lock;
+// everything else needs `mu`.
+struct EnvSlot {
+  EnvSlot(std::string name, uint64_t serial, std::unique_ptr<Env> env,
+          bool auto_reset, bool session_bound);
+
+  const std::string name;      // envs/{id}
+  const uint64_t serial;       // Creation order, for ListEnvs.
+  const EnvConfig config;      // Copy of env->config(), readable unlocked.
+  const bool auto_reset;       // EnvConfig.auto_reset of the proto.
+  const bool session_bound;    // Dies with the session that created it.
+  // Steady-clock nanoseconds of the last lookup; read by the reaper.
+  std::atomic<int64_t> last_touched_ns{0};
+
+  absl::Mutex mu;
+  std::unique_ptr<Env> env ABSL_PT_GUARDED_BY(mu);
+  std::unique_ptr<AecEnv> aec ABSL_PT_GUARDED_BY(mu);
+  StepMode mode ABSL_GUARDED_BY(mu) = StepMode::kUnset;
+  int64_t episodes ABSL_GUARDED_BY(mu) = 0;
+  // Reset has seeded the generator (explicitly or with a drawn seed).
+  bool seeded ABSL_GUARDED_BY(mu) = false;
+  // Reused by every step so that stepping does not allocate.
+  StepResult scratch ABSL_GUARDED_BY(mu);
+};
+
+class Registry {
+ public:
+  // `max_envs` >= 1; `idle_timeout` > 0. Starts the reaper.
+  Registry(int max_envs, absl::Duration idle_timeout);
+  // Stops the reaper and destroys every environment.
+  ~Registry();
+  Registry(const Registry&) = delete;
+  Registry& operator=(const Registry&) = delete;
+
+  // Builds an env under a fresh unguessable name. RESOURCE_EXHAUSTED at
+  // max_envs; INVALID_ARGUMENT for a bad config (from the core).
+  absl::StatusOr<std::shared_ptr<EnvSlot>> Create(const EnvConfig& config,
+                                                  bool auto_reset,
+                                                  bool session_bound);
+
+  // The env called `name` (touching it: its idle clock restarts). `field`
+  // names the request field in errors. INVALID_ARGUMENT for a name that is
+  // not `envs/{id}`, NOT_FOUND for an unknown one.
+  absl::StatusOr<std::shared_ptr<EnvSlot>> Find(absl::string_view name,
+                                                absl::string_view field);
+
+  // Destroys the env (calls holding it finish first). NOT_FOUND if unknown.
+  absl::Status Delete(absl::string_view name, absl::string_view field);
+
+  struct Page {
+    std::vector<std::shared_ptr<EnvSlot>> slots;
+    std::string next_page_token;  // Empty on the last page.
+  };
+  // Envs in creation order. page_size 0 means 100, larger than 1000 means
+  // 1000, negative is INVALID_ARGUMENT, as is a token not from a Page.
+  absl::StatusOr<Page> List(int page_size, absl::string_view page_token);
+
+  // A seed for an env's first unseeded reset, so independent envs differ.
+  // Service-level randomness; physics never draws from it.
+  uint64_t DrawSeed();
+
+  int size();
+  int max_envs() const { return max_envs_; }
+  absl::Duration idle_timeout() const { return idle_timeout_; }
+
+ private:
+  void ReapLoop();
+  // Removes expired envs into `expired` (destroyed by the caller, unlocked);
+  // returns when the next one can expire.
+  absl::Time ReapExpiredLocked(
+      std::vector<std::shared_ptr<EnvSlot>>* expired)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
+  std::string NewNameLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
+
+  const int max_envs_;
+  const absl::Duration idle_timeout_;
+
+  absl::Mutex mu_;
+  absl::CondVar reaper_wake_;
+  bool stopping_ ABSL_GUARDED_BY(mu_) = false;
+  std::mt19937_64 random_ ABSL_GUARDED_BY(mu_);
+  uint64_t next_serial_ ABSL_GUARDED_BY(mu_) = 1;
+  // Envs being built outside the lock, counted against max_envs.
+  int pending_ ABSL_GUARDED_BY(mu_) = 0;
+  absl::flat_hash_map<std::string, std::shared_ptr<EnvSlot>> by_name_
+      ABSL_GUARDED_BY(mu_);
+  std::map<uint64_t, std::shared_ptr<EnvSlot>> by_serial_ ABSL_GUARDED_BY(mu_);
+  std::thread reaper_;
+};
+
+}  // namespace mll
+
+#endif  // MLL_SERVICE_REGISTRY_H_

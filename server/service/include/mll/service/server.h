@@ -1,0 +1,63 @@
+// A running Multi Lunar Lander server: the service plus gRPC's health
+// service and server reflection, listening on a TCP address and/or reachable
+// in-process. Used by mll_server and by the tests.
+#ifndef MLL_SERVICE_SERVER_H_
+#define MLL_SERVICE_SERVER_H_
+
+#include <memory>
+#include <string>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "absl/time/time.h"
+#include "grpcpp/grpcpp.h"
+#include "mll/service/service.h"
+
+namespace mll {
+
+struct ServerOptions {
+  // host:port to listen on (--address); port 0 picks a free port; empty
+  // listens nowhere (in-process channels only).
+  std::string address = "127.0.0.1:50051";
+  // Largest message received or sent, in MiB (--max_message_mb). 1..2047.
+  int max_message_mb = 64;
+  ServiceOptions service;
+};
+
+// INVALID_ARGUMENT naming the flag unless every option is in its range.
+absl::Status ValidateServerOptions(const ServerOptions& options);
+
+class Server {
+ public:
+  // Validates the options, builds and starts the server. UNAVAILABLE when
+  // the address cannot be bound.
+  static absl::StatusOr<std::unique_ptr<Server>> Start(
+      const ServerOptions& options);
+
+  // Shuts down with a short grace period if Shutdown was not called.
+  ~Server();
+  Server(const Server&) = delete;
+  Server& operator=(const Server&) = delete;
+
+  // The bound TCP port (0 when not listening).
+  int port() const { return port_; }
+  // A channel to this server that bypasses the network.
+  std::shared_ptr<grpc::Channel> InProcessChannel();
+  MultiLunarLanderService& service() { return *service_; }
+
+  // Stops accepting calls, lets in-flight calls finish until `grace` has
+  // passed, then cancels the rest. Returns when every call has ended.
+  void Shutdown(absl::Duration grace);
+
+ private:
+  Server() = default;
+
+  std::unique_ptr<MultiLunarLanderService> service_;
+  std::unique_ptr<grpc::Server> server_;
+  int port_ = 0;
+  bool shut_down_ = false;
+};
+
+}  // namespace mll
+
+#endif  // MLL_SERVICE_SERVER_H_

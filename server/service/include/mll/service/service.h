@@ -1,0 +1,74 @@
+// The gRPC face of the server: mll.v1.MultiLunarLander on gRPC's callback
+// API. Each handler parses nothing itself; it hands the request to
+// Operations and finishes with the status mapped by ToGrpcStatus. Handlers
+// never wait: StepBatch completes from the worker pool.
+#ifndef MLL_SERVICE_SERVICE_H_
+#define MLL_SERVICE_SERVICE_H_
+
+#include "absl/time/time.h"
+#include "grpcpp/grpcpp.h"
+#include "mll/service/operations.h"
+#include "mll/service/registry.h"
+#include "mll/service/worker_pool.h"
+#include "mll/v1/multi_lunar_lander.grpc.pb.h"
+
+namespace mll {
+
+struct ServiceOptions {
+  // Worker threads for StepBatch (--threads). >= 1.
+  int threads = 1;
+  // Most environments hosted at once (--max_envs). >= 1.
+  int max_envs = 10000;
+  // An env untouched this long is destroyed (--idle_timeout_s). > 0.
+  absl::Duration idle_timeout = absl::Seconds(300);
+};
+
+class MultiLunarLanderService final
+    : public v1::MultiLunarLander::CallbackService {
+ public:
+  explicit MultiLunarLanderService(const ServiceOptions& options);
+  ~MultiLunarLanderService() override;
+
+  Registry& registry() { return registry_; }
+
+  grpc::ServerUnaryReactor* CreateEnv(grpc::CallbackServerContext* context,
+                                      const v1::CreateEnvRequest* request,
+                                      v1::Env* response) override;
+  grpc::ServerUnaryReactor* GetEnv(grpc::CallbackServerContext* context,
+                                   const v1::GetEnvRequest* request,
+                                   v1::Env* response) override;
+  grpc::ServerUnaryReactor* ListEnvs(grpc::CallbackServerContext* context,
+                                     const v1::ListEnvsRequest* request,
+                                     v1::ListEnvsResponse* response) override;
+  grpc::ServerUnaryReactor* DeleteEnv(grpc::CallbackServerContext* context,
+                                      const v1::DeleteEnvRequest* request,
+                                      v1::DeleteEnvResponse* response) override;
+  grpc::ServerUnaryReactor* ResetEnv(grpc::CallbackServerContext* context,
+                                     const v1::ResetEnvRequest* request,
+                                     v1::ResetEnvResponse* response) override;
+  grpc::ServerUnaryReactor* StepEnv(grpc::CallbackServerContext* context,
+                                    const v1::StepEnvRequest* request,
+                                    v1::StepEnvResponse* response) override;
+  grpc::ServerUnaryReactor* StepAgent(grpc::CallbackServerContext* context,
+                                      const v1::StepAgentRequest* request,
+                                      v1::StepAgentResponse* response) override;
+  grpc::ServerUnaryReactor* StepBatch(grpc::CallbackServerContext* context,
+                                      const v1::StepBatchRequest* request,
+                                      v1::StepBatchResponse* response) override;
+  grpc::ServerUnaryReactor* RenderEnv(grpc::CallbackServerContext* context,
+                                      const v1::RenderEnvRequest* request,
+                                      v1::Frame* response) override;
+  grpc::ServerBidiReactor<v1::SessionRequest, v1::SessionResponse>* Session(
+      grpc::CallbackServerContext* context) override;
+
+ private:
+  // Declared in this order so that destruction first stops the workers
+  // (finishing queued steps), which use the operations and the envs.
+  Registry registry_;
+  Operations operations_;
+  WorkerPool pool_;
+};
+
+}  // namespace mll
+
+#endif  // MLL_SERVICE_SERVICE_H_

@@ -1,0 +1,48 @@
+// A fixed pool of worker threads (sized by --threads) that runs the
+// environment steps of StepBatch, so that a batch uses every core without the
+// gRPC threads ever waiting for it.
+#ifndef MLL_SERVICE_WORKER_POOL_H_
+#define MLL_SERVICE_WORKER_POOL_H_
+
+#include <deque>
+#include <functional>
+#include <thread>
+#include <vector>
+
+#include "absl/base/thread_annotations.h"
+#include "absl/synchronization/mutex.h"
+
+namespace mll {
+
+class WorkerPool {
+ public:
+  // Starts `threads` (>= 1) workers.
+  explicit WorkerPool(int threads);
+  // Runs every task already posted, then joins the workers.
+  ~WorkerPool();
+  WorkerPool(const WorkerPool&) = delete;
+  WorkerPool& operator=(const WorkerPool&) = delete;
+
+  int threads() const { return static_cast<int>(workers_.size()); }
+
+  // Queues `task` to run on a worker.
+  void Post(std::function<void()> task);
+
+  // Calls body(i) for i in [0, count) spread over the workers, then calls
+  // done() on the worker that finished last. Returns at once: the caller
+  // (often a gRPC reaction) never waits. count == 0 calls done() at once.
+  void ParallelFor(int count, std::function<void(int)> body,
+                   std::function<void()> done);
+
+ private:
+  void Run();
+
+  absl::Mutex mu_;
+  std::deque<std::function<void()>> tasks_ ABSL_GUARDED_BY(mu_);
+  bool stopping_ ABSL_GUARDED_BY(mu_) = false;
+  std::vector<std::thread> workers_;
+};
+
+}  // namespace mll
+
+#endif  // MLL_SERVICE_WORKER_POOL_H_

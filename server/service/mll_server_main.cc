@@ -1,0 +1,108 @@
+// mll_server: hosts Multi Lunar Lander environments over gRPC.
+//
+//   mll_server --address=127.0.0.1:0 --port_file=/tmp/port
+//
+// SIGTERM or SIGINT: stop accepting calls, let in-flight calls finish (up to
+// a grace period), exit 0.
+#include <pthread.h>
+#include <signal.h>
+
+#include <cstdio>
+#include <fstream>
+#include <string>
+#include <thread>
+
+#include "absl/flags/flag.h"
+#include "absl/flags/parse.h"
+#include "absl/flags/usage.h"
+#include "absl/strings/str_cat.h"
+#include "absl/time/time.h"
+#include "mll/service/server.h"
+
+ABSL_FLAG(std::string, address, "127.0.0.1:50051",
+          "host:port to listen on; port 0 picks a free port");
+ABSL_FLAG(std::string, port_file, "",
+          "if set, the bound port is written to this file once listening");
+ABSL_FLAG(int32_t, threads,
+          static_cast<int32_t>(std::thread::hardware_concurrency()),
+          "worker threads stepping StepBatch's environments (default: cores)");
+ABSL_FLAG(int32_t, max_envs, 10000, "most environments hosted at once");
+ABSL_FLAG(double, idle_timeout_s, 300,
+          "an environment untouched this many seconds is destroyed");
+ABSL_FLAG(int32_t, max_message_mb, 64,
+          "largest message received or sent, in MiB");
+
+namespace {
+
+// In-flight calls get this long to finish after SIGTERM.
+constexpr absl::Duration kShutdownGrace = absl::Seconds(5);
+
+// Writes through a temporary file and a rename, so that a reader polling
+// for the file never sees it half written.
+bool WritePortFile(const std::string& path, int port) {
+  const std::string temporary = path + ".tmp";
+  {
+    std::ofstream out(temporary, std::ios::trunc);
+    out << port << "\n";
+    if (!out.good()) return false;
+  }
+  return std::rename(temporary.c_str(), path.c_str()) == 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  absl::SetProgramUsageMessage(
+      "Hosts Multi Lunar Lander environments over gRPC (mll.v1).\n"
+      "Usage: mll_server [--address=127.0.0.1:50051] [--port_file=F] "
+      "[--threads=N] [--max_envs=N] [--idle_timeout_s=S] "
+      "[--max_message_mb=M]");
+  absl::ParseCommandLine(argc, argv);
+
+  // Blocked in every thread (gRPC's threads inherit the mask), so the
+  // signals reach only the sigwait below, outside any signal handler.
+  sigset_t signals;
+  sigemptyset(&signals);
+  sigaddset(&signals, SIGTERM);
+  sigaddset(&signals, SIGINT);
+  pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+
+  mll::ServerOptions options;
+  options.address = absl::GetFlag(FLAGS_address);
+  options.max_message_mb = absl::GetFlag(FLAGS_max_message_mb);
+  options.service.threads = absl::GetFlag(FLAGS_threads);
+  options.service.max_envs = absl::GetFlag(FLAGS_max_envs);
+  options.service.idle_timeout =
+      absl::Seconds(absl::GetFlag(FLAGS_idle_timeout_s));
+  absl::StatusOr<std::unique_ptr<mll::Server>> server =
+      mll::Server::Start(options);
+  if (!server.ok()) {
+    std::fprintf(stderr, "mll_server: %s\n",
+                 std::string(server.status().message()).c_str());
+    return 1;
+  }
+  const std::string port_file = absl::GetFlag(FLAGS_port_file);
+  if (!port_file.empty() && !WritePortFile(port_file, (*server)->port())) {
+    std::fprintf(stderr, "mll_server: --port_file: cannot write %s\n",
+                 port_file.c_str());
+    return 1;
+  }
+  const std::string host =
+      options.address.substr(0, options.address.rfind(':'));
+  std::fprintf(stderr,
+               "mll_server: listening on %s:%d (--address=%s --port_file=%s "
+               "--threads=%d --max_envs=%d --idle_timeout_s=%g "
+               "--max_message_mb=%d)\n",
+               host.c_str(), (*server)->port(), options.address.c_str(),
+               port_file.c_str(), options.service.threads,
+               options.service.max_envs,
+               absl::ToDoubleSeconds(options.service.idle_timeout),
+               options.max_message_mb);
+
+  int signal_number = 0;
+  sigwait(&signals, &signal_number);
+  (*server)->Shutdown(kShutdownGrace);
+  std::fprintf(stderr, "mll_server: stopped on signal %d after shutdown\n",
+               signal_number);
+  return 0;
+}

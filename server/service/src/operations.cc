@@ -1,0 +1,258 @@
+#include "mll/service/operations.h"
+
+#include <memory>
+#include <optional>
+#include <string>
+#include <utility>
+
+#include "absl/container/flat_hash_map.h"
+#include "absl/strings/str_cat.h"
+#include "mll/core/renderer.h"
+#include "mll/service/convert.h"
+
+namespace mll {
+namespace {
+
+// Starts a new episode through the AEC adapter, which resets the Env and the
+// turn order together, so both step APIs can follow.
+void ResetLocked(EnvSlot& slot, std::optional<uint64_t> seed)
+    ABSL_EXCLUSIVE_LOCKS_REQUIRED(slot.mu) {
+  slot.aec->Reset(seed);
+  slot.mode = StepMode::kUnset;
+  ++slot.episodes;
+  ResultAfterReset(*slot.env, &slot.scratch);
+}
+
+absl::Status CheckStarted(const EnvSlot& slot)
+    ABSL_EXCLUSIVE_LOCKS_REQUIRED(slot.mu) {
+  if (slot.env->episode_started()) return absl::OkStatus();
+  return absl::FailedPreconditionError(absl::StrCat(
+      "name: ", slot.name, " has no episode yet; call ResetEnv first"));
+}
+
+// The two step APIs cannot interleave within an episode (see StepMode); the
+// mode is taken by the first successful step.
+absl::Status CheckMode(const EnvSlot& slot, StepMode mode)
+    ABSL_EXCLUSIVE_LOCKS_REQUIRED(slot.mu) {
+  if (slot.mode == StepMode::kUnset || slot.mode == mode) {
+    return absl::OkStatus();
+  }
+  return absl::FailedPreconditionError(absl::StrCat(
+      "name: ", slot.name, " is stepped with ",
+      slot.mode == StepMode::kAec ? "StepAgent" : "StepEnv/StepBatch",
+      " in this episode; the other step API needs a new episode (call "
+      "ResetEnv)"));
+}
+
+void FillEnvLocked(const EnvSlot& slot, v1::Env* out)
+    ABSL_EXCLUSIVE_LOCKS_REQUIRED(slot.mu) {
+  out->set_name(slot.name);
+  *out->mutable_config() = EnvConfigToProto(slot.config, slot.auto_reset);
+  for (int i = 0; i < slot.config.n_landers; ++i) {
+    out->add_possible_agents(AgentName(i));
+  }
+  *out->mutable_observation_space() = ObservationSpace();
+  *out->mutable_action_space() = ActionSpace(slot.config);
+  out->set_render_fps(50);
+  out->set_episode_started(slot.env->episode_started());
+  out->set_episode_over(slot.env->episode_over());
+  out->set_cycles(slot.env->cycles());
+  out->set_episodes(slot.episodes);
+  out->set_session_bound(slot.session_bound);
+}
+
+}  // namespace
+
+Operations::Operations(Registry* registry, WorkerPool* pool)
+    : registry_(registry), pool_(pool) {}
+
+absl::Status Operations::CreateEnv(const v1::CreateEnvRequest& request,
+                                   bool session_bound, v1::Env* out) {
+  absl::StatusOr<EnvConfig> config = EnvConfigFromProto(request.config());
+  if (!config.ok()) return config.status();
+  absl::StatusOr<std::shared_ptr<EnvSlot>> slot = registry_->Create(
+      *config, request.config().auto_reset(), session_bound);
+  if (!slot.ok()) return slot.status();
+  absl::MutexLock lock(&(*slot)->mu);
+  FillEnvLocked(**slot, out);
+  return absl::OkStatus();
+}
+
+absl::Status Operations::GetEnv(const v1::GetEnvRequest& request,
+                                v1::Env* out) {
+  absl::StatusOr<std::shared_ptr<EnvSlot>> slot =
+      registry_->Find(request.name(), "name");
+  if (!slot.ok()) return slot.status();
+  absl::MutexLock lock(&(*slot)->mu);
+  FillEnvLocked(**slot, out);
+  return absl::OkStatus();
+}
+
+absl::Status Operations::ListEnvs(const v1::ListEnvsRequest& request,
+                                  v1::ListEnvsResponse* out) {
+  absl::StatusOr<Registry::Page> page =
+      registry_->List(request.page_size(), request.page_token());
+  if (!page.ok()) return page.status();
+  for (const std::shared_ptr<EnvSlot>& slot : page->slots) {
+    absl::MutexLock lock(&slot->mu);
+    FillEnvLocked(*slot, out->add_envs());
+  }
+  out->set_next_page_token(page->next_page_token);
+  return absl::OkStatus();
+}
+
+absl::Status Operations::DeleteEnv(const v1::DeleteEnvRequest& request) {
+  return registry_->Delete(request.name(), "name");
+}
+
+absl::Status Operations::ResetEnv(const v1::ResetEnvRequest& request,
+                                  v1::ResetEnvResponse* out) {
+  absl::StatusOr<std::shared_ptr<EnvSlot>> found =
+      registry_->Find(request.name(), "name");
+  if (!found.ok()) return found.status();
+  EnvSlot& slot = **found;
+  absl::MutexLock lock(&slot.mu);
+  std::optional<uint64_t> seed;
+  if (request.has_seed()) {
+    seed = request.seed();
+  } else if (!slot.seeded) {
+    // Gymnasium seeds an unseeded first reset from entropy: independent envs
+    // must not all replay seed 0.
+    seed = registry_->DrawSeed();
+  }
+  if (seed.has_value()) {
+    slot.seeded = true;
+    out->set_seed(*seed);
+  }
+  ResetLocked(slot, seed);
+  FillStepData(slot.scratch, *slot.env, /*auto_reset=*/false,
+               out->mutable_data());
+  FillAecState(*slot.aec, /*world_stepped=*/false, out->mutable_aec());
+  return absl::OkStatus();
+}
+
+absl::Status Operations::StepEnv(const v1::StepEnvRequest& request,
+                                 absl::string_view field, v1::StepData* out) {
+  absl::StatusOr<std::shared_ptr<EnvSlot>> found =
+      registry_->Find(request.name(), absl::StrCat(field, "name"));
+  if (!found.ok()) return found.status();
+  EnvSlot& slot = **found;
+  ActionBuffer actions;
+  absl::Status status = ParseActions(request.actions(), slot.config,
+                                     absl::StrCat(field, "actions"), &actions);
+  if (!status.ok()) return status;
+
+  absl::MutexLock lock(&slot.mu);
+  status = CheckStarted(slot);
+  if (!status.ok()) return status;
+  if (slot.env->episode_over()) {
+    if (!slot.auto_reset) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("name: ", slot.name,
+                       " episode is over; call ResetEnv (or create the env "
+                       "with config.auto_reset)"));
+    }
+    ResetLocked(slot, std::nullopt);  // Continues the generator's stream.
+    FillStepData(slot.scratch, *slot.env, /*auto_reset=*/true, out);
+    return absl::OkStatus();
+  }
+  status = CheckMode(slot, StepMode::kParallel);
+  if (!status.ok()) return status;
+  status = slot.env->Step(actions.view(), &slot.scratch);
+  if (!status.ok()) return status;
+  slot.mode = StepMode::kParallel;
+  FillStepData(slot.scratch, *slot.env, /*auto_reset=*/false, out);
+  return absl::OkStatus();
+}
+
+absl::Status Operations::StepAgent(const v1::StepAgentRequest& request,
+                                   v1::StepAgentResponse* out) {
+  absl::StatusOr<std::shared_ptr<EnvSlot>> found =
+      registry_->Find(request.name(), "name");
+  if (!found.ok()) return found.status();
+  EnvSlot& slot = **found;
+  absl::StatusOr<std::optional<AgentAction>> action =
+      ParseAgentAction(request, slot.config);
+  if (!action.ok()) return action.status();
+
+  absl::MutexLock lock(&slot.mu);
+  absl::Status status = CheckStarted(slot);
+  if (!status.ok()) return status;
+  if (request.has_agent() &&
+      request.agent() != slot.aec->agent_selection()) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "agent: ", request.agent(), " is not agent_selection (",
+        slot.aec->agent_selection(), ") of ", slot.name));
+  }
+  status = CheckMode(slot, StepMode::kAec);
+  if (!status.ok()) return status;
+  const int cycles_before = slot.env->cycles();
+  status = slot.aec->Step(*action);
+  if (!status.ok()) return status;
+  slot.mode = StepMode::kAec;
+  FillAecState(*slot.aec, slot.env->cycles() != cycles_before,
+               out->mutable_aec());
+  return absl::OkStatus();
+}
+
+absl::Status Operations::RenderEnv(const v1::RenderEnvRequest& request,
+                                   v1::Frame* out) {
+  if (!v1::FrameFormat_IsValid(request.format())) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "format: ", request.format(),
+        " is not a FrameFormat (allowed: FRAME_FORMAT_RGB = 1, "
+        "FRAME_FORMAT_PNG = 2)"));
+  }
+  absl::StatusOr<std::shared_ptr<EnvSlot>> found =
+      registry_->Find(request.name(), "name");
+  if (!found.ok()) return found.status();
+  absl::StatusOr<Frame> frame;
+  {
+    absl::MutexLock lock(&(*found)->mu);
+    frame = mll::RenderEnv(*(*found)->env);
+  }
+  if (!frame.ok()) return frame.status();
+  out->set_width(frame->width);
+  out->set_height(frame->height);
+  if (request.format() == v1::FRAME_FORMAT_PNG) {
+    // Encoding is pure and slow: done after the env is released.
+    absl::StatusOr<std::string> png = EncodePng(*frame);
+    if (!png.ok()) return png.status();
+    out->set_format(v1::FRAME_FORMAT_PNG);
+    out->set_data(*std::move(png));
+  } else {
+    out->set_format(v1::FRAME_FORMAT_RGB);
+    out->set_data(reinterpret_cast<const char*>(frame->rgb.data()),
+                  frame->rgb.size());
+  }
+  return absl::OkStatus();
+}
+
+void Operations::StepBatch(const v1::StepBatchRequest& request,
+                           v1::StepBatchResponse* out,
+                           std::function<void(absl::Status)> done) {
+  absl::flat_hash_map<absl::string_view, int> first_index;
+  for (int i = 0; i < request.steps_size(); ++i) {
+    auto [it, inserted] = first_index.emplace(request.steps(i).name(), i);
+    if (!inserted) {
+      done(absl::InvalidArgumentError(absl::StrCat(
+          "steps[", i, "].name: ", request.steps(i).name(),
+          " also appears at steps[", it->second,
+          "]; the envs of one batch must be distinct")));
+      return;
+    }
+  }
+  for (int i = 0; i < request.steps_size(); ++i) out->add_results();
+  pool_->ParallelFor(
+      request.steps_size(),
+      [this, &request, out](int i) {
+        v1::StepBatchResult* result = out->mutable_results(i);
+        absl::Status status = StepEnv(request.steps(i),
+                                      absl::StrCat("steps[", i, "]."),
+                                      result->mutable_data());
+        if (!status.ok()) FillItemError(status, result->mutable_error());
+      },
+      [done = std::move(done)] { done(absl::OkStatus()); });
+}
+
+}  // namespace mll

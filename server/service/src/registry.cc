@@ -1,0 +1,225 @@
+#include "mll/service/registry.h"
+
+#include <algorithm>
+#include <chrono>
+#include <utility>
+
+#include "absl/strings/match.h"
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+
+namespace mll {
+namespace {
+
+constexpr absl::string_view kNamePrefix = "envs/";
+constexpr int kDefaultPageSize = 100;
+constexpr int kMaxPageSize = 1000;
+// The reaper scans at most this often, so that envs touched just before
+// their deadline cannot make it spin; an env may outlive its timeout by
+// this much (or a tenth of the timeout, if smaller).
+constexpr absl::Duration kMaxReapGranularity = absl::Seconds(1);
+
+int64_t SteadyNowNs() {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(
+             std::chrono::steady_clock::now().time_since_epoch())
+      .count();
+}
+
+void Touch(EnvSlot& slot) { slot.last_touched_ns.store(SteadyNowNs()); }
+
+// Seeds the id generator from the OS's entropy so that names cannot be
+// guessed from the server's start time or from other names.
+std::mt19937_64 SeededFromEntropy() {
+  std::random_device device;
+  std::seed_seq seq{device(), device(), device(), device(),
+                    device(), device(), device(), device()};
+  return std::mt19937_64(seq);
+}
+
+}  // namespace
+
+EnvSlot::EnvSlot(std::string name, uint64_t serial, std::unique_ptr<Env> env,
+                 bool auto_reset, bool session_bound)
+    : name(std::move(name)),
+      serial(serial),
+      config(env->config()),
+      auto_reset(auto_reset),
+      session_bound(session_bound),
+      env(std::move(env)) {
+  aec = std::make_unique<AecEnv>(this->env.get());
+  Touch(*this);
+}
+
+Registry::Registry(int max_envs, absl::Duration idle_timeout)
+    : max_envs_(max_envs),
+      idle_timeout_(idle_timeout),
+      random_(SeededFromEntropy()) {
+  reaper_ = std::thread([this] { ReapLoop(); });
+}
+
+Registry::~Registry() {
+  {
+    absl::MutexLock lock(&mu_);
+    stopping_ = true;
+    reaper_wake_.Signal();
+  }
+  reaper_.join();
+}
+
+std::string Registry::NewNameLocked() {
+  for (;;) {
+    const uint64_t high = random_();
+    const uint64_t low = random_();
+    std::string name =
+        absl::StrFormat("%s%016x%016x", kNamePrefix, high, low);
+    if (!by_name_.contains(name)) return name;
+  }
+}
+
+absl::StatusOr<std::shared_ptr<EnvSlot>> Registry::Create(
+    const EnvConfig& config, bool auto_reset, bool session_bound) {
+  {
+    absl::MutexLock lock(&mu_);
+    if (static_cast<int>(by_name_.size()) + pending_ >= max_envs_) {
+      return absl::ResourceExhaustedError(absl::StrCat(
+          "the server hosts its maximum of --max_envs = ", max_envs_,
+          " environments; delete some (DeleteEnv) or wait for idle ones to "
+          "be reclaimed after --idle_timeout_s = ",
+          absl::ToDoubleSeconds(idle_timeout_)));
+    }
+    ++pending_;
+  }
+  // Building a Box2D world takes a while: not under the registry's lock.
+  absl::StatusOr<std::unique_ptr<Env>> env = Env::Create(config);
+  absl::MutexLock lock(&mu_);
+  --pending_;
+  if (!env.ok()) return env.status();
+  const std::string name = NewNameLocked();
+  auto slot = std::make_shared<EnvSlot>(name, next_serial_++, *std::move(env),
+                                        auto_reset, session_bound);
+  by_name_.emplace(name, slot);
+  by_serial_.emplace(slot->serial, slot);
+  return slot;
+}
+
+absl::StatusOr<std::shared_ptr<EnvSlot>> Registry::Find(
+    absl::string_view name, absl::string_view field) {
+  if (!absl::StartsWith(name, kNamePrefix) ||
+      name.size() == kNamePrefix.size()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(field, ": \"", name,
+                     "\" is not an env name (allowed: envs/{id}, as "
+                     "CreateEnv returned it)"));
+  }
+  std::shared_ptr<EnvSlot> slot;
+  {
+    absl::MutexLock lock(&mu_);
+    auto it = by_name_.find(name);
+    if (it != by_name_.end()) slot = it->second;
+  }
+  if (slot == nullptr) {
+    return absl::NotFoundError(absl::StrCat(
+        field, ": ", name,
+        " does not exist (never created, deleted, ended with its session, or "
+        "reclaimed after --idle_timeout_s = ",
+        absl::ToDoubleSeconds(idle_timeout_), ")"));
+  }
+  Touch(*slot);
+  return slot;
+}
+
+absl::Status Registry::Delete(absl::string_view name,
+                              absl::string_view field) {
+  absl::StatusOr<std::shared_ptr<EnvSlot>> found = Find(name, field);
+  if (!found.ok()) return found.status();
+  {
+    absl::MutexLock lock(&mu_);
+    by_name_.erase((*found)->name);
+    by_serial_.erase((*found)->serial);
+  }
+  // The last holder (maybe this call, maybe an in-flight step) destroys the
+  // world, outside the registry's lock.
+  return absl::OkStatus();
+}
+
+absl::StatusOr<Registry::Page> Registry::List(int page_size,
+                                              absl::string_view page_token) {
+  if (page_size < 0) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "page_size: ", page_size, " is negative (allowed: 0 for ",
+        kDefaultPageSize, ", up to ", kMaxPageSize, ")"));
+  }
+  if (page_size == 0) page_size = kDefaultPageSize;
+  page_size = std::min(page_size, kMaxPageSize);
+  // The token is the serial of the first env of the page; serials only grow,
+  // so pages stay consistent while envs come and go.
+  uint64_t first = 0;
+  if (!page_token.empty() &&
+      (!absl::StartsWith(page_token, "s") ||
+       !absl::SimpleAtoi(page_token.substr(1), &first))) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("page_token: \"", page_token,
+                     "\" is not a token from ListEnvsResponse.next_page_token"));
+  }
+  Page page;
+  absl::MutexLock lock(&mu_);
+  for (auto it = by_serial_.lower_bound(first); it != by_serial_.end(); ++it) {
+    if (static_cast<int>(page.slots.size()) == page_size) {
+      page.next_page_token = absl::StrCat("s", it->first);
+      break;
+    }
+    page.slots.push_back(it->second);
+  }
+  return page;
+}
+
+uint64_t Registry::DrawSeed() {
+  absl::MutexLock lock(&mu_);
+  return random_();
+}
+
+int Registry::size() {
+  absl::MutexLock lock(&mu_);
+  return static_cast<int>(by_name_.size());
+}
+
+absl::Time Registry::ReapExpiredLocked(
+    std::vector<std::shared_ptr<EnvSlot>>* expired) {
+  const int64_t now_ns = SteadyNowNs();
+  const int64_t timeout_ns = absl::ToInt64Nanoseconds(idle_timeout_);
+  int64_t next_ns = now_ns + timeout_ns;  // A new env expires no sooner.
+  for (auto it = by_name_.begin(); it != by_name_.end();) {
+    const int64_t deadline_ns = it->second->last_touched_ns.load() + timeout_ns;
+    if (deadline_ns <= now_ns) {
+      by_serial_.erase(it->second->serial);
+      expired->push_back(std::move(it->second));
+      by_name_.erase(it++);
+    } else {
+      next_ns = std::min(next_ns, deadline_ns);
+      ++it;
+    }
+  }
+  const absl::Duration granularity =
+      std::min(kMaxReapGranularity, idle_timeout_ / 10);
+  return absl::Now() +
+         std::max(absl::Nanoseconds(next_ns - now_ns), granularity);
+}
+
+void Registry::ReapLoop() {
+  absl::MutexLock lock(&mu_);
+  while (!stopping_) {
+    std::vector<std::shared_ptr<EnvSlot>> expired;
+    const absl::Time wake = ReapExpiredLocked(&expired);
+    if (!expired.empty()) {
+      mu_.Unlock();
+      expired.clear();  // Destroys the worlds without blocking lookups.
+      mu_.Lock();
+      continue;
+    }
+    // Sleeps until the earliest deadline: no CPU while nothing expires.
+    reaper_wake_.WaitWithDeadline(&mu_, wake);
+  }
+}
+
+}  // namespace mll
