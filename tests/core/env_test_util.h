@@ -44,10 +44,11 @@ inline StepResult StepNoop(Env& env) {
 inline constexpr double kPadX = 10.0;
 inline constexpr double kPadY = 40.0 / 3.0 / 4.0;
 
-// Upright, feet just above the pad, at rest: it settles and sleeps.
+// Upright, feet (legs swung out, 0.53 m below the centre) 3 cm above the
+// pad, at rest: it settles and sleeps.
 inline void PlaceRestingOnPad(Env& env, int agent, double x = kPadX) {
   ASSERT_TRUE(
-      env.SetLanderStateForTest(agent, x, kPadY + 0.9, 0.0, 0.0, 0.0, 0.0)
+      env.SetLanderStateForTest(agent, x, kPadY + 0.56, 0.0, 0.0, 0.0, 0.0)
           .ok());
 }
 
