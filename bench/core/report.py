@@ -1,0 +1,112 @@
+"""Turns core_bench's JSON output into the Core table of docs/benchmarks.md.
+
+usage: report.py BENCH_JSON BENCHMARKS_MD
+Prints the section and replaces the text between the core markers in
+BENCHMARKS_MD (appending the section if the markers are absent).
+"""
+import json
+import os
+import re
+import sys
+
+BEGIN = "<!-- core:begin (bench/core/run.sh writes this section) -->"
+END = "<!-- core:end -->"
+STEP_TARGET = 1.15  # Env per agent-step <= 1.15 x the bare Box2D floor.
+RENDER_TARGET_MS = 1.0
+
+
+def medians(path):
+    with open(path) as f:
+        data = json.load(f)
+    rows = {}
+    for b in data["benchmarks"]:
+        if b.get("aggregate_name") == "median":
+            rows[b["run_name"]] = b
+    return data["context"], rows
+
+
+def cpu_ms(row):
+    scale = {"ns": 1e-6, "us": 1e-3, "ms": 1.0, "s": 1e3}[row["time_unit"]]
+    return row["cpu_time"] * scale
+
+
+def section(context, rows, command):
+    lines = [BEGIN, "## Core", ""]
+    lines.append(
+        f"Command: `{command}` (median of the repetitions, CPU time, "
+        f"{context.get('num_cpus')} x {context.get('mhz_per_cpu')} MHz, "
+        f"load average at start {', '.join(f'{x:.1f}' for x in context.get('load_avg', []))}; "
+        f"run {context.get('date')}).")
+    lines.append("")
+    lines.append("### Env::Step per agent-step against the bare Box2D floor")
+    lines.append("")
+    lines.append(
+        "Random discrete actions, default config (an episode ends at the first "
+        "damage), re-reset when over, resets included. The floor is the same "
+        "world built directly in `bench/core/core_bench.cc` (terrain, landers, "
+        "legs, revolute joints, collision filters, Gymnasium's engine "
+        "impulses, `Step(1/50, 180, 60)`, same episode boundaries) without "
+        f"observations, rewards or rules. Target: ratio <= {STEP_TARGET}.")
+    lines.append("")
+    lines.append("| landers | Env us/agent-step | floor us/agent-step | ratio | Env agent-steps/s | target met |")
+    lines.append("|---|---|---|---|---|---|")
+    for n in (1, 3, 8, 32):
+        env = rows.get(f"BM_EnvStep/{n}")
+        floor = rows.get(f"BM_FloorStep/{n}")
+        if not env or not floor:
+            continue
+        env_us = 1e6 / env["items_per_second"]
+        floor_us = 1e6 / floor["items_per_second"]
+        ratio = env_us / floor_us
+        lines.append(
+            f"| {n} | {env_us:.2f} | {floor_us:.2f} | {ratio:.3f} | "
+            f"{env['items_per_second']:,.0f} | {'yes' if ratio <= STEP_TARGET else 'NO'} |")
+    lines.append("")
+    lines.append("### Reset, rendering, memory")
+    lines.append("")
+    lines.append("| what | figure |")
+    lines.append("|---|---|")
+    for n in (1, 3, 8, 32):
+        row = rows.get(f"BM_EnvReset/{n}")
+        if row:
+            lines.append(f"| Env::Reset, {n} landers | {cpu_ms(row) * 1e3:.1f} us |")
+    render = rows.get("BM_RenderScene")
+    if render:
+        ms = cpu_ms(render)
+        lines.append(
+            f"| RenderScene, 8 landers, {render.get('particles', 0):.0f} particles, 600x400 RGB | "
+            f"{ms:.3f} ms (target < {RENDER_TARGET_MS} ms: {'met' if ms < RENDER_TARGET_MS else 'NOT met'}) |")
+    png = rows.get("BM_EncodePng")
+    peer = rows.get("BM_EncodePngLibpngDefaults")
+    if png:
+        lines.append(f"| EncodePng (zlib level 1, no row filter) | {cpu_ms(png):.3f} ms, {png['png_bytes'] / 1024:.1f} KiB |")
+    if peer:
+        lines.append(f"| libpng defaults (peer, same frame) | {cpu_ms(peer):.3f} ms, {peer['png_bytes'] / 1024:.1f} KiB |")
+    for name, row in sorted(rows.items()):
+        m = re.match(r"BM_MemoryPerEnv/(\d+)/(\d+)", name)
+        if m:
+            lines.append(
+                f"| heap per Env after Reset, {m.group(1)} landers ({m.group(2)} envs, mallinfo2) | "
+                f"{row['env_kb']:.0f} KiB (bare Box2D floor world: {row['floor_kb']:.0f} KiB) |")
+    lines.append(END)
+    return "\n".join(lines) + "\n"
+
+
+def main():
+    context, rows = medians(sys.argv[1])
+    text = section(context, rows, os.environ.get("COMMAND", "bench/core/run.sh"))
+    print(text)
+    doc_path = sys.argv[2]
+    doc = open(doc_path).read() if os.path.exists(doc_path) else "# Benchmarks\n\n"
+    if BEGIN in doc and END in doc:
+        head, rest = doc.split(BEGIN, 1)
+        tail = rest.split(END, 1)[1].lstrip("\n")
+        doc = head + text + ("\n" + tail if tail else "")
+    else:
+        doc = doc.rstrip("\n") + "\n\n" + text
+    with open(doc_path, "w") as f:
+        f.write(doc)
+
+
+if __name__ == "__main__":
+    main()
