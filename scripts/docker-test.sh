@@ -17,6 +17,8 @@
 # Every wait is bounded. Exit code 0 only if every check passed.
 #
 # Environment: MLL_DOCKER_CACHE (default /var/cache/mll-docker-test),
+# MLL_DOCKER_CONTEXT (head: build what is committed, the default; worktree:
+# build the work tree with its uncommitted edits),
 # MLL_DOCKER_PORT (default: a free loopback port), MLL_DOCKER_IMAGE
 # (default localhost/mll-server:test), MLL_DOCKER_NO_TESTS=1 skips ctest in the
 # build stage.
@@ -123,6 +125,18 @@ fi
 pass "base image $BASE_IMAGE"
 
 step "4. build $IMAGE"
+# The build context is what is committed (HEAD, exported like CI's clean
+# clone), so others' half-done edits in the work tree do not decide the
+# result; MLL_DOCKER_CONTEXT=worktree builds the work tree as it is.
+if [ "${MLL_DOCKER_CONTEXT:-head}" = worktree ]; then
+  context=$ROOT
+  echo "context: the work tree $ROOT"
+else
+  context=$CACHE/context
+  rm -rf "$context" && mkdir -p "$context"
+  git archive HEAD | tar -x -C "$context"
+  echo "context: HEAD $(git rev-parse --short HEAD) exported to $context"
+fi
 build_args=(--build-arg "BASE_IMAGE=$BASE_IMAGE")
 [ "${MLL_DOCKER_NO_TESTS:-0}" = 1 ] && build_args+=(--build-arg RUN_TESTS=0)
 # Docker's image format: podman's default (OCI) drops SHELL and HEALTHCHECK.
@@ -130,7 +144,7 @@ build_args=(--build-arg "BASE_IMAGE=$BASE_IMAGE")
 # default bridge with a loopback-only port mapping.
 build_start=$SECONDS
 set +e
-timeout 3600 podman build --format docker --network=host "${build_args[@]}" -f docker/Dockerfile -t "$IMAGE" . 2>&1 \
+timeout 3600 podman build --format docker --network=host "${build_args[@]}" -f "$context/docker/Dockerfile" -t "$IMAGE" "$context" 2>&1 \
   | tee "$CACHE/build.log" \
   | grep --line-buffered -E '^(STEP|COMMIT|build packages|runtime packages|WARNING)|tests passed|tests failed|^Error|error:'
 build_rc=${PIPESTATUS[0]}
@@ -138,7 +152,7 @@ set -e
 ((build_rc == 0)) || { tail -n 40 "$CACHE/build.log"; fail "image build failed (rc $build_rc); see $CACHE/build.log"; }
 ctest_line=$(grep -E 'tests passed|tests failed' "$CACHE/build.log" | tail -n1 || true)
 size_mb=$(( $(podman image inspect --format '{{.Size}}' "$IMAGE") / 1000000 ))
-pass "image built in $((SECONDS - build_start)) s, ${size_mb} MB${ctest_line:+; build-stage ctest: $ctest_line}"
+pass "image of $( [ "$context" = "$ROOT" ] && echo "the work tree" || echo "HEAD $(git rev-parse --short HEAD)") built in $((SECONDS - build_start)) s, ${size_mb} MB${ctest_line:+; build-stage ctest: $ctest_line}"
 
 step "5. run with a loopback-only port mapping"
 PORT=${MLL_DOCKER_PORT:-$("$PYTHON" -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')}
