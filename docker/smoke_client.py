@@ -84,6 +84,21 @@ def fly_with_stubs(address, n_landers, steps, seed, proto_dir):
     return trace
 
 
+def leave_envs(address, n_landers, count, proto_dir):
+    """Creates and resets `count` environments and leaves them on the server
+    (its idle timeout reclaims them): for measuring memory per environment."""
+    import grpc
+
+    pb, pb_grpc = generated_stubs(proto_dir)
+    with grpc.insecure_channel(address) as channel:
+        stub = pb_grpc.MultiLunarLanderStub(channel)
+        config = pb.EnvConfig(n_landers=n_landers)
+        for seed in range(count):
+            env = stub.CreateEnv(pb.CreateEnvRequest(config=config), timeout=10)
+            stub.ResetEnv(pb.ResetEnvRequest(name=env.name, seed=seed), timeout=10)
+    print(f"smoke_client: left {count} reset environments of {n_landers} landers at {address}")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--address", required=True, help="host:port of the server")
@@ -92,7 +107,12 @@ def main():
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--proto_dir", default="proto", help="for the generated-stubs path")
     parser.add_argument("--stubs", action="store_true", help="skip the package, use stubs")
+    parser.add_argument("--leave_envs", type=int, default=0,
+                        help="only create and reset this many envs and leave them (stubs)")
     args = parser.parse_args()
+    if args.leave_envs:
+        leave_envs(args.address, args.n_landers, args.leave_envs, args.proto_dir)
+        return
 
     def fly():
         if not args.stubs:

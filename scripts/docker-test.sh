@@ -12,8 +12,10 @@
 #   5. runs it with a loopback-only port mapping, waits for the server to be
 #      healthy (grpc.health.v1 from the host, and the image's HEALTHCHECK);
 #   6. creates, resets and steps an environment from the host's Python client;
-#   7. sends SIGTERM and checks exit code 0 and a clean stop in the log;
-#   8. removes the container (images stay cached; --clean removes them too).
+#   7. leaves 1000 reset environments on it and measures the server's RSS per
+#      environment against the 256 KiB that deploy/k8s is sized with;
+#   8. sends SIGTERM and checks exit code 0 and a clean stop in the log;
+#   9. removes the container (images stay cached; --clean removes them too).
 # Every wait is bounded. Exit code 0 only if every check passed.
 #
 # Environment: MLL_DOCKER_CACHE (default /var/cache/mll-docker-test),
@@ -162,7 +164,8 @@ cleanup() {
   if ((CLEAN)); then podman rmi -f "$IMAGE" "$BASE_IMAGE" >/dev/null 2>&1 || true; fi
 }
 trap cleanup EXIT
-podman run -d --name "$CONTAINER" -p "$ADDRESS:50051" "$IMAGE" --max_envs=64 >/dev/null
+MEMORY_ENVS=1000
+podman run -d --name "$CONTAINER" -p "$ADDRESS:50051" "$IMAGE" --max_envs=$((MEMORY_ENVS + 16)) >/dev/null
 podman port "$CONTAINER"
 podman port "$CONTAINER" | grep -qx "50051/tcp -> $ADDRESS" \
   || fail "port mapping is not loopback-only: $(podman port "$CONTAINER")"
@@ -211,7 +214,18 @@ timeout 180 "$PYTHON" docker/smoke_client.py --address="$ADDRESS" --proto_dir="$
   | tee "$CACHE/client.log"
 pass "$(tail -n1 "$CACHE/client.log")"
 
-step "7. SIGTERM: graceful stop"
+step "7. memory per environment (the Kubernetes sizing assumes 256 KiB)"
+rss_kib() { podman exec "$CONTAINER" awk '/^VmRSS:/{print $2}' /proc/1/status; }
+before=$(rss_kib)
+timeout 300 "$PYTHON" docker/smoke_client.py --address="$ADDRESS" --proto_dir="$ROOT/proto" \
+  --leave_envs="$MEMORY_ENVS"
+after=$(rss_kib)
+per_env=$(( (after - before) / MEMORY_ENVS ))
+echo "VmRSS $before KiB -> $after KiB with $MEMORY_ENVS more envs of 3 landers"
+((per_env <= 256)) || fail "$per_env KiB per environment: more than the 256 KiB deploy/k8s and docs/deployment.md budget"
+pass "memory: $per_env KiB per reset 3-lander environment (RSS $((before / 1024)) -> $((after / 1024)) MiB for $MEMORY_ENVS envs; budget 256 KiB)"
+
+step "8. SIGTERM with $MEMORY_ENVS live environments: graceful stop"
 stop_start=$SECONDS
 timeout 60 podman stop --time 30 "$CONTAINER" >/dev/null
 code=$(podman inspect --format '{{.State.ExitCode}}' "$CONTAINER")
