@@ -150,12 +150,12 @@ def action_array(actions, continuous: bool, shape_prefix: tuple[int, ...], what:
             f"({'continuous [main, lateral] per agent' if continuous else 'one discrete action 0..3 per agent'})"
         )
     if continuous:
-        return np.ascontiguousarray(array, dtype=np.float32)
+        return array.astype(np.float32, copy=False)
     if array.dtype.kind not in "iub":
         rounded = array.astype(np.int64) if np.isfinite(array).all() else None
         if rounded is None or not np.array_equal(rounded, array):
             raise invalid_argument(f"{what} are {array.ravel()[:8].tolist()}; discrete actions are integers 0..3")
-    return np.ascontiguousarray(array, dtype=np.int32)
+    return array.astype(np.int32, copy=False)
 
 
 def encode_agent_action(action, continuous: bool, agent: str, out: "pb.AgentAction") -> None:

@@ -13,7 +13,9 @@ def heuristic(observation, continuous: bool = False):
     of shape (..., 2) ([main, lateral] in [-1, 1]). A single observation gives an int / a (2,)
     array.
     """
-    s = np.asarray(observation)
+    # float64 throughout, as Gymnasium's pilot computes on numpy scalars; it also makes one
+    # observation and a batch give bit-identical actions.
+    s = np.asarray(observation, dtype=np.float64)
     if s.shape[-1:] and s.shape[-1] < 8:
         raise ValueError(f"observation has shape {s.shape}; the last dimension needs >= 8 values")
     angle_target = np.clip(s[..., 0] * 0.5 + s[..., 2] * 1.0, -0.4, 0.4)
