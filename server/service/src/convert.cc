@@ -39,12 +39,13 @@ std::vector<To> PerAgent(int n, From from) {
 grpc::Status ToGrpcStatus(const absl::Status& status) {
   if (status.ok()) return grpc::Status::OK;
   const int code = static_cast<int>(status.code());
-  // absl::StatusCode and grpc::StatusCode both number the canonical codes
-  // 1..16 identically.
-  if (code < 1 || code > 16) {
+  // absl::StatusCode and grpc::StatusCode number the canonical codes alike.
+  // The core never means UNKNOWN (absl's code for anything non-canonical):
+  // it is a bug, which the wire reports as INTERNAL.
+  if (status.code() == absl::StatusCode::kUnknown || code < 1 || code > 16) {
     return grpc::Status(grpc::StatusCode::INTERNAL,
-                        absl::StrCat("non-canonical status code ", code, ": ",
-                                     status.message()));
+                        absl::StrCat("internal error (status code ", code,
+                                     "): ", status.message()));
   }
   return grpc::Status(static_cast<grpc::StatusCode>(code),
                       std::string(status.message()));

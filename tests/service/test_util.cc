@@ -1,0 +1,89 @@
+#include "test_util.h"
+
+#include <random>
+
+#include "gtest/gtest.h"
+#include "mll/service/convert.h"
+
+namespace mll::testing {
+
+InProcess::InProcess(ServiceOptions options, int max_message_mb) {
+  ServerOptions server_options;
+  server_options.address = "";
+  server_options.max_message_mb = max_message_mb;
+  server_options.service = options;
+  absl::StatusOr<std::unique_ptr<Server>> started =
+      Server::Start(server_options);
+  EXPECT_TRUE(started.ok()) << started.status();
+  if (!started.ok()) return;
+  server = *std::move(started);
+  stub = v1::MultiLunarLander::NewStub(server->InProcessChannel());
+}
+
+v1::Array DiscreteActions(const std::vector<int32_t>& actions) {
+  v1::Array array;
+  const int shape[] = {static_cast<int>(actions.size())};
+  FillArray<int32_t>(actions, shape, &array);
+  return array;
+}
+
+v1::Array ContinuousActions(const std::vector<float>& actions) {
+  v1::Array array;
+  const int shape[] = {static_cast<int>(actions.size() / 2), 2};
+  FillArray<float>(actions, shape, &array);
+  return array;
+}
+
+v1::CreateEnvRequest CreateRequest(int n_landers) {
+  v1::CreateEnvRequest request;
+  request.mutable_config()->set_n_landers(n_landers);
+  return request;
+}
+
+std::string CreateEnv(v1::MultiLunarLander::Stub& stub,
+                      const v1::CreateEnvRequest& request) {
+  grpc::ClientContext context;
+  v1::Env env;
+  grpc::Status status = stub.CreateEnv(&context, request, &env);
+  EXPECT_TRUE(status.ok()) << status.error_message();
+  return env.name();
+}
+
+std::vector<float> Observations(const v1::StepData& data, int n) {
+  const int shape[] = {n, kObservationSize};
+  absl::StatusOr<std::vector<float>> values =
+      DecodeArray<float>(data.observations(), shape, "observations");
+  EXPECT_TRUE(values.ok()) << values.status();
+  return values.ok() ? *values : std::vector<float>();
+}
+
+std::vector<float> Rewards(const v1::StepData& data, int n) {
+  const int shape[] = {n};
+  absl::StatusOr<std::vector<float>> values =
+      DecodeArray<float>(data.rewards(), shape, "rewards");
+  EXPECT_TRUE(values.ok()) << values.status();
+  return values.ok() ? *values : std::vector<float>();
+}
+
+std::string ResultBits(const v1::StepData& data) {
+  return data.observations().data() + "|" + data.rewards().data() + "|" +
+         data.terminations().data() + "|" + data.truncations().data() + "|" +
+         data.stepped().data() + "|" + data.outcomes().data() + "|" +
+         data.episode_returns().data() + "|" + data.episode_lengths().data() +
+         (data.episode_over() ? "|over" : "|on");
+}
+
+std::vector<std::vector<int32_t>> ActionTable(int cycles, int n_landers,
+                                              uint32_t seed) {
+  std::mt19937 generator(seed);
+  constexpr int32_t kChoices[] = {0, 1, 2, 2, 2, 3};
+  std::uniform_int_distribution<int> pick(0, 5);
+  std::vector<std::vector<int32_t>> table(cycles,
+                                          std::vector<int32_t>(n_landers));
+  for (auto& row : table) {
+    for (int32_t& action : row) action = kChoices[pick(generator)];
+  }
+  return table;
+}
+
+}  // namespace mll::testing
