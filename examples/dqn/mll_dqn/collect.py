@@ -59,33 +59,52 @@ class Timers:
         self.seconds[name] = self.seconds.get(name, 0.0) + seconds
 
 
-class ParallelCollector:
+class _Collector:
+    """What both collectors share: the agent, one n-step stream per lander
+    slot, the timers and the count of environment steps."""
+
+    def __init__(self, agent, config: TrainConfig, rng: np.random.Generator,
+                 timers: Timers, num_envs: int):
+        self._agent = agent
+        self._rng = rng
+        self._timers = timers
+        self._num_envs = num_envs
+        self._n = config.env_config.get("n_landers", 3)
+        self._folder = NStepFolder(config.n_step, config.gamma,
+                                   num_envs * self._n, OBS_SIZE)
+        self.env = None
+        self.env_steps = 0
+
+    def _timed(self, call, *args):
+        """call(*args), its seconds added to the "env" timer."""
+        start = time.perf_counter()
+        result = call(*args)
+        self._timers.add("env", time.perf_counter() - start)
+        return result
+
+    def close(self) -> None:
+        self.env.close()
+
+
+class ParallelCollector(_Collector):
     """The paper's single-environment loop over a PettingZoo parallel_env."""
 
     def __init__(self, agent, config: TrainConfig, address: Optional[str],
                  rng: np.random.Generator, timers: Timers, seed: int):
-        self._agent = agent
-        self._rng = rng
-        self._timers = timers
+        super().__init__(agent, config, rng, timers, num_envs=1)
         self.env = multi_lunar_lander.parallel_env(address=address,
                                                    **config.env_config)
-        self._n = config.env_config.get("n_landers", 3)
-        self._folder = NStepFolder(config.n_step, config.gamma, self._n,
-                                   OBS_SIZE)
         self._seed: Optional[int] = seed
         self._obs: Dict[str, np.ndarray] = {}
-        self.env_steps = 0
 
     def _start_episode(self) -> None:
-        start = time.perf_counter()
         # The first reset seeds the environment's generator; later resets
         # continue its stream.
-        self._obs, _ = self.env.reset(seed=self._seed)
+        self._obs, _ = self._timed(self.env.reset, self._seed)
         self._seed = None
         self._returns = np.zeros(self._n)
         self._outcomes = [NO_OUTCOME] * self._n
         self._steps = 0
-        self._timers.add("env", time.perf_counter() - start)
 
     def step(self, epsilon: float):
         if not self._obs:
@@ -94,37 +113,35 @@ class ParallelCollector:
         start = time.perf_counter()
         batch = np.stack([self._obs[a] for a in agents])
         actions = self._agent.act(batch, epsilon, self._rng)
-        mid = time.perf_counter()
-        next_obs, rewards, terms, truncs, infos = self.env.step(
-            {a: int(act) for a, act in zip(agents, actions)})
-        self._timers.add("act", mid - start)
-        self._timers.add("env", time.perf_counter() - mid)
+        self._timers.add("act", time.perf_counter() - start)
+        next_obs, rewards, terms, truncs, infos = self._timed(
+            self.env.step, {a: int(act) for a, act in zip(agents, actions)})
         self._steps += 1
         self.env_steps += 1
+        # Per-slot arrays for the n-step folder (slot i is lander_i).
         n = self._n
+        index = np.array([lander_index(a) for a in agents])
         mask = np.zeros(n, bool)
+        mask[index] = True
         obs_s = np.zeros((n, OBS_SIZE), np.float32)
+        obs_s[index] = batch
         next_s = np.zeros((n, OBS_SIZE), np.float32)
+        next_s[index] = np.stack([next_obs[a] for a in agents])
         act_s = np.zeros(n, np.int64)
-        rew_s = np.zeros(n, np.float64)
+        act_s[index] = actions
+        rew_s = np.zeros(n)
+        rew_s[index] = [rewards[a] for a in agents]
         term_s = np.zeros(n, bool)
-        ended_s = np.zeros(n, bool)
-        for a, act in zip(agents, actions):
-            i = lander_index(a)
-            mask[i] = True
-            obs_s[i] = batch[agents.index(a)]
-            next_s[i] = next_obs[a]
-            act_s[i] = act
-            rew_s[i] = rewards[a]
-            term_s[i] = terms[a]
-            ended_s[i] = terms[a] or truncs[a]
-            self._returns[i] += rewards[a]
+        term_s[index] = [terms[a] for a in agents]
+        ended_s = term_s.copy()
+        ended_s[index] |= [truncs[a] for a in agents]
+        self._returns += rew_s
+        for a, i in zip(agents, index):
             if ended_s[i]:
                 self._outcomes[i] = outcome_name(infos.get(a, {}))
         transitions = self._folder.add(mask, obs_s, act_s, rew_s, next_s,
                                        term_s, ended_s)
-        self._obs = {a: o for a, o in next_obs.items()
-                     if not (terms[a] or truncs[a])}
+        self._obs = {a: next_obs[a] for a in self.env.agents}
         episodes = []
         if not self._obs:
             episodes.append(EpisodeRecord(float(self._returns.sum()),
@@ -132,35 +149,23 @@ class ParallelCollector:
                                           list(self._outcomes), self._steps))
         return transitions, episodes
 
-    def close(self) -> None:
-        self.env.close()
 
-
-class VectorCollector:
+class VectorCollector(_Collector):
     """Many environments per call through the client's vector_env."""
 
     def __init__(self, agent, config: TrainConfig, address: Optional[str],
                  rng: np.random.Generator, timers: Timers, seed: int):
-        self._agent = agent
-        self._rng = rng
-        self._timers = timers
-        self._num_envs = config.num_envs
-        self._n = config.env_config.get("n_landers", 3)
+        super().__init__(agent, config, rng, timers, config.num_envs)
         self.env = multi_lunar_lander.vector_env(config.num_envs,
                                                  address=address,
                                                  **config.env_config)
+        obs, _ = self._timed(self.env.reset, seed)
         streams = self._num_envs * self._n
-        self._folder = NStepFolder(config.n_step, config.gamma, streams,
-                                   OBS_SIZE)
-        start = time.perf_counter()
-        obs, _ = self.env.reset(seed=seed)
-        self._timers.add("env", time.perf_counter() - start)
         self._obs = np.asarray(obs, np.float32).reshape(streams, OBS_SIZE)
         self._active = np.ones(streams, bool)
         self._returns = np.zeros((self._num_envs, self._n))
         self._outcomes = [[NO_OUTCOME] * self._n for _ in range(self._num_envs)]
         self._steps = np.zeros(self._num_envs, np.int64)
-        self.env_steps = 0
 
     def step(self, epsilon: float):
         n_envs, n = self._num_envs, self._n
@@ -168,10 +173,8 @@ class VectorCollector:
         actions = np.zeros(n_envs * n, np.int64)
         active = np.flatnonzero(self._active)
         actions[active] = self._agent.act(self._obs[active], epsilon, self._rng)
-        mid = time.perf_counter()
-        result = self.env.step(actions.reshape(n_envs, n))
-        self._timers.add("act", mid - start)
-        self._timers.add("env", time.perf_counter() - mid)
+        self._timers.add("act", time.perf_counter() - start)
+        result = self._timed(self.env.step, actions.reshape(n_envs, n))
         next_obs, rewards, terms, truncs, reset_rows = (
             _vector_result(result, n_envs, n))
         next_obs = next_obs.reshape(-1, OBS_SIZE)
@@ -208,9 +211,6 @@ class VectorCollector:
         self._active = (self._active & ~ended) | np.repeat(reset_rows, n)
         self._obs = next_obs
         return transitions, episodes
-
-    def close(self) -> None:
-        self.env.close()
 
 
 def _vector_result(result, n_envs: int, n: int):

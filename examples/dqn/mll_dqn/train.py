@@ -79,7 +79,8 @@ def train(config: TrainConfig, out_dir: str, address: Optional[str] = None,
         os.remove(log_path)
     n_landers = config.env_config.get("n_landers", 3)
     new_log = not os.path.exists(log_path)
-    log_file = open(log_path, "a", newline="")
+    # Line-buffered: each episode is on disk as soon as it ends.
+    log_file = open(log_path, "a", newline="", buffering=1)
     log = csv.writer(log_file)
     if new_log:
         log.writerow(_log_header(n_landers))
