@@ -8,6 +8,7 @@ that do not keep the message alive.
 
 from __future__ import annotations
 
+import math
 from typing import Sequence
 
 import numpy as np
@@ -21,13 +22,13 @@ _WIRE_TO_NUMPY = {
     pb.DTYPE_UINT8: np.dtype("<u1"),
     pb.DTYPE_INT32: np.dtype("<i4"),
 }
-_NUMPY_TO_WIRE = {dtype.newbyteorder("="): wire for wire, dtype in _WIRE_TO_NUMPY.items()}
+_WIRE_TO_NATIVE = {wire: dtype.newbyteorder("=") for wire, dtype in _WIRE_TO_NUMPY.items()}
 
 
 def wire_dtype_to_numpy(dtype: int) -> np.dtype:
     """The native-order numpy dtype of a wire DType."""
     try:
-        return _WIRE_TO_NUMPY[dtype].newbyteorder("=")
+        return _WIRE_TO_NATIVE[dtype]
     except KeyError:
         raise invalid_argument(
             f"Array.dtype is {pb.DType.Name(dtype) if dtype in pb.DType.values() else dtype}; "
@@ -40,13 +41,21 @@ def from_bytes(data: bytes, dtype: int, shape: Sequence[int]) -> np.ndarray:
     little = _WIRE_TO_NUMPY.get(dtype)
     if little is None:
         wire_dtype_to_numpy(dtype)  # Raises the error naming the dtype.
-    count = int(np.prod(shape, dtype=np.int64))
-    if len(data) != count * little.itemsize:
+    shape = tuple(shape)
+    if len(data) != math.prod(shape) * little.itemsize:
         raise invalid_argument(
             f"Array.data has {len(data)} bytes; shape {list(shape)} of "
-            f"{pb.DType.Name(dtype)} needs {count * little.itemsize}"
+            f"{pb.DType.Name(dtype)} needs {math.prod(shape) * little.itemsize}"
         )
-    return np.frombuffer(data, dtype=little).astype(little.newbyteorder("="), copy=True).reshape(shape)
+    return np.frombuffer(data, dtype=little).astype(_WIRE_TO_NATIVE[dtype]).reshape(shape)
+
+
+def to_list(array: "pb.Array") -> list:
+    """Decodes one `Array` message straight into a (nested) list of Python numbers."""
+    little = _WIRE_TO_NUMPY.get(array.dtype)
+    if little is None or len(array.data) != math.prod(array.shape) * little.itemsize:
+        return to_numpy(array).tolist()  # Raises the error naming the dtype or the sizes.
+    return np.frombuffer(array.data, dtype=little).reshape(tuple(array.shape)).tolist()
 
 
 def to_numpy(array: "pb.Array") -> np.ndarray:

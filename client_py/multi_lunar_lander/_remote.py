@@ -119,12 +119,12 @@ class Columns(NamedTuple):
     def decode(cls, message) -> "Columns":
         return cls(
             _arrays.to_numpy(message.observations),
-            _arrays.to_numpy(message.rewards).tolist(),
-            _arrays.to_numpy(message.terminations).astype(bool).tolist(),
-            _arrays.to_numpy(message.truncations).astype(bool).tolist(),
-            _arrays.to_numpy(message.outcomes).tolist(),
-            _arrays.to_numpy(message.episode_returns).tolist(),
-            _arrays.to_numpy(message.episode_lengths).tolist(),
+            _arrays.to_list(message.rewards),
+            [flag != 0 for flag in _arrays.to_list(message.terminations)],
+            [flag != 0 for flag in _arrays.to_list(message.truncations)],
+            _arrays.to_list(message.outcomes),
+            _arrays.to_list(message.episode_returns),
+            _arrays.to_list(message.episode_lengths),
         )
 
     def info(self, i: int) -> dict:

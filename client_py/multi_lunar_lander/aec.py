@@ -70,7 +70,7 @@ class MultiLunarLanderEnv(RemoteEnvBase, AECEnv):
         self.agents = [names[i] for i in indices]
         if aec.agent_selection >= 0:
             self.agent_selection = names[aec.agent_selection]
-        cumulative = _arrays.to_numpy(aec.cumulative_rewards).tolist()
+        cumulative = _arrays.to_list(aec.cumulative_rewards)
         self.rewards = {names[i]: columns.rewards[i] for i in indices}
         self._cumulative_rewards = {names[i]: cumulative[i] for i in indices}
         self.terminations = {names[i]: columns.terminations[i] for i in indices}

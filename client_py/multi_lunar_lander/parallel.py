@@ -17,7 +17,7 @@ from ._stubs import pb
 def decode_step(data: "pb.StepData", names: list[str]):
     """(observations, rewards, terminations, truncations, infos) dicts of the agents stepped."""
     columns = Columns.decode(data)
-    stepped = np.flatnonzero(_arrays.to_numpy(data.stepped)).tolist()
+    stepped = [i for i, flag in enumerate(_arrays.to_list(data.stepped)) if flag]
     return (
         {names[i]: columns.observations[i] for i in stepped},
         {names[i]: columns.rewards[i] for i in stepped},
@@ -57,10 +57,10 @@ class MultiLunarLanderParallelEnv(RemoteEnvBase, ParallelEnv):
         if missing:
             raise invalid_argument(f"actions has no entry for active agent(s) {missing}")
         self._actions.fill(0)
-        for agent in self.agents:
-            self._actions[self._agent_index[agent]] = action_array(
-                actions[agent], self.continuous, (), f"the action of {agent}"
-            )
+        self._actions[[self._agent_index[agent] for agent in self.agents]] = action_array(
+            [actions[agent] for agent in self.agents], self.continuous, (len(self.agents),),
+            f"the actions of {self.agents}",
+        )
         request = pb.StepEnvRequest(name=self._name)
         _arrays.to_proto(self._actions, pb.DTYPE_FLOAT32 if self.continuous else pb.DTYPE_INT32, request.actions)
         data = self._connection.call("StepEnv", request).data
