@@ -142,9 +142,8 @@ absl::Status RemoteEnv::StepAgentImpl(const AgentMove& move) {
       step.mutable_action()->set_discrete(move.discrete);
       break;
     case AgentMove::Kind::kContinuous:
-      (void)client_internal::EncodeActions(
-          Actions::Continuous(move.continuous),
-          step.mutable_action()->mutable_continuous());
+      client_internal::EncodeAgentAction(
+          move.continuous, step.mutable_action()->mutable_continuous());
       break;
   }
   v1::SessionResponse response;

@@ -323,6 +323,13 @@ absl::Status EncodeActions(const Actions& actions, v1::Array* proto) {
   return absl::OkStatus();
 }
 
+void EncodeAgentAction(
+    const std::array<float, kRemoteContinuousActionSize>& action,
+    v1::Array* proto) {
+  EncodeColumn(absl::MakeConstSpan(action), {kRemoteContinuousActionSize},
+               proto);
+}
+
 absl::StatusOr<StepData> DecodeStepData(const v1::StepData& proto) {
   AgentColumns columns;
   absl::StatusOr<int> n = DecodeAgentColumns(proto, &columns);

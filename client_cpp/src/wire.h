@@ -3,6 +3,8 @@
 #ifndef MLL_CLIENT_SRC_WIRE_H_
 #define MLL_CLIENT_SRC_WIRE_H_
 
+#include <array>
+
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "mll/client.h"
@@ -19,6 +21,10 @@ EnvInfo DecodeEnv(const v1::Env& proto);
 
 // INVALID_ARGUMENT unless exactly one of the members is set.
 absl::Status EncodeActions(const Actions& actions, v1::Array* proto);
+// One agent's continuous action, float32 [2].
+void EncodeAgentAction(
+    const std::array<float, kRemoteContinuousActionSize>& action,
+    v1::Array* proto);
 
 // INTERNAL when the server's arrays do not have the documented dtype and
 // shape (a version mismatch, never a user error).

@@ -319,22 +319,16 @@ Result Play(const Client& client, const std::vector<std::string>& args) {
     const uint64_t seed = base_seed + static_cast<uint64_t>(episode);
     absl::StatusOr<StepData> data = env->Reset(seed);
     if (!data.ok()) return Server(data.status());
-    // Each agent's figures as of the last step it took part in.
-    std::vector<float> returns(n, 0.0f);
-    std::vector<int32_t> lengths(n, 0);
-    std::vector<LanderOutcome> outcomes(n, LanderOutcome::kNone);
     int steps = 0;
     while (!data->episode_over) {
       data = env->Step(pilot.Act(*data));
       if (!data.ok()) return Server(data.status());
       ++steps;
-      for (int a = 0; a < n; ++a) {
-        if (!data->stepped[a]) continue;
-        returns[a] = data->episode_returns[a];
-        lengths[a] = data->episode_lengths[a];
-        outcomes[a] = data->outcomes[a];
-      }
     }
+    // Outcomes, returns and lengths are reported for every agent, done or not.
+    const std::vector<float>& returns = data->episode_returns;
+    const std::vector<int32_t>& lengths = data->episode_lengths;
+    const std::vector<LanderOutcome>& outcomes = data->outcomes;
     for (int a = 0; a < n; ++a) {
       return_sums[a] += returns[a];
       landed += outcomes[a] == LanderOutcome::kLanded;

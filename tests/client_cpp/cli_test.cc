@@ -1,0 +1,204 @@
+// mll_cli against the real mll_server: every command, its JSON output, and
+// its exit codes (1 with the server's code and message, 2 for usage errors).
+#include <fstream>
+#include <memory>
+#include <regex>
+#include <string>
+#include <vector>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_split.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "server_process.h"
+
+namespace mll {
+namespace {
+
+using ::testing::HasSubstr;
+using ::testing::StartsWith;
+
+class CliTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    absl::StatusOr<std::unique_ptr<ServerProcess>> server =
+        ServerProcess::Start(MLL_SERVER_PATH);
+    ASSERT_TRUE(server.ok()) << server.status();
+    server_ = server->release();
+  }
+  static void TearDownTestSuite() {
+    delete server_;
+    server_ = nullptr;
+  }
+
+  // mll_cli <args> --address=<the server>.
+  static CommandResult Cli(std::vector<std::string> args) {
+    args.insert(args.begin(), MLL_CLI_PATH);
+    args.push_back(absl::StrCat("--address=", server_->address()));
+    absl::StatusOr<CommandResult> result = RunCommand(args);
+    EXPECT_TRUE(result.ok()) << result.status();
+    return result.ok() ? *result : CommandResult();
+  }
+
+  // Creates an env and returns its name, from create's JSON.
+  static std::string CreateEnv(std::vector<std::string> flags) {
+    flags.insert(flags.begin(), "create");
+    const CommandResult created = Cli(flags);
+    EXPECT_EQ(created.exit_code, 0) << created.err;
+    std::smatch match;
+    static const std::regex kName("\"name\":\"(envs/[^\"]+)\"");
+    EXPECT_TRUE(std::regex_search(created.out, match, kName)) << created.out;
+    return match.size() > 1 ? match[1].str() : "";
+  }
+
+  static inline ServerProcess* server_ = nullptr;
+};
+
+TEST_F(CliTest, Health) {
+  const CommandResult result = Cli({"health"});
+  EXPECT_EQ(result.exit_code, 0) << result.err;
+  EXPECT_THAT(result.out, HasSubstr("SERVING"));
+}
+
+TEST_F(CliTest, CreateGetListResetStepRenderDelete) {
+  const std::string name =
+      CreateEnv({"--n_landers=2", "--render_mode=rgb_array", "--gravity=-9"});
+  ASSERT_THAT(name, StartsWith("envs/"));
+
+  CommandResult got = Cli({"get", name});
+  EXPECT_EQ(got.exit_code, 0) << got.err;
+  EXPECT_THAT(got.out, HasSubstr("\"n_landers\":2"));
+  EXPECT_THAT(got.out, HasSubstr("\"gravity\":-9"));
+  got = Cli({"get", "--name=" + name});  // The name as a flag works too.
+  EXPECT_EQ(got.exit_code, 0) << got.err;
+
+  const CommandResult listed = Cli({"list"});
+  EXPECT_EQ(listed.exit_code, 0) << listed.err;
+  EXPECT_THAT(listed.out, HasSubstr(name));
+
+  const CommandResult reset = Cli({"reset", name, "--seed=3"});
+  EXPECT_EQ(reset.exit_code, 0) << reset.err;
+  EXPECT_THAT(reset.out, HasSubstr("\"observations\":{\"lander_0\":["));
+  EXPECT_THAT(reset.out, HasSubstr("\"seed\":3"));
+
+  const CommandResult step = Cli({"step", name, "--actions=2,0"});
+  EXPECT_EQ(step.exit_code, 0) << step.err;
+  EXPECT_THAT(step.out, HasSubstr("\"cycles\":1"));
+  EXPECT_THAT(step.out, HasSubstr("\"outcomes\":{\"lander_0\":\"none\""));
+
+  const std::string png = absl::StrCat(::testing::TempDir(), "/cli_frame.png");
+  const CommandResult render = Cli({"render", name, "--out=" + png});
+  EXPECT_EQ(render.exit_code, 0) << render.err;
+  EXPECT_THAT(render.out, HasSubstr("\"width\":600"));
+  std::ifstream file(png, std::ios::binary);
+  std::string header(8, '\0');
+  file.read(header.data(), 8);
+  EXPECT_EQ(header, "\x89PNG\r\n\x1a\n");
+
+  const CommandResult deleted = Cli({"delete", name});
+  EXPECT_EQ(deleted.exit_code, 0) << deleted.err;
+  const CommandResult gone = Cli({"get", name});
+  EXPECT_EQ(gone.exit_code, 1);
+  EXPECT_THAT(gone.err, HasSubstr("NOT_FOUND"));
+  EXPECT_THAT(gone.err, HasSubstr(name));
+}
+
+TEST_F(CliTest, ServerErrorsExitOneWithTheServersMessage) {
+  const std::string name = CreateEnv({"--n_landers=2"});
+  CommandResult result = Cli({"step", name, "--actions=0,0"});
+  EXPECT_EQ(result.exit_code, 1);  // Step before reset.
+  EXPECT_THAT(result.err, HasSubstr("FAILED_PRECONDITION"));
+  ASSERT_EQ(Cli({"reset", name}).exit_code, 0);
+  result = Cli({"step", name, "--actions=0,9"});
+  EXPECT_EQ(result.exit_code, 1);
+  EXPECT_THAT(result.err, HasSubstr("INVALID_ARGUMENT"));
+  EXPECT_THAT(result.err, HasSubstr("9"));
+  result = Cli({"render", name, "--out=/dev/null"});  // No render mode.
+  EXPECT_EQ(result.exit_code, 1);
+  EXPECT_THAT(result.err, HasSubstr("FAILED_PRECONDITION"));
+  EXPECT_EQ(Cli({"delete", name}).exit_code, 0);
+  result = Cli({"delete", name});
+  EXPECT_EQ(result.exit_code, 1);
+  EXPECT_THAT(result.err, HasSubstr("NOT_FOUND"));
+}
+
+TEST_F(CliTest, UsageErrorsExitTwo) {
+  CommandResult result = Cli({});
+  EXPECT_EQ(result.exit_code, 2);
+  EXPECT_THAT(result.err, HasSubstr("missing command"));
+  result = Cli({"fly"});
+  EXPECT_EQ(result.exit_code, 2);
+  EXPECT_THAT(result.err, HasSubstr("unknown command \"fly\""));
+  result = Cli({"create", "--n_landers=99"});
+  EXPECT_EQ(result.exit_code, 2);
+  EXPECT_THAT(result.err, HasSubstr("n_landers"));
+  EXPECT_THAT(result.err, HasSubstr("99"));
+  result = Cli({"get"});
+  EXPECT_EQ(result.exit_code, 2);
+  result = Cli({"play", "--policy=bogus"});
+  EXPECT_EQ(result.exit_code, 2);
+  EXPECT_THAT(result.err, HasSubstr("bogus"));
+  result = Cli({"reset", "envs/x", "--seed=-1"});
+  EXPECT_EQ(result.exit_code, 2);
+  EXPECT_THAT(result.err, HasSubstr("seed"));
+}
+
+TEST_F(CliTest, NoServerExitsOneUnavailable) {
+  absl::StatusOr<CommandResult> result =
+      RunCommand({MLL_CLI_PATH, "health", "--address=127.0.0.1:1"});
+  ASSERT_TRUE(result.ok());
+  EXPECT_EQ(result->exit_code, 1);
+  EXPECT_THAT(result->err, HasSubstr("UNAVAILABLE"));
+}
+
+// The members of one JSON line that say what happened, without the figures'
+// formatting: steps, lengths and outcomes.
+std::string Trajectory(const std::string& line) {
+  static const std::regex kParts(
+      "\"steps\":([0-9]+).*(\"lengths\":\\{[^}]*\\}),(\"outcomes\":\\{[^}]*\\})");
+  std::smatch match;
+  if (!std::regex_search(line, match, kParts)) return "unparsed: " + line;
+  return absl::StrCat(match[1].str(), " ", match[2].str(), " ",
+                      match[3].str());
+}
+
+// play flies through the server what mll_rollout flies in-process: the same
+// episodes, step for step.
+TEST_F(CliTest, PlayMatchesInProcessRollout) {
+  const std::vector<std::string> flags = {"--n_landers=3", "--episodes=2",
+                                          "--seed=4", "--policy=heuristic"};
+  std::vector<std::string> play = {"play"};
+  play.insert(play.end(), flags.begin(), flags.end());
+  const CommandResult remote = Cli(play);
+  ASSERT_EQ(remote.exit_code, 0) << remote.err;
+  std::vector<std::string> rollout_args = {MLL_ROLLOUT_PATH};
+  rollout_args.insert(rollout_args.end(), flags.begin(), flags.end());
+  absl::StatusOr<CommandResult> local = RunCommand(rollout_args);
+  ASSERT_TRUE(local.ok());
+  ASSERT_EQ(local->exit_code, 0) << local->err;
+
+  const std::vector<std::string> remote_lines =
+      absl::StrSplit(remote.out, '\n', absl::SkipEmpty());
+  const std::vector<std::string> local_lines =
+      absl::StrSplit(local->out, '\n', absl::SkipEmpty());
+  ASSERT_EQ(remote_lines.size(), 3u) << remote.out;
+  ASSERT_EQ(local_lines.size(), 3u) << local->out;
+  for (int episode = 0; episode < 2; ++episode) {
+    EXPECT_THAT(remote_lines[episode],
+                HasSubstr(absl::StrCat("\"episode\":", episode,
+                                       ",\"seed\":", 4 + episode)));
+    EXPECT_EQ(Trajectory(remote_lines[episode]),
+              Trajectory(local_lines[episode]));
+  }
+  EXPECT_THAT(remote_lines[2], StartsWith("{\"summary\":true,\"episodes\":2"));
+  // The env play created is deleted when it ends.
+  EXPECT_THAT(Cli({"list"}).out, ::testing::Not(HasSubstr("\"n_landers\":3")));
+
+  const CommandResult random =
+      Cli({"play", "--policy=random", "--continuous", "--n_landers=2"});
+  EXPECT_EQ(random.exit_code, 0) << random.err;
+  EXPECT_THAT(random.out, HasSubstr("\"summary\":true"));
+}
+
+}  // namespace
+}  // namespace mll

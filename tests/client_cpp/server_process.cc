@@ -1,0 +1,166 @@
+#include "server_process.h"
+
+#include <fcntl.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <cstdlib>
+#include <fstream>
+#include <sstream>
+#include <thread>
+
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/strip.h"
+
+namespace mll {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+// A fresh, empty file in the test's temporary directory.
+absl::StatusOr<std::string> MakeTempFile(const std::string& stem) {
+  const char* dir = std::getenv("TMPDIR");
+  std::string path = absl::StrCat(dir != nullptr ? dir : "/tmp", "/", stem,
+                                  "_XXXXXX");
+  const int fd = mkstemp(path.data());
+  if (fd < 0) {
+    return absl::InternalError(absl::StrCat("mkstemp ", path, " failed"));
+  }
+  close(fd);
+  return path;
+}
+
+std::string ReadFile(const std::string& path) {
+  std::ifstream file(path, std::ios::binary);
+  std::stringstream contents;
+  contents << file.rdbuf();
+  return contents.str();
+}
+
+// fork + exec of `argv`, stdout/stderr to the given files when not empty.
+absl::StatusOr<pid_t> Spawn(const std::vector<std::string>& argv,
+                            const std::string& out_path,
+                            const std::string& err_path) {
+  std::vector<char*> args;
+  for (const std::string& arg : argv) args.push_back(const_cast<char*>(arg.c_str()));
+  args.push_back(nullptr);
+  const pid_t pid = fork();
+  if (pid < 0) return absl::InternalError("fork failed");
+  if (pid == 0) {
+    if (!out_path.empty()) {
+      const int out = open(out_path.c_str(), O_WRONLY | O_TRUNC);
+      dup2(out, STDOUT_FILENO);
+    }
+    if (!err_path.empty()) {
+      const int err = open(err_path.c_str(), O_WRONLY | O_TRUNC);
+      dup2(err, STDERR_FILENO);
+    }
+    execv(args[0], args.data());
+    _exit(127);
+  }
+  return pid;
+}
+
+// waitpid with a deadline; true when the child was reaped.
+bool WaitFor(pid_t pid, int seconds, int* status) {
+  const auto deadline = Clock::now() + std::chrono::seconds(seconds);
+  while (Clock::now() < deadline) {
+    const pid_t done = waitpid(pid, status, WNOHANG);
+    if (done == pid) return true;
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  return false;
+}
+
+}  // namespace
+
+absl::StatusOr<std::unique_ptr<ServerProcess>> ServerProcess::Start(
+    const std::string& server_path,
+    const std::vector<std::string>& extra_args) {
+  absl::StatusOr<std::string> port_file = MakeTempFile("mll_port");
+  if (!port_file.ok()) return port_file.status();
+  std::vector<std::string> argv = {server_path, "--address=127.0.0.1:0",
+                                   absl::StrCat("--port_file=", *port_file)};
+  argv.insert(argv.end(), extra_args.begin(), extra_args.end());
+  absl::StatusOr<pid_t> pid = Spawn(argv, "", "");
+  if (!pid.ok()) return pid.status();
+
+  const auto deadline = Clock::now() + std::chrono::seconds(60);
+  std::string previous;
+  while (Clock::now() < deadline) {
+    int status = 0;
+    if (waitpid(*pid, &status, WNOHANG) == *pid) {
+      return absl::InternalError(absl::StrCat(
+          server_path, " exited (status ", status, ") before serving"));
+    }
+    // Accepted once two reads a moment apart agree, so a half-written file
+    // is never taken for the port.
+    const std::string text(absl::StripAsciiWhitespace(ReadFile(*port_file)));
+    int port = 0;
+    if (!text.empty() && text == previous && absl::SimpleAtoi(text, &port) &&
+        port > 0) {
+      return std::unique_ptr<ServerProcess>(new ServerProcess(
+          *pid, absl::StrCat("127.0.0.1:", port), *port_file));
+    }
+    previous = text;
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  kill(*pid, SIGKILL);
+  waitpid(*pid, nullptr, 0);
+  return absl::DeadlineExceededError(
+      absl::StrCat(server_path, " wrote no port to ", *port_file, " in 60 s"));
+}
+
+ServerProcess::ServerProcess(pid_t pid, std::string address,
+                             std::string port_file)
+    : pid_(pid), address_(std::move(address)), port_file_(std::move(port_file)) {}
+
+ServerProcess::~ServerProcess() {
+  if (pid_ > 0) Terminate();
+  unlink(port_file_.c_str());
+}
+
+int ServerProcess::Signal(int signal_number, int grace_seconds) {
+  if (pid_ <= 0) return -1;
+  int status = 0;
+  kill(pid_, signal_number);
+  if (!WaitFor(pid_, grace_seconds, &status)) {
+    kill(pid_, SIGKILL);
+    waitpid(pid_, &status, 0);
+  }
+  pid_ = -1;
+  return status;
+}
+
+void ServerProcess::Kill() { Signal(SIGKILL, 10); }
+
+int ServerProcess::Terminate() { return Signal(SIGTERM, 10); }
+
+absl::StatusOr<CommandResult> RunCommand(const std::vector<std::string>& argv,
+                                         int timeout_seconds) {
+  absl::StatusOr<std::string> out_path = MakeTempFile("mll_out");
+  if (!out_path.ok()) return out_path.status();
+  absl::StatusOr<std::string> err_path = MakeTempFile("mll_err");
+  if (!err_path.ok()) return err_path.status();
+  absl::StatusOr<pid_t> pid = Spawn(argv, *out_path, *err_path);
+  if (!pid.ok()) return pid.status();
+  int status = 0;
+  if (!WaitFor(*pid, timeout_seconds, &status)) {
+    kill(*pid, SIGKILL);
+    waitpid(*pid, &status, 0);
+    return absl::DeadlineExceededError(absl::StrCat(
+        argv[0], " did not finish in ", timeout_seconds, " s"));
+  }
+  CommandResult result;
+  result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  result.out = ReadFile(*out_path);
+  result.err = ReadFile(*err_path);
+  unlink(out_path->c_str());
+  unlink(err_path->c_str());
+  return result;
+}
+
+}  // namespace mll
