@@ -55,23 +55,27 @@ def _percentiles(samples_ns: list[int]) -> dict:
     return {"p50_us": float(np.percentile(array, 50)), "p99_us": float(np.percentile(array, 99)), "n": len(samples_ns)}
 
 
-def bench_vector(mll, address: str, envs: int, n_landers: int, steps: int, seconds: float) -> dict:
-    vector = mll.vector_env(envs, address=address, n_landers=n_landers)
-    rng = np.random.default_rng(0)
-    table = rng.integers(0, 4, size=(256, envs, n_landers), dtype=np.int32)
-    vector.reset(seed=0)
-    for step in range(20):  # Warm-up.
-        vector.step(table[step % 256])
-    agent_steps, done = 0, 0
-    start = time.perf_counter()
-    deadline = start + seconds
-    while done < steps and time.perf_counter() < deadline:
-        active = vector.step(table[done % 256])[4]
-        agent_steps += int(active.sum())
-        done += 1
-    elapsed = time.perf_counter() - start
-    vector.close()
-    return {"steps": done, "agent_steps": agent_steps, "seconds": elapsed, "agent_steps_per_s": agent_steps / elapsed}
+class VectorRunner:
+    """Steps one vector_env with random discrete actions (a fixed table, so each round does the
+    same kind of work); each call to run() is one bounded round."""
+
+    def __init__(self, mll, address: str, envs: int, n_landers: int):
+        self.env = mll.vector_env(envs, address=address, n_landers=n_landers)
+        self.table = np.random.default_rng(0).integers(0, 4, size=(256, envs, n_landers), dtype=np.int32)
+        self.env.reset(seed=0)
+        self.done = 0
+        self.run(20, 10.0)  # Warm-up.
+
+    def run(self, steps: int, seconds: float) -> dict:
+        agent_steps, count = 0, 0
+        start = time.perf_counter()
+        deadline = start + seconds
+        while count < steps and time.perf_counter() < deadline:
+            agent_steps += int(self.env.step(self.table[self.done % 256])[4].sum())
+            count += 1
+            self.done += 1
+        elapsed = time.perf_counter() - start
+        return {"steps": count, "agent_steps": agent_steps, "seconds": elapsed, "agent_steps_per_s": agent_steps / elapsed}
 
 
 def bench_core(binary: str, envs: int, n_landers: int, threads: int, steps: int, seconds: float) -> dict:
@@ -83,56 +87,70 @@ def bench_core(binary: str, envs: int, n_landers: int, threads: int, steps: int,
     return json.loads(output.strip().splitlines()[-1])
 
 
-def bench_latency(mll, address: str, n_landers: int, count: int, seconds: float):
-    """p50 of parallel_env.step; also returns a real request/response pair for the echo."""
-    from multi_lunar_lander import _arrays
-    from multi_lunar_lander._stubs import pb
+class LatencyRunner:
+    """Times parallel_env.step of one env with random actions, resetting between episodes
+    (untimed); also keeps a real StepEnv request/response pair for the echo."""
 
-    env = mll.parallel_env(address=address, n_landers=n_landers)
-    env.reset(seed=0)
-    request = pb.StepEnvRequest(name=env.name)
-    _arrays.to_proto(np.zeros(n_landers, np.int32), pb.DTYPE_INT32, request.actions)
-    response = env._connection.call("StepEnv", request)
-    payload = (request.SerializeToString(), response.SerializeToString())
-    rng = np.random.default_rng(1)
-    samples = []
-    env.reset(seed=0)
-    deadline = time.perf_counter() + seconds
-    while len(samples) < count and time.perf_counter() < deadline:
-        if not env.agents:
-            env.reset()
-        actions = {agent: int(rng.integers(0, 4)) for agent in env.agents}
-        begin = time.perf_counter_ns()
-        env.step(actions)
-        samples.append(time.perf_counter_ns() - begin)
-    env.close()
-    return _percentiles(samples[20:]), payload
+    def __init__(self, mll, address: str, n_landers: int):
+        from multi_lunar_lander import _arrays
+        from multi_lunar_lander._stubs import pb
+
+        self.env = mll.parallel_env(address=address, n_landers=n_landers)
+        self.env.reset(seed=0)
+        request = pb.StepEnvRequest(name=self.env.name)
+        _arrays.to_proto(np.zeros(n_landers, np.int32), pb.DTYPE_INT32, request.actions)
+        response = self.env._connection.call("StepEnv", request)
+        self.payload = (request.SerializeToString(), response.SerializeToString())
+        self.rng = np.random.default_rng(1)
+        self.env.reset(seed=0)
+        self.run(50, 10.0)  # Warm-up.
+
+    def run(self, count: int, seconds: float) -> list[int]:
+        samples = []
+        deadline = time.perf_counter() + seconds
+        while len(samples) < count and time.perf_counter() < deadline:
+            if not self.env.agents:
+                self.env.reset()
+            actions = {agent: int(self.rng.integers(0, 4)) for agent in self.env.agents}
+            begin = time.perf_counter_ns()
+            self.env.step(actions)
+            samples.append(time.perf_counter_ns() - begin)
+        return samples
 
 
-def bench_echo(payload: tuple[bytes, bytes], count: int, seconds: float) -> dict:
-    request, response = payload
-    with tempfile.NamedTemporaryFile(suffix=".bin", delete=False) as file:
-        file.write(response)
-    child = subprocess.Popen(
-        [sys.executable, __file__, "--echo_server", file.name], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
-    )
-    try:
-        port = int(child.stdout.readline())
-        with grpc.insecure_channel(f"127.0.0.1:{port}") as channel:
-            echo = channel.unary_unary(ECHO_METHOD)
-            echo(request, wait_for_ready=True, timeout=30)
-            samples = []
-            deadline = time.perf_counter() + seconds
-            while len(samples) < count and time.perf_counter() < deadline:
-                begin = time.perf_counter_ns()
-                reply = echo(request)
-                samples.append(time.perf_counter_ns() - begin)
-            assert len(reply) == len(response)
-    finally:
-        child.stdin.close()
-        child.wait(timeout=30)
-        os.unlink(file.name)
-    return _percentiles(samples[20:])
+class EchoRunner:
+    """A bare Python gRPC echo in a child process: same request bytes in, same response bytes
+    out, no protobuf on either side."""
+
+    def __init__(self, payload: tuple[bytes, bytes]):
+        self.request, self.response = payload
+        with tempfile.NamedTemporaryFile(suffix=".bin", delete=False) as file:
+            file.write(self.response)
+        self._path = file.name
+        self._child = subprocess.Popen(
+            [sys.executable, __file__, "--echo_server", file.name], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+            text=True,
+        )
+        self._channel = grpc.insecure_channel(f"127.0.0.1:{int(self._child.stdout.readline())}")
+        self._echo = self._channel.unary_unary(ECHO_METHOD)
+        self._echo(self.request, wait_for_ready=True, timeout=30)
+        self.run(50, 10.0)  # Warm-up.
+
+    def run(self, count: int, seconds: float) -> list[int]:
+        samples = []
+        deadline = time.perf_counter() + seconds
+        while len(samples) < count and time.perf_counter() < deadline:
+            begin = time.perf_counter_ns()
+            reply = self._echo(self.request)
+            samples.append(time.perf_counter_ns() - begin)
+        assert len(reply) == len(self.response)
+        return samples
+
+    def close(self) -> None:
+        self._channel.close()
+        self._child.stdin.close()
+        self._child.wait(timeout=30)
+        os.unlink(self._path)
 
 
 def main() -> int:
@@ -142,9 +160,10 @@ def main() -> int:
     parser.add_argument("--envs", type=int, default=64)
     parser.add_argument("--n_landers", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--steps", type=int, default=1500, help="vector steps at most (each side)")
-    parser.add_argument("--latency_steps", type=int, default=3000)
-    parser.add_argument("--seconds", type=float, default=20.0, help="time bound of each measurement")
+    parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of each measurement")
+    parser.add_argument("--steps", type=int, default=500, help="vector steps per round at most (each side)")
+    parser.add_argument("--latency_steps", type=int, default=1000, help="timed steps per round (each side)")
+    parser.add_argument("--seconds", type=float, default=10.0, help="time bound of each round of each side")
     parser.add_argument("--echo_server", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.echo_server:
@@ -153,13 +172,27 @@ def main() -> int:
 
     import multi_lunar_lander as mll
 
+    # Rounds alternate between ours and the floor so that a change of machine load hits both.
+    rounds = []
     with mll.ServerProcess(args.server, threads=args.threads) as server:
-        vector = bench_vector(mll, server.address, args.envs, args.n_landers, args.steps, args.seconds)
-        latency, payload = bench_latency(mll, server.address, args.n_landers, args.latency_steps, args.seconds)
-    core = bench_core(args.core_timing, args.envs, args.n_landers, args.threads, args.steps, args.seconds)
-    echo = bench_echo(payload, args.latency_steps, args.seconds)
-
-    throughput_ratio = vector["agent_steps_per_s"] / core["agent_steps_per_s"]
+        vector_runner = VectorRunner(mll, server.address, args.envs, args.n_landers)
+        latency_runner = LatencyRunner(mll, server.address, args.n_landers)
+        echo_runner = EchoRunner(latency_runner.payload)
+        latency_samples, echo_samples = [], []
+        for _ in range(args.rounds):
+            core = bench_core(args.core_timing, args.envs, args.n_landers, args.threads, args.steps, args.seconds)
+            vector = vector_runner.run(args.steps, args.seconds)
+            rounds.append({"vector": vector, "core": core, "ratio": vector["agent_steps_per_s"] / core["agent_steps_per_s"]})
+            latency_samples += latency_runner.run(args.latency_steps, args.seconds)
+            echo_samples += echo_runner.run(args.latency_steps, args.seconds)
+        echo_runner.close()
+        vector_runner.env.close()
+        latency_runner.env.close()
+    payload = latency_runner.payload
+    vector = {"agent_steps_per_s": float(np.median([r["vector"]["agent_steps_per_s"] for r in rounds]))}
+    core = {"agent_steps_per_s": float(np.median([r["core"]["agent_steps_per_s"] for r in rounds]))}
+    latency, echo = _percentiles(latency_samples), _percentiles(echo_samples)
+    throughput_ratio = float(np.median([r["ratio"] for r in rounds]))  # Median of per-round ratios.
     latency_ratio = latency["p50_us"] / echo["p50_us"]
     print(f"| measurement | ours | floor (same run) | ratio | target |")
     print(f"|---|---|---|---|---|")
@@ -172,7 +205,7 @@ def main() -> int:
         f"| Python gRPC echo, {len(payload[0])} B / {len(payload[1])} B: {echo['p50_us']:.0f} (p99 {echo['p99_us']:.0f}) "
         f"| {latency_ratio:.2f}x | <= 1.5x |"
     )
-    print(json.dumps({"vector": vector, "core": core, "latency": latency, "echo": echo,
+    print(json.dumps({"rounds": rounds, "latency": latency, "echo": echo,
                       "throughput_ratio": throughput_ratio, "latency_ratio": latency_ratio}))
     return 0
 
