@@ -1,5 +1,6 @@
 #include "mll/service/convert.h"
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 
@@ -32,6 +33,31 @@ std::vector<To> PerAgent(int n, From from) {
   std::vector<To> values(n);
   for (int i = 0; i < n; ++i) values[i] = static_cast<To>(from(i));
   return values;
+}
+
+// Each agent's return and length so far in this episode.
+void FillEpisodeColumns(const Env& env, v1::Array* returns,
+                        v1::Array* lengths) {
+  const int n = env.n_landers();
+  const int rows[] = {n};
+  FillArray<float>(
+      PerAgent<float>(n, [&](int i) { return env.episode_return(i); }), rows,
+      returns);
+  FillArray<int32_t>(
+      PerAgent<int32_t>(n, [&](int i) { return env.episode_length(i); }),
+      rows, lengths);
+}
+
+// Every agent's latest observation as one [n, 12] row-major matrix.
+template <typename ObservationOf>
+std::vector<float> ObservationMatrix(int n, ObservationOf observation_of) {
+  std::vector<float> matrix(static_cast<size_t>(n) * kObservationSize);
+  for (int i = 0; i < n; ++i) {
+    absl::Span<const float> row = observation_of(i);
+    std::copy(row.begin(), row.end(),
+              matrix.begin() + static_cast<size_t>(i) * kObservationSize);
+  }
+  return matrix;
 }
 
 }  // namespace
@@ -87,31 +113,20 @@ absl::Status CheckArray(const v1::Array& array, v1::DType dtype,
   return absl::OkStatus();
 }
 
+// The fields that proto and core configs share, listed once: both
+// directions of the conversion expand this list.
+#define MLL_SHARED_CONFIG_FIELDS(X)                                           \
+  X(n_landers) X(continuous) X(max_cycles) X(gravity) X(enable_wind)          \
+  X(wind_power) X(turbulence_power) X(remove_on_damage)                       \
+  X(terminate_on_damage) X(shared_reward) X(damage_reward)                    \
+  X(successful_reward) X(terminate_reward)
+
 absl::StatusOr<EnvConfig> EnvConfigFromProto(const v1::EnvConfig& proto) {
   EnvConfig config;  // The core's defaults fill every unset field.
-  if (proto.has_n_landers()) config.n_landers = proto.n_landers();
-  if (proto.has_continuous()) config.continuous = proto.continuous();
-  if (proto.has_max_cycles()) config.max_cycles = proto.max_cycles();
-  if (proto.has_gravity()) config.gravity = proto.gravity();
-  if (proto.has_enable_wind()) config.enable_wind = proto.enable_wind();
-  if (proto.has_wind_power()) config.wind_power = proto.wind_power();
-  if (proto.has_turbulence_power()) {
-    config.turbulence_power = proto.turbulence_power();
-  }
-  if (proto.has_remove_on_damage()) {
-    config.remove_on_damage = proto.remove_on_damage();
-  }
-  if (proto.has_terminate_on_damage()) {
-    config.terminate_on_damage = proto.terminate_on_damage();
-  }
-  if (proto.has_shared_reward()) config.shared_reward = proto.shared_reward();
-  if (proto.has_damage_reward()) config.damage_reward = proto.damage_reward();
-  if (proto.has_successful_reward()) {
-    config.successful_reward = proto.successful_reward();
-  }
-  if (proto.has_terminate_reward()) {
-    config.terminate_reward = proto.terminate_reward();
-  }
+#define MLL_COPY_IF_SET(field) \
+  if (proto.has_##field()) config.field = proto.field();
+  MLL_SHARED_CONFIG_FIELDS(MLL_COPY_IF_SET)
+#undef MLL_COPY_IF_SET
   switch (proto.render_mode()) {
     case v1::RENDER_MODE_UNSPECIFIED:
     case v1::RENDER_MODE_NONE:
@@ -133,25 +148,17 @@ absl::StatusOr<EnvConfig> EnvConfigFromProto(const v1::EnvConfig& proto) {
 
 v1::EnvConfig EnvConfigToProto(const EnvConfig& config, bool auto_reset) {
   v1::EnvConfig proto;
-  proto.set_n_landers(config.n_landers);
-  proto.set_continuous(config.continuous);
-  proto.set_max_cycles(config.max_cycles);
-  proto.set_gravity(config.gravity);
-  proto.set_enable_wind(config.enable_wind);
-  proto.set_wind_power(config.wind_power);
-  proto.set_turbulence_power(config.turbulence_power);
-  proto.set_remove_on_damage(config.remove_on_damage);
-  proto.set_terminate_on_damage(config.terminate_on_damage);
-  proto.set_shared_reward(config.shared_reward);
-  proto.set_damage_reward(config.damage_reward);
-  proto.set_successful_reward(config.successful_reward);
-  proto.set_terminate_reward(config.terminate_reward);
+#define MLL_SET(field) proto.set_##field(config.field);
+  MLL_SHARED_CONFIG_FIELDS(MLL_SET)
+#undef MLL_SET
   proto.set_render_mode(config.render_mode == RenderMode::kRgbArray
                             ? v1::RENDER_MODE_RGB_ARRAY
                             : v1::RENDER_MODE_NONE);
   proto.set_auto_reset(auto_reset);
   return proto;
 }
+
+#undef MLL_SHARED_CONFIG_FIELDS
 
 v1::Space ObservationSpace() {
   v1::Space space;
@@ -266,12 +273,8 @@ void FillStepData(const StepResult& result, const Env& env, bool auto_reset,
           reinterpret_cast<const uint8_t*>(result.outcomes.data()),
           result.outcomes.size()),
       rows, out->mutable_outcomes());
-  FillArray<float>(
-      PerAgent<float>(n, [&](int i) { return env.episode_return(i); }), rows,
-      out->mutable_episode_returns());
-  FillArray<int32_t>(
-      PerAgent<int32_t>(n, [&](int i) { return env.episode_length(i); }),
-      rows, out->mutable_episode_lengths());
+  FillEpisodeColumns(env, out->mutable_episode_returns(),
+                     out->mutable_episode_lengths());
   out->set_episode_over(result.episode_over);
   out->set_auto_reset(auto_reset);
   out->set_cycles(env.cycles());
@@ -285,12 +288,8 @@ void FillAecState(const AecEnv& aec, bool world_stepped, v1::AecState* out) {
   out->mutable_agents()->Assign(aec.agents().begin(), aec.agents().end());
   out->set_agent_selection(aec.agent_selection());
 
-  std::vector<float> observations(static_cast<size_t>(n) * kObservationSize);
-  for (int i = 0; i < n; ++i) {
-    absl::Span<const float> row = aec.observe(i);
-    std::copy(row.begin(), row.end(),
-              observations.begin() + static_cast<size_t>(i) * kObservationSize);
-  }
+  const std::vector<float> observations =
+      ObservationMatrix(n, [&](int i) { return aec.observe(i); });
   const int rows[] = {n};
   const int matrix[] = {n, kObservationSize};
   // The adapter's per-agent state is only defined for agents in the cycle;
@@ -322,24 +321,15 @@ void FillAecState(const AecEnv& aec, bool world_stepped, v1::AecState* out) {
                                              env.outcome(i));
                                        }),
                      rows, out->mutable_outcomes());
-  FillArray<float>(
-      PerAgent<float>(n, [&](int i) { return env.episode_return(i); }), rows,
-      out->mutable_episode_returns());
-  FillArray<int32_t>(
-      PerAgent<int32_t>(n, [&](int i) { return env.episode_length(i); }),
-      rows, out->mutable_episode_lengths());
+  FillEpisodeColumns(env, out->mutable_episode_returns(),
+                     out->mutable_episode_lengths());
   out->set_world_stepped(world_stepped);
 }
 
 void ResultAfterReset(const Env& env, StepResult* out) {
   const int n = env.n_landers();
-  out->observations.resize(static_cast<size_t>(n) * kObservationSize);
-  for (int i = 0; i < n; ++i) {
-    absl::Span<const float> row = env.observation(i);
-    std::copy(row.begin(), row.end(),
-              out->observations.begin() +
-                  static_cast<size_t>(i) * kObservationSize);
-  }
+  out->observations =
+      ObservationMatrix(n, [&](int i) { return env.observation(i); });
   out->rewards.assign(n, 0.0f);
   out->terminations.assign(n, 0);
   out->truncations.assign(n, 0);
