@@ -1,6 +1,7 @@
 """The embedded default (address=None): one shared, reference-counted server per process that
 stops with its last user, at interpreter exit, and with a killed parent."""
 
+import gc
 import os
 import signal
 import subprocess
@@ -28,6 +29,7 @@ def _gone(pid, timeout_s=10.0):
 
 
 def test_shared_server_starts_with_the_first_env_and_stops_with_the_last():
+    gc.collect()  # Envs other tests dropped without close() release their lease here.
     assert mll.embedded_server() is None
     first = mll.env(n_landers=1)
     server = mll.embedded_server()
@@ -46,8 +48,6 @@ def test_garbage_collected_env_releases_the_server():
     env = mll.parallel_env()
     server = mll.embedded_server()
     del env
-    import gc
-
     gc.collect()
     assert not server.running and mll.embedded_server() is None
 
