@@ -314,12 +314,12 @@ void BM_EnvReset(benchmark::State& state) {
   for (auto _ : state) env->Reset(seed++, &result);
 }
 
-// An 8-lander scene in flight with exhaust particles: what a viewer sees.
-Scene BusyScene() {
-  std::unique_ptr<Env> env = MakeEnv(8, RenderMode::kRgbArray);
+// A scene of n landers in flight with exhaust particles: what a viewer sees.
+Scene BusyScene(int n_landers = 8) {
+  std::unique_ptr<Env> env = MakeEnv(n_landers, RenderMode::kRgbArray);
   StepResult result;
   env->Reset(4, &result);
-  std::vector<int32_t> actions(8, 2);
+  std::vector<int32_t> actions(n_landers, 2);
   ActionsView view;
   view.discrete = actions;
   for (int i = 0; i < 20 && !env->episode_over(); ++i) {
@@ -330,8 +330,9 @@ Scene BusyScene() {
 }
 
 void BM_RenderScene(benchmark::State& state) {
-  const Scene scene = BusyScene();
+  const Scene scene = BusyScene(static_cast<int>(state.range(0)));
   for (auto _ : state) benchmark::DoNotOptimize(RenderScene(scene));
+  state.counters["landers"] = static_cast<double>(scene.landers.size());
   state.counters["particles"] = static_cast<double>(scene.particles.size());
 }
 
@@ -398,7 +399,7 @@ void BM_MemoryPerEnv(benchmark::State& state) {
 BENCHMARK(BM_FloorStep)->Arg(1)->Arg(3)->Arg(8)->Arg(32);
 BENCHMARK(BM_EnvStep)->Arg(1)->Arg(3)->Arg(8)->Arg(32);
 BENCHMARK(BM_EnvReset)->Arg(1)->Arg(3)->Arg(8)->Arg(32);
-BENCHMARK(BM_RenderScene)->Unit(benchmark::kMicrosecond);
+BENCHMARK(BM_RenderScene)->Arg(8)->Arg(32)->Unit(benchmark::kMicrosecond);
 BENCHMARK(BM_EncodePng)->Unit(benchmark::kMicrosecond);
 BENCHMARK(BM_EncodePngLibpngDefaults)->Unit(benchmark::kMicrosecond);
 BENCHMARK(BM_MemoryPerEnv)

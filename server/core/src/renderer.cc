@@ -223,12 +223,15 @@ Frame RenderScene(const Scene& scene) {
   cairo_translate(cr, 0.0, kFrameHeight);
   cairo_scale(cr, kScale, -kScale);
   cairo_set_line_width(cr, kPixel);
-  // Large fills are drawn without antialiasing: it would cost about 0.7 ms a
-  // frame (docs/benchmarks.md) and only softens the terrain line.
-  cairo_set_antialias(cr, CAIRO_ANTIALIAS_NONE);
+  // Only the sky (one large polygon: a smooth terrain line) is antialiased.
+  // Antialiased landers, as Gymnasium's gfxdraw.aapolygon, cost about 10 us
+  // per part with its outline: 1.9 ms for 32 landers instead of 0.8 ms
+  // (docs/benchmarks.md, Core), over the 1 ms budget. Gymnasium draws
+  // particles without antialiasing too (pygame.draw.circle).
+  cairo_set_antialias(cr, CAIRO_ANTIALIAS_DEFAULT);
   DrawSky(cr, scene);
+  cairo_set_antialias(cr, CAIRO_ANTIALIAS_NONE);
   DrawParticles(cr, scene);
-  cairo_set_antialias(cr, CAIRO_ANTIALIAS_FAST);
   DrawLanders(cr, scene);
   DrawFlags(cr, scene);
 
