@@ -133,33 +133,15 @@ void EncodeColumn(absl::Span<const T> values,
                   values.size() * sizeof(T));
 }
 
-std::vector<LanderOutcome> ToOutcomes(const std::vector<uint8_t>& codes) {
-  std::vector<LanderOutcome> outcomes(codes.size());
-  for (size_t i = 0; i < codes.size(); ++i) {
-    outcomes[i] = static_cast<LanderOutcome>(codes[i]);
-  }
-  return outcomes;
-}
-
-// The columns StepData and AecState share.
-struct AgentColumns {
-  std::vector<float> observations;
-  std::vector<float> rewards;
-  std::vector<uint8_t> terminations;
-  std::vector<uint8_t> truncations;
-  std::vector<uint8_t> outcomes;
-  std::vector<float> episode_returns;
-  std::vector<int32_t> episode_lengths;
-};
-
-// Decodes the shared columns of a StepData or AecState message; the number of
-// agents is read from the observations' shape.
+// Decodes the columns every result has; the number of agents is read from
+// the observations' shape.
 template <typename Message>
-absl::StatusOr<int> DecodeAgentColumns(const Message& proto,
-                                       AgentColumns* columns) {
+absl::Status DecodeAgentColumns(const Message& proto, AgentColumns* columns) {
   const int n = proto.observations().shape_size() > 0
                     ? proto.observations().shape(0)
                     : 0;
+  columns->n_landers = n;
+  std::vector<uint8_t> outcomes;
   absl::Status status = DecodeColumn(proto.observations(), "observations",
                                      {n, kRemoteObservationSize},
                                      &columns->observations);
@@ -175,8 +157,7 @@ absl::StatusOr<int> DecodeAgentColumns(const Message& proto,
                           &columns->truncations);
   }
   if (status.ok()) {
-    status =
-        DecodeColumn(proto.outcomes(), "outcomes", {n}, &columns->outcomes);
+    status = DecodeColumn(proto.outcomes(), "outcomes", {n}, &outcomes);
   }
   if (status.ok()) {
     status = DecodeColumn(proto.episode_returns(), "episode_returns", {n},
@@ -186,21 +167,11 @@ absl::StatusOr<int> DecodeAgentColumns(const Message& proto,
     status = DecodeColumn(proto.episode_lengths(), "episode_lengths", {n},
                           &columns->episode_lengths);
   }
-  if (!status.ok()) return status;
-  return n;
-}
-
-// Moves the shared columns into a StepData or AecState.
-template <typename Result>
-void MoveColumns(int n, AgentColumns& columns, Result* result) {
-  result->n_landers = n;
-  result->observations = std::move(columns.observations);
-  result->rewards = std::move(columns.rewards);
-  result->terminations = std::move(columns.terminations);
-  result->truncations = std::move(columns.truncations);
-  result->outcomes = ToOutcomes(columns.outcomes);
-  result->episode_returns = std::move(columns.episode_returns);
-  result->episode_lengths = std::move(columns.episode_lengths);
+  columns->outcomes.resize(outcomes.size());
+  for (size_t i = 0; i < outcomes.size(); ++i) {
+    columns->outcomes[i] = static_cast<LanderOutcome>(outcomes[i]);
+  }
+  return status;
 }
 
 ElementType DecodeDType(v1::DType dtype) {
@@ -331,14 +302,13 @@ void EncodeAgentAction(
 }
 
 absl::StatusOr<StepData> DecodeStepData(const v1::StepData& proto) {
-  AgentColumns columns;
-  absl::StatusOr<int> n = DecodeAgentColumns(proto, &columns);
-  if (!n.ok()) return n.status();
   StepData data;
-  absl::Status status =
-      DecodeColumn(proto.stepped(), "stepped", {*n}, &data.stepped);
+  absl::Status status = DecodeAgentColumns(proto, &data);
+  if (status.ok()) {
+    status = DecodeColumn(proto.stepped(), "stepped", {data.n_landers},
+                          &data.stepped);
+  }
   if (!status.ok()) return status;
-  MoveColumns(*n, columns, &data);
   data.episode_over = proto.episode_over();
   data.auto_reset = proto.auto_reset();
   data.cycles = proto.cycles();
@@ -346,15 +316,13 @@ absl::StatusOr<StepData> DecodeStepData(const v1::StepData& proto) {
 }
 
 absl::StatusOr<AecState> DecodeAecState(const v1::AecState& proto) {
-  AgentColumns columns;
-  absl::StatusOr<int> n = DecodeAgentColumns(proto, &columns);
-  if (!n.ok()) return n.status();
   AecState state;
-  absl::Status status = DecodeColumn(proto.cumulative_rewards(),
-                                     "cumulative_rewards", {*n},
-                                     &state.cumulative_rewards);
+  absl::Status status = DecodeAgentColumns(proto, &state);
+  if (status.ok()) {
+    status = DecodeColumn(proto.cumulative_rewards(), "cumulative_rewards",
+                          {state.n_landers}, &state.cumulative_rewards);
+  }
   if (!status.ok()) return status;
-  MoveColumns(*n, columns, &state);
   state.agents.assign(proto.agents().begin(), proto.agents().end());
   state.agent_selection = proto.agent_selection();
   state.world_stepped = proto.world_stepped();

@@ -63,6 +63,13 @@ class EquivalenceTest : public ::testing::TestWithParam<Case> {
     delete server_;
     server_ = nullptr;
   }
+  // A unary client, or a session client for Transport::kSession.
+  static absl::StatusOr<Client> ClientFor(Transport transport) {
+    absl::StatusOr<Client> unary = Client::Create(server_->address());
+    if (!unary.ok() || transport != Transport::kSession) return unary;
+    return unary->OpenSession();
+  }
+
   static inline ServerProcess* server_ = nullptr;
 };
 
@@ -70,12 +77,8 @@ TEST_P(EquivalenceTest, HeuristicEpisodeIsBitIdentical) {
   const Case& c = GetParam();
   absl::StatusOr<std::unique_ptr<Env>> core = Env::Create(c.config);
   ASSERT_TRUE(core.ok()) << core.status();
-  absl::StatusOr<Client> unary = Client::Create(server_->address());
-  ASSERT_TRUE(unary.ok());
-  absl::StatusOr<Client> client =
-      c.transport == Transport::kSession ? unary->OpenSession()
-                                         : std::move(unary);
-  ASSERT_TRUE(client.ok());
+  absl::StatusOr<Client> client = ClientFor(c.transport);
+  ASSERT_TRUE(client.ok()) << client.status();
   absl::StatusOr<RemoteEnv> remote =
       client->CreateEnv(RemoteConfigFrom(c.config));
   ASSERT_TRUE(remote.ok()) << remote.status();
@@ -134,12 +137,8 @@ TEST_P(AecEquivalenceTest, AecEpisodeIsBitIdentical) {
   absl::StatusOr<std::unique_ptr<Env>> core = Env::Create(c.config);
   ASSERT_TRUE(core.ok());
   AecEnv core_aec(core->get());
-  absl::StatusOr<Client> unary = Client::Create(server_->address());
-  ASSERT_TRUE(unary.ok());
-  absl::StatusOr<Client> client =
-      c.transport == Transport::kSession ? unary->OpenSession()
-                                         : std::move(unary);
-  ASSERT_TRUE(client.ok());
+  absl::StatusOr<Client> client = ClientFor(c.transport);
+  ASSERT_TRUE(client.ok()) << client.status();
   absl::StatusOr<RemoteEnv> remote =
       client->CreateEnv(RemoteConfigFrom(c.config));
   ASSERT_TRUE(remote.ok()) << remote.status();

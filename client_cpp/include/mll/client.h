@@ -135,21 +135,33 @@ struct EnvInfo {
 inline constexpr int kRemoteObservationSize = 12;
 inline constexpr int kRemoteContinuousActionSize = 2;
 
-// The result of a reset or a parallel step, indexed by agent. Rows of agents
-// not stepped (done before this step) are zero.
-struct StepData {
+// The per-agent columns that a reset, a parallel step and an AEC step all
+// report, indexed by agent.
+struct AgentColumns {
   int n_landers = 0;
   // [n_landers * 12], row-major.
   std::vector<float> observations;
   std::vector<float> rewards;
   std::vector<uint8_t> terminations;
   std::vector<uint8_t> truncations;
-  // 1 when the agent was active at the start of the step (its row is valid).
-  std::vector<uint8_t> stepped;
+  // Every agent's outcome so far (done agents included).
   std::vector<LanderOutcome> outcomes;
-  // Each agent's return and length so far in this episode.
+  // Every agent's return and length so far in this episode.
   std::vector<float> episode_returns;
   std::vector<int32_t> episode_lengths;
+
+  absl::Span<const float> observation(int agent) const {
+    return absl::MakeConstSpan(observations)
+        .subspan(static_cast<size_t>(agent) * kRemoteObservationSize,
+                 kRemoteObservationSize);
+  }
+};
+
+// The result of a reset or a parallel step. Observation, reward and flag rows
+// of agents not stepped (done before this step) are zero.
+struct StepData : AgentColumns {
+  // 1 when the agent was active at the start of the step (its row is valid).
+  std::vector<uint8_t> stepped;
   bool episode_over = false;
   // auto_reset: the actions were ignored; this is the new episode's start.
   bool auto_reset = false;
@@ -158,11 +170,6 @@ struct StepData {
   // Reset only: the seed used when the reset reseeded.
   std::optional<uint64_t> seed;
 
-  absl::Span<const float> observation(int agent) const {
-    return absl::MakeConstSpan(observations)
-        .subspan(static_cast<size_t>(agent) * kRemoteObservationSize,
-                 kRemoteObservationSize);
-  }
   // Not terminated and not truncated.
   bool active(int agent) const {
     return !terminations[agent] && !truncations[agent];
@@ -183,29 +190,17 @@ struct AecTurn {
   bool done() const { return termination || truncation; }
 };
 
-// The state a pettingzoo.AECEnv exposes, after a reset or an AEC step.
-struct AecState {
-  int n_landers = 0;
+// The state a pettingzoo.AECEnv exposes, after a reset or an AEC step
+// (`rewards` are PettingZoo's rewards of the latest step).
+struct AecState : AgentColumns {
   // Agent indices still in the cycle (done ones until their dead step).
   std::vector<int> agents;
   // -1 when `agents` is empty.
   int agent_selection = -1;
-  std::vector<float> observations;  // [n_landers * 12]
-  std::vector<float> rewards;
   std::vector<float> cumulative_rewards;
-  std::vector<uint8_t> terminations;
-  std::vector<uint8_t> truncations;
-  std::vector<LanderOutcome> outcomes;
-  std::vector<float> episode_returns;
-  std::vector<int32_t> episode_lengths;
   // The last live agent acted and the world stepped.
   bool world_stepped = false;
 
-  absl::Span<const float> observation(int agent) const {
-    return absl::MakeConstSpan(observations)
-        .subspan(static_cast<size_t>(agent) * kRemoteObservationSize,
-                 kRemoteObservationSize);
-  }
   // last() for `agent` (agent_selection by default); agent must be valid.
   AecTurn Last(int agent) const;
   AecTurn Last() const { return Last(agent_selection); }
