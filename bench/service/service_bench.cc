@@ -1,0 +1,426 @@
+// Service benchmarks, each beside its floor measured in the same run:
+//   - one env's step latency (p50, p99), unary StepEnv and on a Session
+//     stream, vs an echo RPC / echo stream carrying the same payload sizes
+//     (bench/service/echo.proto, same process, same loopback transport);
+//   - StepBatch of 64 envs x 3 landers on --threads=2 vs the in-process core
+//     stepping the same 64 envs on 2 threads (agent-steps/s);
+//   - 10,000 live envs: resident memory per env, idle CPU, create and delete
+//     rates.
+// Run: build-service/bench/service/service_bench (see docs/benchmarks.md).
+#include <sys/resource.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <fstream>
+#include <memory>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "benchmark/benchmark.h"
+#include "echo.grpc.pb.h"
+#include "grpcpp/grpcpp.h"
+#include "mll/core/env.h"
+#include "mll/service/convert.h"
+#include "mll/service/server.h"
+
+namespace mll {
+namespace {
+
+constexpr int kLanders = 3;
+constexpr int kBatchEnvs = 64;
+constexpr int kLiveEnvs = 10000;
+
+// Discrete actions that keep landers flying for a while; the same table on
+// every path so that both sides of a ratio do the same physics.
+int32_t ActionFor(int64_t step, int agent) {
+  constexpr int32_t kCycle[] = {2, 2, 0, 1, 2, 3, 2, 0};
+  return kCycle[(step + 3 * agent) % 8];
+}
+
+class EchoService final : public bench::Echo::CallbackService {
+  grpc::ServerUnaryReactor* Unary(grpc::CallbackServerContext* context,
+                                  const bench::EchoRequest* request,
+                                  bench::EchoResponse* response) override {
+    response->mutable_payload()->assign(request->response_size(), 'x');
+    grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
+    reactor->Finish(grpc::Status::OK);
+    return reactor;
+  }
+
+  grpc::ServerBidiReactor<bench::EchoRequest, bench::EchoResponse>* Stream(
+      grpc::CallbackServerContext* /*context*/) override {
+    class Reactor final : public grpc::ServerBidiReactor<bench::EchoRequest,
+                                                         bench::EchoResponse> {
+     public:
+      Reactor() { StartRead(&request_); }
+      void OnReadDone(bool ok) override {
+        if (!ok) {
+          Finish(grpc::Status::OK);
+          return;
+        }
+        response_.mutable_payload()->assign(request_.response_size(), 'x');
+        StartWrite(&response_);
+      }
+      void OnWriteDone(bool ok) override {
+        if (ok) {
+          StartRead(&request_);
+        } else {
+          Finish(grpc::Status::OK);
+        }
+      }
+      void OnDone() override { delete this; }
+
+     private:
+      bench::EchoRequest request_;
+      bench::EchoResponse response_;
+    };
+    return new Reactor();
+  }
+};
+
+// An mll server and an echo server, both on loopback TCP in this process.
+struct Servers {
+  explicit Servers(int threads, int max_envs = 10000) {
+    ServerOptions options;
+    options.address = "127.0.0.1:0";
+    options.service.threads = threads;
+    options.service.max_envs = max_envs;
+    absl::StatusOr<std::unique_ptr<Server>> started = Server::Start(options);
+    if (!started.ok()) std::abort();
+    mll = *std::move(started);
+    grpc::ServerBuilder builder;
+    builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(),
+                             &echo_port);
+    builder.RegisterService(&echo_service);
+    echo = builder.BuildAndStart();
+    stub = v1::MultiLunarLander::NewStub(
+        grpc::CreateChannel("127.0.0.1:" + std::to_string(mll->port()),
+                            grpc::InsecureChannelCredentials()));
+    echo_stub = bench::Echo::NewStub(
+        grpc::CreateChannel("127.0.0.1:" + std::to_string(echo_port),
+                            grpc::InsecureChannelCredentials()));
+  }
+  ~Servers() { echo->Shutdown(); }
+
+  std::unique_ptr<Server> mll;
+  EchoService echo_service;
+  std::unique_ptr<grpc::Server> echo;
+  int echo_port = 0;
+  std::unique_ptr<v1::MultiLunarLander::Stub> stub;
+  std::unique_ptr<bench::Echo::Stub> echo_stub;
+};
+
+std::string NewEnv(v1::MultiLunarLander::Stub& stub, bool reset) {
+  v1::CreateEnvRequest create;
+  create.mutable_config()->set_n_landers(kLanders);
+  create.mutable_config()->set_auto_reset(true);
+  grpc::ClientContext context;
+  v1::Env env;
+  if (!stub.CreateEnv(&context, create, &env).ok()) std::abort();
+  if (reset) {
+    grpc::ClientContext reset_context;
+    v1::ResetEnvRequest request;
+    request.set_name(env.name());
+    request.set_seed(1);
+    v1::ResetEnvResponse response;
+    if (!stub.ResetEnv(&reset_context, request, &response).ok()) std::abort();
+  }
+  return env.name();
+}
+
+v1::StepEnvRequest StepRequest(const std::string& name, int64_t step) {
+  v1::StepEnvRequest request;
+  request.set_name(name);
+  std::vector<int32_t> actions(kLanders);
+  for (int i = 0; i < kLanders; ++i) actions[i] = ActionFor(step, i);
+  const int shape[] = {kLanders};
+  FillArray<int32_t>(actions, shape, request.mutable_actions());
+  return request;
+}
+
+// Per-call latencies -> p50 / p99 counters in microseconds.
+class Latencies {
+ public:
+  void Add(std::chrono::steady_clock::duration d) {
+    us_.push_back(std::chrono::duration<double, std::micro>(d).count());
+  }
+  void Report(benchmark::State& state) {
+    std::sort(us_.begin(), us_.end());
+    if (us_.empty()) return;
+    state.counters["p50_us"] = us_[us_.size() / 2];
+    state.counters["p99_us"] = us_[us_.size() * 99 / 100];
+  }
+
+ private:
+  std::vector<double> us_;
+};
+
+// Sizes of a real StepEnv call, for the echo floors.
+struct PayloadSizes {
+  int request = 0;
+  int response = 0;
+};
+PayloadSizes StepPayloadSizes(Servers& servers, const std::string& name) {
+  v1::StepEnvRequest request = StepRequest(name, 0);
+  grpc::ClientContext context;
+  v1::StepEnvResponse response;
+  if (!servers.stub->StepEnv(&context, request, &response).ok()) std::abort();
+  return {static_cast<int>(request.ByteSizeLong()),
+          static_cast<int>(response.ByteSizeLong())};
+}
+
+void BM_StepEnvUnary(benchmark::State& state) {
+  Servers servers(2);
+  const std::string name = NewEnv(*servers.stub, true);
+  Latencies latencies;
+  int64_t step = 0;
+  for (auto _ : state) {
+    const v1::StepEnvRequest request = StepRequest(name, step++);
+    const auto start = std::chrono::steady_clock::now();
+    grpc::ClientContext context;
+    v1::StepEnvResponse response;
+    if (!servers.stub->StepEnv(&context, request, &response).ok()) {
+      state.SkipWithError("StepEnv failed");
+      break;
+    }
+    latencies.Add(std::chrono::steady_clock::now() - start);
+  }
+  latencies.Report(state);
+  const PayloadSizes sizes = StepPayloadSizes(servers, name);
+  state.counters["request_B"] = sizes.request;
+  state.counters["response_B"] = sizes.response;
+}
+
+void BM_EchoUnaryFloor(benchmark::State& state) {
+  Servers servers(2);
+  const PayloadSizes sizes =
+      StepPayloadSizes(servers, NewEnv(*servers.stub, true));
+  bench::EchoRequest request;
+  request.mutable_payload()->assign(sizes.request, 'r');
+  request.set_response_size(sizes.response);
+  Latencies latencies;
+  for (auto _ : state) {
+    const auto start = std::chrono::steady_clock::now();
+    grpc::ClientContext context;
+    bench::EchoResponse response;
+    if (!servers.echo_stub->Unary(&context, request, &response).ok()) {
+      state.SkipWithError("echo failed");
+      break;
+    }
+    latencies.Add(std::chrono::steady_clock::now() - start);
+  }
+  latencies.Report(state);
+}
+
+void BM_StepEnvSession(benchmark::State& state) {
+  Servers servers(2);
+  const std::string name = NewEnv(*servers.stub, true);
+  grpc::ClientContext context;
+  auto stream = servers.stub->Session(&context);
+  Latencies latencies;
+  int64_t step = 0;
+  v1::SessionRequest request;
+  v1::SessionResponse response;
+  for (auto _ : state) {
+    request.set_sequence(step);
+    *request.mutable_step_env() = StepRequest(name, step++);
+    const auto start = std::chrono::steady_clock::now();
+    if (!stream->Write(request) || !stream->Read(&response) ||
+        response.has_error()) {
+      state.SkipWithError("session step failed");
+      break;
+    }
+    latencies.Add(std::chrono::steady_clock::now() - start);
+  }
+  stream->WritesDone();
+  stream->Finish().IgnoreError();
+  latencies.Report(state);
+}
+
+void BM_EchoStreamFloor(benchmark::State& state) {
+  Servers servers(2);
+  const PayloadSizes sizes =
+      StepPayloadSizes(servers, NewEnv(*servers.stub, true));
+  bench::EchoRequest request;
+  request.mutable_payload()->assign(sizes.request, 'r');
+  request.set_response_size(sizes.response);
+  grpc::ClientContext context;
+  auto stream = servers.echo_stub->Stream(&context);
+  Latencies latencies;
+  bench::EchoResponse response;
+  for (auto _ : state) {
+    const auto start = std::chrono::steady_clock::now();
+    if (!stream->Write(request) || !stream->Read(&response)) {
+      state.SkipWithError("echo stream failed");
+      break;
+    }
+    latencies.Add(std::chrono::steady_clock::now() - start);
+  }
+  stream->WritesDone();
+  stream->Finish().IgnoreError();
+  latencies.Report(state);
+}
+
+double ProcessCpuSeconds() {
+  rusage usage{};
+  getrusage(RUSAGE_SELF, &usage);
+  return usage.ru_utime.tv_sec + usage.ru_stime.tv_sec +
+         1e-6 * (usage.ru_utime.tv_usec + usage.ru_stime.tv_usec);
+}
+
+void BM_StepBatch64x3(benchmark::State& state) {
+  Servers servers(2);
+  std::vector<std::string> names;
+  for (int e = 0; e < kBatchEnvs; ++e) {
+    names.push_back(NewEnv(*servers.stub, true));
+  }
+  int64_t step = 0;
+  int64_t agent_steps = 0;
+  const double cpu_before = ProcessCpuSeconds();
+  for (auto _ : state) {
+    v1::StepBatchRequest request;
+    for (const std::string& name : names) {
+      *request.add_steps() = StepRequest(name, step);
+    }
+    ++step;
+    grpc::ClientContext context;
+    v1::StepBatchResponse response;
+    if (!servers.stub->StepBatch(&context, request, &response).ok()) {
+      state.SkipWithError("StepBatch failed");
+      break;
+    }
+    for (const v1::StepBatchResult& result : response.results()) {
+      if (result.data().auto_reset()) continue;  // No physics that step.
+      for (char stepped : result.data().stepped().data()) agent_steps += stepped;
+    }
+  }
+  state.counters["agent_steps_per_s"] =
+      benchmark::Counter(static_cast<double>(agent_steps),
+                         benchmark::Counter::kIsRate);
+  // Every thread of the process (client, gRPC, workers): insensitive to how
+  // much of a shared machine the run got.
+  state.counters["process_cpu_us_per_agent_step"] =
+      1e6 * (ProcessCpuSeconds() - cpu_before) / agent_steps;
+}
+
+// The floor: the same 64 envs stepped by the core directly, 32 per thread,
+// each thread running all its rounds without waiting for the other (an upper
+// bound for 2 threads), with a reset where the service would auto-reset.
+constexpr int kBatchRounds = 500;
+
+void BM_CoreFloor64x3TwoThreads(benchmark::State& state) {
+  EnvConfig config;
+  config.n_landers = kLanders;
+  std::vector<std::unique_ptr<Env>> envs;
+  StepResult scratch;
+  for (int e = 0; e < kBatchEnvs; ++e) {
+    envs.push_back(*Env::Create(config));
+    envs.back()->Reset(1, &scratch);
+  }
+  std::atomic<int64_t> agent_steps{0};
+  auto run = [&](int first, int last) {
+    StepResult result;
+    std::vector<int32_t> actions(kLanders);
+    int64_t count = 0;
+    for (int64_t step = 0; step < kBatchRounds; ++step) {
+      for (int i = 0; i < kLanders; ++i) actions[i] = ActionFor(step, i);
+      for (int e = first; e < last; ++e) {
+        Env& env = *envs[e];
+        if (env.episode_over()) {
+          env.Reset(std::nullopt, &result);
+          continue;
+        }
+        count += env.num_active();
+        if (!env.Step(ActionsView{actions, {}}, &result).ok()) std::abort();
+      }
+    }
+    agent_steps += count;
+  };
+  const double cpu_before = ProcessCpuSeconds();
+  for (auto _ : state) {
+    std::thread other(run, 0, kBatchEnvs / 2);
+    run(kBatchEnvs / 2, kBatchEnvs);
+    other.join();
+  }
+  state.counters["agent_steps_per_s"] = benchmark::Counter(
+      static_cast<double>(agent_steps.load()), benchmark::Counter::kIsRate);
+  state.counters["process_cpu_us_per_agent_step"] =
+      1e6 * (ProcessCpuSeconds() - cpu_before) / agent_steps.load();
+}
+
+int64_t ResidentBytes() {
+  std::ifstream statm("/proc/self/statm");
+  int64_t pages = 0, resident = 0;
+  statm >> pages >> resident;
+  return resident * sysconf(_SC_PAGESIZE);
+}
+
+double SecondsSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() -
+                                       start)
+      .count();
+}
+
+void BM_TenThousandLiveEnvs(benchmark::State& state) {
+  for (auto _ : state) {
+    Servers servers(2, kLiveEnvs);
+    const int64_t rss_before = ResidentBytes();
+    auto start = std::chrono::steady_clock::now();
+    std::vector<std::string> names;
+    for (int e = 0; e < kLiveEnvs; ++e) {
+      names.push_back(NewEnv(*servers.stub, /*reset=*/false));
+    }
+    const double create_s = SecondsSince(start);
+    start = std::chrono::steady_clock::now();
+    for (const std::string& name : names) {
+      grpc::ClientContext context;
+      v1::ResetEnvRequest request;
+      request.set_name(name);
+      v1::ResetEnvResponse response;
+      if (!servers.stub->ResetEnv(&context, request, &response).ok()) {
+        std::abort();
+      }
+    }
+    const double reset_s = SecondsSince(start);
+    const int64_t rss_live = ResidentBytes();
+    // Idle: nothing is called for 3 s; the process should sleep.
+    const double cpu_before = ProcessCpuSeconds();
+    start = std::chrono::steady_clock::now();
+    std::this_thread::sleep_for(std::chrono::seconds(3));
+    const double idle_cpu =
+        (ProcessCpuSeconds() - cpu_before) / SecondsSince(start);
+    start = std::chrono::steady_clock::now();
+    for (const std::string& name : names) {
+      grpc::ClientContext context;
+      v1::DeleteEnvRequest request;
+      request.set_name(name);
+      v1::DeleteEnvResponse response;
+      if (!servers.stub->DeleteEnv(&context, request, &response).ok()) {
+        std::abort();
+      }
+    }
+    const double delete_s = SecondsSince(start);
+    state.counters["rss_KiB_per_env"] =
+        (rss_live - rss_before) / 1024.0 / kLiveEnvs;
+    state.counters["idle_cpu_percent"] = 100.0 * idle_cpu;
+    state.counters["creates_per_s"] = kLiveEnvs / create_s;
+    state.counters["resets_per_s"] = kLiveEnvs / reset_s;
+    state.counters["deletes_per_s"] = kLiveEnvs / delete_s;
+  }
+}
+
+BENCHMARK(BM_EchoUnaryFloor)->Iterations(5000)->UseRealTime();
+BENCHMARK(BM_StepEnvUnary)->Iterations(5000)->UseRealTime();
+BENCHMARK(BM_EchoStreamFloor)->Iterations(5000)->UseRealTime();
+BENCHMARK(BM_StepEnvSession)->Iterations(5000)->UseRealTime();
+BENCHMARK(BM_CoreFloor64x3TwoThreads)->Iterations(1)->UseRealTime();
+BENCHMARK(BM_StepBatch64x3)->Iterations(kBatchRounds)->UseRealTime();
+BENCHMARK(BM_TenThousandLiveEnvs)->Iterations(1)->UseRealTime();
+
+}  // namespace
+}  // namespace mll
+
+BENCHMARK_MAIN();
