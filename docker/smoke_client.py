@@ -133,7 +133,7 @@ def main():
         sys.exit("smoke_client: two runs with the same seed and actions differ")
     steps = (len(first) - 1) // 2
     print(f"smoke_client: {how} at {args.address}: 2 envs x {steps} steps, identical bits; "
-          f"lander_0 first observation {np.round(first[0][0], 3).tolist()}")
+          f"lander_0 first observation [{', '.join(f'{v:.3f}' for v in first[0][0])}]")
 
 
 if __name__ == "__main__":

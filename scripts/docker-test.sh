@@ -131,13 +131,14 @@ step "4. build $IMAGE"
 # clone), so others' half-done edits in the work tree do not decide the
 # result; MLL_DOCKER_CONTEXT=worktree builds the work tree as it is.
 if [ "${MLL_DOCKER_CONTEXT:-head}" = worktree ]; then
-  context=$ROOT
+  context=$ROOT commit=""
   echo "context: the work tree $ROOT"
 else
   context=$CACHE/context
   rm -rf "$context" && mkdir -p "$context"
-  git archive HEAD | tar -x -C "$context"
-  echo "context: HEAD $(git rev-parse --short HEAD) exported to $context"
+  commit=$(git rev-parse --short HEAD)
+  git archive "$commit" | tar -x -C "$context"
+  echo "context: HEAD $commit exported to $context"
 fi
 build_args=(--build-arg "BASE_IMAGE=$BASE_IMAGE")
 [ "${MLL_DOCKER_NO_TESTS:-0}" = 1 ] && build_args+=(--build-arg RUN_TESTS=0)
@@ -154,7 +155,7 @@ set -e
 ((build_rc == 0)) || { tail -n 40 "$CACHE/build.log"; fail "image build failed (rc $build_rc); see $CACHE/build.log"; }
 ctest_line=$(grep -E 'tests passed|tests failed' "$CACHE/build.log" | tail -n1 || true)
 size_mb=$(( $(podman image inspect --format '{{.Size}}' "$IMAGE") / 1000000 ))
-pass "image of $( [ "$context" = "$ROOT" ] && echo "the work tree" || echo "HEAD $(git rev-parse --short HEAD)") built in $((SECONDS - build_start)) s, ${size_mb} MB${ctest_line:+; build-stage ctest: $ctest_line}"
+pass "image of ${commit:-the work tree} built in $((SECONDS - build_start)) s, ${size_mb} MB${ctest_line:+; build-stage ctest: $ctest_line}"
 
 step "5. run with a loopback-only port mapping"
 PORT=${MLL_DOCKER_PORT:-$("$PYTHON" -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')}
