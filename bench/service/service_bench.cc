@@ -364,6 +364,19 @@ double SecondsSince(std::chrono::steady_clock::time_point start) {
       .count();
 }
 
+// One unary call per env name, in order; any failure ends the run.
+template <typename Request, typename Response, typename Method>
+void CallForEach(const std::vector<std::string>& names, Method method,
+                 v1::MultiLunarLander::Stub& stub) {
+  for (const std::string& name : names) {
+    grpc::ClientContext context;
+    Request request;
+    request.set_name(name);
+    Response response;
+    if (!(stub.*method)(&context, request, &response).ok()) std::abort();
+  }
+}
+
 void BM_TenThousandLiveEnvs(benchmark::State& state) {
   for (auto _ : state) {
     Servers servers(2, kLiveEnvs);
@@ -375,15 +388,8 @@ void BM_TenThousandLiveEnvs(benchmark::State& state) {
     }
     const double create_s = SecondsSince(start);
     start = std::chrono::steady_clock::now();
-    for (const std::string& name : names) {
-      grpc::ClientContext context;
-      v1::ResetEnvRequest request;
-      request.set_name(name);
-      v1::ResetEnvResponse response;
-      if (!servers.stub->ResetEnv(&context, request, &response).ok()) {
-        std::abort();
-      }
-    }
+    CallForEach<v1::ResetEnvRequest, v1::ResetEnvResponse>(
+        names, &v1::MultiLunarLander::Stub::ResetEnv, *servers.stub);
     const double reset_s = SecondsSince(start);
     const int64_t rss_live = ResidentBytes();
     // Idle: nothing is called for 3 s; the process should sleep.
@@ -393,15 +399,8 @@ void BM_TenThousandLiveEnvs(benchmark::State& state) {
     const double idle_cpu =
         (ProcessCpuSeconds() - cpu_before) / SecondsSince(start);
     start = std::chrono::steady_clock::now();
-    for (const std::string& name : names) {
-      grpc::ClientContext context;
-      v1::DeleteEnvRequest request;
-      request.set_name(name);
-      v1::DeleteEnvResponse response;
-      if (!servers.stub->DeleteEnv(&context, request, &response).ok()) {
-        std::abort();
-      }
-    }
+    CallForEach<v1::DeleteEnvRequest, v1::DeleteEnvResponse>(
+        names, &v1::MultiLunarLander::Stub::DeleteEnv, *servers.stub);
     const double delete_s = SecondsSince(start);
     state.counters["rss_KiB_per_env"] =
         (rss_live - rss_before) / 1024.0 / kLiveEnvs;
