@@ -44,6 +44,9 @@ class Progress:
     env_steps: int = 0
     transitions: int = 0
     wall_s: float = 0.0
+    # CPU seconds of the trainer process (not the server's), less sensitive
+    # than wall time to other users of the machine.
+    cpu_s: float = 0.0
     scores: List[float] = dataclasses.field(default_factory=list)
     timers: Dict[str, float] = dataclasses.field(default_factory=dict)
 
@@ -93,6 +96,7 @@ def train(config: TrainConfig, out_dir: str, address: Optional[str] = None,
                                maxlen=SCORE_WINDOW)
     learn_start = config.effective_learn_start()
     wall_start = time.perf_counter() - progress.wall_s
+    cpu_start = time.process_time() - progress.cpu_s
     run_start = time.perf_counter()
     bar = tqdm.tqdm(total=config.episodes, initial=progress.episodes,
                     disable=not progress_bar, unit="ep", dynamic_ncols=True)
@@ -139,7 +143,7 @@ def train(config: TrainConfig, out_dir: str, address: Optional[str] = None,
             if progress.episodes - last_checkpoint >= config.checkpoint_every:
                 log_file.flush()
                 _save(checkpoint_path, config, agent, buffer, progress, rng,
-                      timers, wall_start)
+                      timers, wall_start, cpu_start)
                 last_checkpoint = progress.episodes
             if (config.time_limit_s
                     and time.perf_counter() - run_start > config.time_limit_s):
@@ -150,7 +154,7 @@ def train(config: TrainConfig, out_dir: str, address: Optional[str] = None,
         log_file.close()
         collector.close()
     _save(checkpoint_path, config, agent, buffer, progress, rng, timers,
-          wall_start)
+          wall_start, cpu_start)
     summary = _summary(config, progress, agent, timers, stopped_early)
     with open(os.path.join(out_dir, SUMMARY), "w") as f:
         json.dump(summary, f, indent=2)
@@ -192,8 +196,9 @@ def _truncate_log(log_path: str, episodes: int) -> None:
 
 def _save(path: str, config: TrainConfig, agent: DQNAgent,
           buffer: ReplayBuffer, progress: Progress, rng: np.random.Generator,
-          timers: Timers, wall_start: float) -> None:
+          timers: Timers, wall_start: float, cpu_start: float) -> None:
     progress.wall_s = time.perf_counter() - wall_start
+    progress.cpu_s = time.process_time() - cpu_start
     progress.timers = dict(timers.seconds)
     state = dict(config=config.to_dict(), agent=agent.state_dict(),
                  buffer=buffer.state_dict(),
@@ -222,6 +227,7 @@ def _summary(config: TrainConfig, progress: Progress, agent: DQNAgent,
         first_episode_mean50_ge_1400=(int(reached[0]) + 1
                                       if len(reached) else None),
         wall_s=wall,
+        trainer_cpu_s=progress.cpu_s,
         env_steps=progress.env_steps,
         transitions=progress.transitions,
         updates=agent.updates,
