@@ -95,3 +95,12 @@ def stack_bytes(chunks: Sequence[bytes], dtype: int, shape: Sequence[int]) -> np
     """Decodes many same-shaped arrays' bytes (e.g. one field of every env of a batch) with one
     join and one frombuffer; `shape` is the shape of the stacked result."""
     return from_bytes(b"".join(chunks), dtype, shape)
+
+
+def row_bytes(values: np.ndarray, dtype: int) -> list[bytes]:
+    """The little-endian bytes of each row (first index) of `values` as the wire dtype `dtype`,
+    e.g. each env's actions of a batch, to go into the `data` of per-row Arrays."""
+    block = np.ascontiguousarray(values, dtype=_WIRE_TO_NUMPY[dtype])
+    raw = block.tobytes()
+    size = len(raw) // max(len(block), 1)
+    return [raw[i * size : (i + 1) * size] for i in range(len(block))]

@@ -77,7 +77,7 @@ class VectorEnv:
         self.single_action_space = space_from_proto(spec.action_space)
         # The batch request is built once; each step only replaces the action bytes.
         self._request = pb.StepBatchRequest()
-        action_dtype = pb.DTYPE_FLOAT32 if self.continuous else pb.DTYPE_INT32
+        self._action_dtype = action_dtype = pb.DTYPE_FLOAT32 if self.continuous else pb.DTYPE_INT32
         action_shape = (self.n_landers, 2) if self.continuous else (self.n_landers,)
         for name in self._names:
             step = self._request.steps.add(name=name)
@@ -134,10 +134,8 @@ class VectorEnv:
 
     def step(self, actions):
         block = action_array(actions, self.continuous, (self.num_envs, self.n_landers), "actions")
-        raw = block.astype(block.dtype.newbyteorder("<"), copy=False).tobytes()
-        size = len(raw) // self.num_envs
-        for index, step in enumerate(self._steps):
-            step.actions.data = raw[index * size : (index + 1) * size]
+        for step, data in zip(self._steps, _arrays.row_bytes(block, self._action_dtype)):
+            step.actions.data = data
         results = self._connection.call("StepBatch", self._request).results
         datas = []
         for index, result in enumerate(results):

@@ -58,3 +58,9 @@ def test_stack_bytes_joins_many_messages_in_order():
         [_arrays.to_proto(p, pb.DTYPE_FLOAT32).data for p in parts], pb.DTYPE_FLOAT32, (4, 2, 12)
     )
     np.testing.assert_array_equal(stacked, np.stack(parts))
+
+
+def test_row_bytes_splits_a_block_into_little_endian_rows():
+    block = np.arange(12, dtype=">i8").reshape(3, 4)
+    rows = _arrays.row_bytes(block, pb.DTYPE_INT32)
+    assert rows == [np.arange(4 * i, 4 * i + 4, dtype="<i4").tobytes() for i in range(3)]
