@@ -6,7 +6,7 @@ import pytest
 
 import multi_lunar_lander as mll
 
-from conftest import delete_env
+from mll_test_helpers import delete_env
 
 
 def _raises(code, call, *args, **kwargs):

@@ -6,7 +6,7 @@ import pytest
 
 import multi_lunar_lander as mll
 
-from conftest import run_heuristic_parallel
+from mll_test_helpers import run_heuristic_parallel
 
 
 @pytest.mark.parametrize("shared_reward", [True, False])

@@ -5,7 +5,7 @@ import pytest
 
 import multi_lunar_lander as mll
 
-from conftest import assert_not_found
+from mll_test_helpers import assert_not_found
 
 
 def test_shapes_dtypes_and_seeds(address, continuous):

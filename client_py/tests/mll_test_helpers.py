@@ -1,0 +1,35 @@
+"""Helpers shared by the client's tests (a uniquely named module rather than conftest, since
+pytest runs this suite beside examples/dqn/tests, which has its own conftest)."""
+
+import grpc
+import pytest
+
+import multi_lunar_lander as mll
+from multi_lunar_lander._stubs import pb
+
+
+def run_heuristic_parallel(env, seed):
+    """Flies every lander of a parallel env with the heuristic for one episode; returns per-agent
+    lists of the observations each agent acted on, and the final infos."""
+    observations, _ = env.reset(seed=seed)
+    seen = {agent: [obs] for agent, obs in observations.items()}
+    final = {}
+    while env.agents:
+        actions = {agent: mll.heuristic(observations[agent], env.continuous) for agent in env.agents}
+        observations, _, terminations, truncations, infos = env.step(actions)
+        for agent in observations:
+            if terminations[agent] or truncations[agent]:
+                final[agent] = infos[agent]
+            else:
+                seen[agent].append(observations[agent])
+    return seen, final
+
+
+def delete_env(raw_stub, name):
+    raw_stub.DeleteEnv(pb.DeleteEnvRequest(name=name))
+
+
+def assert_not_found(raw_stub, name):
+    with pytest.raises(grpc.RpcError) as caught:
+        raw_stub.GetEnv(pb.GetEnvRequest(name=name))
+    assert caught.value.code() == grpc.StatusCode.NOT_FOUND
