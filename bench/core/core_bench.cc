@@ -2,8 +2,9 @@
 // - Env::Step per agent-step against a FLOOR measured in the same run: a bare
 //   Box2D world built here with LunarLander's terrain, the same landers, legs,
 //   joints and collision filters, random engine impulses and
-//   Step(1/50, 180, 60), with the same episode boundaries as the Env's
-//   defaults (the episode ends when any lander is damaged). The floor has no
+//   Step(1/50, 180, 60), the Env's spawn layout, and the same episode
+//   boundaries as the Env's defaults (the episode ends when any lander is
+//   damaged). The floor has no
 //   observations, rewards or rules: Env / floor is the price of those.
 // - Reset, RenderScene, EncodePng (and libpng's defaults as the peer), and
 //   heap per environment.
@@ -17,6 +18,7 @@
 #include <memory>
 #include <optional>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "benchmark/benchmark.h"
@@ -32,16 +34,48 @@ namespace {
 
 using internal::Rng;
 
-// Landers per row at spawn. For the benchmarked counts (1, 3, 8, 32: full
-// rows) this is the Env's own layout.
-constexpr int kPerRow = 8;
-constexpr double kRowSpacing = 1.8;
 constexpr int kMaxCycles = EnvConfig().max_cycles;
+
+std::unique_ptr<Env> MakeEnv(int n_landers, RenderMode mode) {
+  EnvConfig config;
+  config.n_landers = n_landers;
+  config.render_mode = mode;
+  return std::move(Env::Create(config).value());
+}
+
+// Where the Env spawns n landers, read back from a freshly reset Env so that
+// the floor cannot drift from the Env's layout. Reset has pushed the landers
+// and stepped once, which moves them by a few centimetres at most: the same
+// layout as far as the cost of the physics is concerned.
+std::vector<b2Vec2> EnvSpawnLayout(int n_landers) {
+  std::unique_ptr<Env> env = MakeEnv(n_landers, RenderMode::kNone);
+  StepResult result;
+  env->Reset(0, &result);
+  // The body polygon's vertex mean, in body coordinates.
+  double local_x = 0, local_y = 0;
+  for (const auto& v : internal::kLanderPoly) {
+    local_x += v[0] / internal::kScale / internal::kLanderPoly.size();
+    local_y += v[1] / internal::kScale / internal::kLanderPoly.size();
+  }
+  std::vector<b2Vec2> layout(n_landers);
+  for (const SceneLander& lander : env->scene().landers) {
+    const std::vector<Vec2>& body = lander.parts.at(0).vertices;
+    double x = 0, y = 0;
+    for (const Vec2& v : body) {
+      x += v.x / body.size();
+      y += v.y / body.size();
+    }
+    layout[lander.agent].Set(static_cast<float>(x - local_x),
+                             static_cast<float>(y - local_y));
+  }
+  return layout;
+}
 
 // The floor: LunarLander's world for n landers, physics only.
 class FloorWorld {
  public:
-  FloorWorld(int n_landers, uint64_t seed) : n_(n_landers), rng_(seed) {
+  FloorWorld(std::vector<b2Vec2> spawn, uint64_t seed)
+      : spawn_(std::move(spawn)), rng_(seed) {
     Reset();
   }
 
@@ -51,7 +85,7 @@ class FloorWorld {
     landers_.clear();
     cycles_ = 0;
     BuildTerrain();
-    for (int i = 0; i < n_; ++i) AddLander(i);
+    for (size_t i = 0; i < spawn_.size(); ++i) AddLander(static_cast<int>(i));
     WorldStep();
   }
 
@@ -129,11 +163,8 @@ class FloorWorld {
 
   void AddLander(int agent) {
     using internal::kScale;
-    const int row = agent / kPerRow;
-    const int in_row = std::min(kPerRow, n_ - row * kPerRow);
-    const float x = static_cast<float>(internal::kW * (agent % kPerRow + 1) /
-                                       (in_row + 1));
-    const float y = static_cast<float>(internal::kH - row * kRowSpacing);
+    const float x = spawn_[agent].x;
+    const float y = spawn_[agent].y;
 
     FloorLander lander;
     b2BodyDef body_def;
@@ -250,7 +281,7 @@ class FloorWorld {
     lander = FloorLander();
   }
 
-  int n_;
+  std::vector<b2Vec2> spawn_;
   Rng rng_;
   std::unique_ptr<b2World> world_;
   std::vector<FloorLander> landers_;
@@ -264,16 +295,9 @@ void RandomActions(Rng& rng, std::vector<int32_t>* actions) {
   }
 }
 
-std::unique_ptr<Env> MakeEnv(int n_landers, RenderMode mode) {
-  EnvConfig config;
-  config.n_landers = n_landers;
-  config.render_mode = mode;
-  return std::move(Env::Create(config).value());
-}
-
 void BM_FloorStep(benchmark::State& state) {
   const int n = static_cast<int>(state.range(0));
-  FloorWorld floor(n, 1);
+  FloorWorld floor(EnvSpawnLayout(n), 1);
   Rng rng(2);
   std::vector<int32_t> actions(n);
   int64_t agent_steps = 0;
@@ -383,11 +407,12 @@ void BM_MemoryPerEnv(benchmark::State& state) {
       }
       env_bytes = static_cast<double>(HeapInUse() - before) / count;
     }
+    const std::vector<b2Vec2> layout = EnvSpawnLayout(n);
     const size_t floor_before = HeapInUse();
     {
       std::vector<std::unique_ptr<FloorWorld>> worlds;
       for (int i = 0; i < count; ++i) {
-        worlds.push_back(std::make_unique<FloorWorld>(n, i));
+        worlds.push_back(std::make_unique<FloorWorld>(layout, i));
       }
       floor_bytes = static_cast<double>(HeapInUse() - floor_before) / count;
     }

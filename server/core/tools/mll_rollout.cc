@@ -12,7 +12,6 @@
 #include <fstream>
 #include <iostream>
 #include <memory>
-#include <random>
 #include <string>
 #include <vector>
 
@@ -27,6 +26,7 @@
 #include "mll/core/env.h"
 #include "mll/core/heuristic.h"
 #include "mll/core/renderer.h"
+#include "rng.h"
 
 ABSL_FLAG(int, episodes, 1, "Number of episodes, >= 1.");
 ABSL_FLAG(uint64_t, seed, 0,
@@ -111,24 +111,22 @@ class Pilot {
   }
 
  private:
-  // Built from raw 64-bit draws rather than std distributions, whose
-  // algorithms differ between standard libraries.
   AgentAction RandomAction() {
     AgentAction action;
     if (continuous_) {
       for (float& value : action.continuous) {
-        const double unit = static_cast<double>(rng_() >> 11) * 0x1.0p-53;
-        value = static_cast<float>(2.0 * unit - 1.0);
+        value = static_cast<float>(rng_.Uniform(-1.0, 1.0));
       }
     } else {
-      action.discrete = static_cast<int32_t>(rng_() % kDiscreteActionCount);
+      action.discrete = static_cast<int32_t>(
+          rng_.Integer(0, kDiscreteActionCount - 1));
     }
     return action;
   }
 
   Policy policy_;
   bool continuous_;
-  std::mt19937_64 rng_;
+  internal::Rng rng_;
   std::vector<int32_t> discrete_;
   std::vector<float> continuous_actions_;
 };
