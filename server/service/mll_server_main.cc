@@ -1,6 +1,8 @@
 // mll_server: hosts Multi Lunar Lander environments over gRPC.
 //
 //   mll_server --address=127.0.0.1:0 --port_file=/tmp/port
+//   mll_server --address=0.0.0.0:50051 --tls_cert=cert.pem --tls_key=key.pem \
+//       --auth_token_file=tokens.txt --metrics_address=0.0.0.0:9464
 //
 // SIGTERM or SIGINT: stop accepting calls, let in-flight calls finish (up to
 // a grace period), exit 0.
@@ -11,12 +13,14 @@
 #include <fstream>
 #include <string>
 #include <thread>
+#include <vector>
 
 #include "absl/flags/flag.h"
 #include "absl/flags/parse.h"
 #include "absl/flags/usage.h"
 #include "absl/strings/str_cat.h"
 #include "absl/time/time.h"
+#include "mll/service/auth.h"
 #include "mll/service/server.h"
 
 ABSL_FLAG(std::string, address, "127.0.0.1:50051",
@@ -31,6 +35,17 @@ ABSL_FLAG(double, idle_timeout_s, 300,
           "an environment untouched this many seconds is destroyed");
 ABSL_FLAG(int32_t, max_message_mb, 64,
           "largest message received or sent, in MiB");
+ABSL_FLAG(std::string, tls_cert, "",
+          "PEM certificate chain; with --tls_key the server speaks TLS only "
+          "(default: plaintext)");
+ABSL_FLAG(std::string, tls_key, "", "PEM private key of --tls_cert");
+ABSL_FLAG(std::string, auth_token_file, "",
+          "file of bearer tokens, one per line ('#' comments); when set, every "
+          "call but grpc.health.v1 needs metadata `authorization: Bearer "
+          "<token>` and sees only the envs created with its token");
+ABSL_FLAG(std::string, metrics_address, "",
+          "host:port serving Prometheus metrics at GET /metrics, e.g. "
+          "127.0.0.1:9464 (empty: off)");
 
 namespace {
 
@@ -49,6 +64,11 @@ bool WritePortFile(const std::string& path, int port) {
   return std::rename(temporary.c_str(), path.c_str()) == 0;
 }
 
+// The host part of host:port.
+std::string HostOf(const std::string& address) {
+  return address.substr(0, address.rfind(':'));
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -56,7 +76,8 @@ int main(int argc, char** argv) {
       "Hosts Multi Lunar Lander environments over gRPC (mll.v1).\n"
       "Usage: mll_server [--address=127.0.0.1:50051] [--port_file=F] "
       "[--threads=N] [--max_envs=N] [--idle_timeout_s=S] "
-      "[--max_message_mb=M]");
+      "[--max_message_mb=M] [--tls_cert=PEM --tls_key=PEM] "
+      "[--auth_token_file=F] [--metrics_address=HOST:PORT]");
   absl::ParseCommandLine(argc, argv);
 
   // Blocked in every thread (gRPC's threads inherit the mask), so the
@@ -74,6 +95,20 @@ int main(int argc, char** argv) {
   options.service.max_envs = absl::GetFlag(FLAGS_max_envs);
   options.service.idle_timeout =
       absl::Seconds(absl::GetFlag(FLAGS_idle_timeout_s));
+  options.tls_cert_file = absl::GetFlag(FLAGS_tls_cert);
+  options.tls_key_file = absl::GetFlag(FLAGS_tls_key);
+  options.metrics_address = absl::GetFlag(FLAGS_metrics_address);
+  const std::string token_file = absl::GetFlag(FLAGS_auth_token_file);
+  if (!token_file.empty()) {
+    absl::StatusOr<std::vector<std::string>> tokens =
+        mll::ReadTokenFile(token_file);
+    if (!tokens.ok()) {
+      std::fprintf(stderr, "mll_server: %s\n",
+                   std::string(tokens.status().message()).c_str());
+      return 1;
+    }
+    options.service.auth_tokens = *std::move(tokens);
+  }
   absl::StatusOr<std::unique_ptr<mll::Server>> server =
       mll::Server::Start(options);
   if (!server.ok()) {
@@ -87,8 +122,7 @@ int main(int argc, char** argv) {
                  port_file.c_str());
     return 1;
   }
-  const std::string host =
-      options.address.substr(0, options.address.rfind(':'));
+  const std::string host = HostOf(options.address);
   std::fprintf(stderr,
                "mll_server: listening on %s:%d (--address=%s --port_file=%s "
                "--threads=%d --max_envs=%d --idle_timeout_s=%g "
@@ -98,6 +132,21 @@ int main(int argc, char** argv) {
                options.service.max_envs,
                absl::ToDoubleSeconds(options.service.idle_timeout),
                options.max_message_mb);
+  // What protects the server, in one line; never the tokens themselves.
+  const int n_tokens = static_cast<int>(options.service.auth_tokens.size());
+  std::fprintf(
+      stderr, "mll_server: TLS %s, auth %s, metrics %s\n",
+      (*server)->tls() ? "on" : "off (plaintext)",
+      n_tokens == 0
+          ? "off (anonymous)"
+          : absl::StrCat("on (", n_tokens, n_tokens == 1 ? " token" : " tokens",
+                         " from ", token_file, ")")
+                .c_str(),
+      (*server)->metrics_port() == 0
+          ? "off"
+          : absl::StrCat("on http://", HostOf(options.metrics_address),
+                         ":", (*server)->metrics_port(), "/metrics")
+                .c_str());
 
   int signal_number = 0;
   sigwait(&signals, &signal_number);

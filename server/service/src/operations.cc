@@ -67,11 +67,12 @@ Operations::Operations(Registry* registry, WorkerPool* pool)
     : registry_(registry), pool_(pool) {}
 
 absl::Status Operations::CreateEnv(const v1::CreateEnvRequest& request,
-                                   bool session_bound, v1::Env* out) {
+                                   bool session_bound, v1::Env* out,
+                                   absl::string_view owner) {
   absl::StatusOr<EnvConfig> config = EnvConfigFromProto(request.config());
   if (!config.ok()) return config.status();
   absl::StatusOr<std::shared_ptr<EnvSlot>> slot = registry_->Create(
-      *config, request.config().auto_reset(), session_bound);
+      *config, request.config().auto_reset(), session_bound, owner);
   if (!slot.ok()) return slot.status();
   absl::MutexLock lock(&(*slot)->mu);
   FillEnvLocked(**slot, out);
@@ -79,9 +80,9 @@ absl::Status Operations::CreateEnv(const v1::CreateEnvRequest& request,
 }
 
 absl::Status Operations::GetEnv(const v1::GetEnvRequest& request,
-                                v1::Env* out) {
+                                v1::Env* out, absl::string_view owner) {
   absl::StatusOr<std::shared_ptr<EnvSlot>> slot =
-      registry_->Find(request.name(), "name");
+      registry_->Find(request.name(), "name", owner);
   if (!slot.ok()) return slot.status();
   absl::MutexLock lock(&(*slot)->mu);
   FillEnvLocked(**slot, out);
@@ -89,9 +90,10 @@ absl::Status Operations::GetEnv(const v1::GetEnvRequest& request,
 }
 
 absl::Status Operations::ListEnvs(const v1::ListEnvsRequest& request,
-                                  v1::ListEnvsResponse* out) {
+                                  v1::ListEnvsResponse* out,
+                                  absl::string_view owner) {
   absl::StatusOr<Registry::Page> page =
-      registry_->List(request.page_size(), request.page_token());
+      registry_->List(request.page_size(), request.page_token(), owner);
   if (!page.ok()) return page.status();
   for (const std::shared_ptr<EnvSlot>& slot : page->slots) {
     absl::MutexLock lock(&slot->mu);
@@ -101,14 +103,16 @@ absl::Status Operations::ListEnvs(const v1::ListEnvsRequest& request,
   return absl::OkStatus();
 }
 
-absl::Status Operations::DeleteEnv(const v1::DeleteEnvRequest& request) {
-  return registry_->Delete(request.name(), "name");
+absl::Status Operations::DeleteEnv(const v1::DeleteEnvRequest& request,
+                                   absl::string_view owner) {
+  return registry_->Delete(request.name(), "name", owner);
 }
 
 absl::Status Operations::ResetEnv(const v1::ResetEnvRequest& request,
-                                  v1::ResetEnvResponse* out) {
+                                  v1::ResetEnvResponse* out,
+                                  absl::string_view owner) {
   absl::StatusOr<std::shared_ptr<EnvSlot>> found =
-      registry_->Find(request.name(), "name");
+      registry_->Find(request.name(), "name", owner);
   if (!found.ok()) return found.status();
   EnvSlot& slot = **found;
   absl::MutexLock lock(&slot.mu);
@@ -132,9 +136,10 @@ absl::Status Operations::ResetEnv(const v1::ResetEnvRequest& request,
 }
 
 absl::Status Operations::StepEnv(const v1::StepEnvRequest& request,
-                                 absl::string_view field, v1::StepData* out) {
+                                 absl::string_view field, v1::StepData* out,
+                                 absl::string_view owner) {
   absl::StatusOr<std::shared_ptr<EnvSlot>> found =
-      registry_->Find(request.name(), absl::StrCat(field, "name"));
+      registry_->Find(request.name(), absl::StrCat(field, "name"), owner);
   if (!found.ok()) return found.status();
   EnvSlot& slot = **found;
   ActionBuffer actions;
@@ -166,9 +171,10 @@ absl::Status Operations::StepEnv(const v1::StepEnvRequest& request,
 }
 
 absl::Status Operations::StepAgent(const v1::StepAgentRequest& request,
-                                   v1::StepAgentResponse* out) {
+                                   v1::StepAgentResponse* out,
+                                   absl::string_view owner) {
   absl::StatusOr<std::shared_ptr<EnvSlot>> found =
-      registry_->Find(request.name(), "name");
+      registry_->Find(request.name(), "name", owner);
   if (!found.ok()) return found.status();
   EnvSlot& slot = **found;
   absl::StatusOr<std::optional<AgentAction>> action =
@@ -196,7 +202,7 @@ absl::Status Operations::StepAgent(const v1::StepAgentRequest& request,
 }
 
 absl::Status Operations::RenderEnv(const v1::RenderEnvRequest& request,
-                                   v1::Frame* out) {
+                                   v1::Frame* out, absl::string_view owner) {
   if (!v1::FrameFormat_IsValid(request.format())) {
     return absl::InvalidArgumentError(absl::StrCat(
         "format: ", request.format(),
@@ -204,7 +210,7 @@ absl::Status Operations::RenderEnv(const v1::RenderEnvRequest& request,
         "FRAME_FORMAT_PNG = 2)"));
   }
   absl::StatusOr<std::shared_ptr<EnvSlot>> found =
-      registry_->Find(request.name(), "name");
+      registry_->Find(request.name(), "name", owner);
   if (!found.ok()) return found.status();
   absl::StatusOr<Frame> frame;
   {
@@ -230,7 +236,8 @@ absl::Status Operations::RenderEnv(const v1::RenderEnvRequest& request,
 
 void Operations::StepBatch(const v1::StepBatchRequest& request,
                            v1::StepBatchResponse* out,
-                           std::function<void(absl::Status)> done) {
+                           std::function<void(absl::Status)> done,
+                           absl::string_view owner) {
   absl::flat_hash_map<absl::string_view, int> first_index;
   for (int i = 0; i < request.steps_size(); ++i) {
     auto [it, inserted] = first_index.emplace(request.steps(i).name(), i);
@@ -245,11 +252,11 @@ void Operations::StepBatch(const v1::StepBatchRequest& request,
   for (int i = 0; i < request.steps_size(); ++i) out->add_results();
   pool_->ParallelFor(
       request.steps_size(),
-      [this, &request, out](int i) {
+      [this, &request, out, owner](int i) {
         v1::StepBatchResult* result = out->mutable_results(i);
         absl::Status status = StepEnv(request.steps(i),
                                       absl::StrCat("steps[", i, "]."),
-                                      result->mutable_data());
+                                      result->mutable_data(), owner);
         if (!status.ok()) FillItemError(status, result->mutable_error());
       },
       [done = std::move(done)] { done(absl::OkStatus()); });

@@ -40,12 +40,13 @@ std::mt19937_64 SeededFromEntropy() {
 }  // namespace
 
 EnvSlot::EnvSlot(std::string name, uint64_t serial, std::unique_ptr<Env> env,
-                 bool auto_reset, bool session_bound)
+                 bool auto_reset, bool session_bound, std::string owner)
     : name(std::move(name)),
       serial(serial),
       config(env->config()),
       auto_reset(auto_reset),
       session_bound(session_bound),
+      owner(std::move(owner)),
       env(std::move(env)) {
   aec = std::make_unique<AecEnv>(this->env.get());
   Touch(*this);
@@ -78,7 +79,8 @@ std::string Registry::NewNameLocked() {
 }
 
 absl::StatusOr<std::shared_ptr<EnvSlot>> Registry::Create(
-    const EnvConfig& config, bool auto_reset, bool session_bound) {
+    const EnvConfig& config, bool auto_reset, bool session_bound,
+    absl::string_view owner) {
   {
     absl::MutexLock lock(&mu_);
     if (static_cast<int>(by_name_.size()) + pending_ >= max_envs_) {
@@ -97,14 +99,15 @@ absl::StatusOr<std::shared_ptr<EnvSlot>> Registry::Create(
   if (!env.ok()) return env.status();
   const std::string name = NewNameLocked();
   auto slot = std::make_shared<EnvSlot>(name, next_serial_++, *std::move(env),
-                                        auto_reset, session_bound);
+                                        auto_reset, session_bound,
+                                        std::string(owner));
   by_name_.emplace(name, slot);
   by_serial_.emplace(slot->serial, slot);
   return slot;
 }
 
 absl::StatusOr<std::shared_ptr<EnvSlot>> Registry::Find(
-    absl::string_view name, absl::string_view field) {
+    absl::string_view name, absl::string_view field, absl::string_view owner) {
   if (!absl::StartsWith(name, kNamePrefix) ||
       name.size() == kNamePrefix.size()) {
     return absl::InvalidArgumentError(
@@ -116,7 +119,7 @@ absl::StatusOr<std::shared_ptr<EnvSlot>> Registry::Find(
   {
     absl::MutexLock lock(&mu_);
     auto it = by_name_.find(name);
-    if (it != by_name_.end()) slot = it->second;
+    if (it != by_name_.end() && it->second->owner == owner) slot = it->second;
   }
   if (slot == nullptr) {
     return absl::NotFoundError(absl::StrCat(
@@ -129,9 +132,9 @@ absl::StatusOr<std::shared_ptr<EnvSlot>> Registry::Find(
   return slot;
 }
 
-absl::Status Registry::Delete(absl::string_view name,
-                              absl::string_view field) {
-  absl::StatusOr<std::shared_ptr<EnvSlot>> found = Find(name, field);
+absl::Status Registry::Delete(absl::string_view name, absl::string_view field,
+                              absl::string_view owner) {
+  absl::StatusOr<std::shared_ptr<EnvSlot>> found = Find(name, field, owner);
   if (!found.ok()) return found.status();
   {
     absl::MutexLock lock(&mu_);
@@ -144,7 +147,8 @@ absl::Status Registry::Delete(absl::string_view name,
 }
 
 absl::StatusOr<Registry::Page> Registry::List(int page_size,
-                                              absl::string_view page_token) {
+                                              absl::string_view page_token,
+                                              absl::string_view owner) {
   if (page_size < 0) {
     return absl::InvalidArgumentError(absl::StrCat(
         "page_size: ", page_size, " is negative (allowed: 0 for ",
@@ -165,6 +169,7 @@ absl::StatusOr<Registry::Page> Registry::List(int page_size,
   Page page;
   absl::MutexLock lock(&mu_);
   for (auto it = by_serial_.lower_bound(first); it != by_serial_.end(); ++it) {
+    if (it->second->owner != owner) continue;
     if (static_cast<int>(page.slots.size()) == page_size) {
       page.next_page_token = absl::StrCat("s", it->first);
       break;

@@ -1,5 +1,7 @@
 #include "mll/service/server.h"
 
+#include <fstream>
+#include <sstream>
 #include <utility>
 
 #include "absl/strings/str_cat.h"
@@ -18,6 +20,36 @@ absl::Status OutOfRange(absl::string_view flag, double value,
   return absl::InvalidArgumentError(
       absl::StrCat("--", flag, ": ", value, " is out of range (allowed: ",
                    allowed, ")"));
+}
+
+absl::StatusOr<std::string> ReadPemFile(absl::string_view flag,
+                                        const std::string& path) {
+  std::ifstream in(path);
+  std::stringstream contents;
+  contents << in.rdbuf();
+  if (!in.is_open() || in.bad()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("--", flag, ": cannot read ", path));
+  }
+  if (contents.str().find("-----BEGIN ") == std::string::npos) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "--", flag, ": ", path, " is not PEM (no -----BEGIN line)"));
+  }
+  return contents.str();
+}
+
+// Plaintext, or TLS with the options' certificate and key.
+absl::StatusOr<std::shared_ptr<grpc::ServerCredentials>> Credentials(
+    const ServerOptions& options) {
+  if (options.tls_cert_file.empty()) return grpc::InsecureServerCredentials();
+  absl::StatusOr<std::string> cert =
+      ReadPemFile("tls_cert", options.tls_cert_file);
+  if (!cert.ok()) return cert.status();
+  absl::StatusOr<std::string> key = ReadPemFile("tls_key", options.tls_key_file);
+  if (!key.ok()) return key.status();
+  grpc::SslServerCredentialsOptions ssl;
+  ssl.pem_key_cert_pairs.push_back({*std::move(key), *std::move(cert)});
+  return grpc::SslServerCredentials(ssl);
 }
 
 gpr_timespec ToGprDeadline(absl::Duration from_now) {
@@ -44,6 +76,13 @@ absl::Status ValidateServerOptions(const ServerOptions& options) {
     return OutOfRange("max_message_mb", options.max_message_mb,
                       absl::StrCat("1..", kMaxMessageMb));
   }
+  if (options.tls_cert_file.empty() != options.tls_key_file.empty()) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        options.tls_cert_file.empty() ? "--tls_key" : "--tls_cert",
+        " is set without ",
+        options.tls_cert_file.empty() ? "--tls_cert" : "--tls_key",
+        " (allowed: both, for TLS, or neither, for plaintext)"));
+  }
   return absl::OkStatus();
 }
 
@@ -51,6 +90,9 @@ absl::StatusOr<std::unique_ptr<Server>> Server::Start(
     const ServerOptions& options) {
   absl::Status status = ValidateServerOptions(options);
   if (!status.ok()) return status;
+  absl::StatusOr<std::shared_ptr<grpc::ServerCredentials>> credentials =
+      Credentials(options);
+  if (!credentials.ok()) return credentials.status();
   // Both are process-wide switches that apply to servers built after them.
   grpc::EnableDefaultHealthCheckService(true);
   grpc::reflection::InitProtoReflectionServerBuilderPlugin();
@@ -63,22 +105,35 @@ absl::StatusOr<std::unique_ptr<Server>> Server::Start(
   builder.SetMaxSendMessageSize(max_bytes);
   builder.RegisterService(server->service_.get());
   if (!options.address.empty()) {
-    builder.AddListeningPort(options.address,
-                             grpc::InsecureServerCredentials(),
-                             &server->port_);
+    builder.AddListeningPort(options.address, *credentials, &server->port_);
   }
+  server->tls_ = !options.tls_cert_file.empty();
   server->server_ = builder.BuildAndStart();
   if (server->server_ == nullptr ||
       (!options.address.empty() && server->port_ == 0)) {
     return absl::UnavailableError(absl::StrCat(
         "--address: cannot listen on ", options.address,
-        " (in use, or not host:port of a local interface)"));
+        " (in use, or not host:port of a local interface",
+        server->tls_ ? "; or --tls_cert and --tls_key do not match" : "",
+        ")"));
+  }
+  if (!options.metrics_address.empty()) {
+    MultiLunarLanderService* service = server->service_.get();
+    absl::StatusOr<std::unique_ptr<MetricsHttpServer>> metrics =
+        MetricsHttpServer::Start(options.metrics_address,
+                                 [service] { return service->MetricsText(); });
+    if (!metrics.ok()) return metrics.status();
+    server->metrics_http_ = *std::move(metrics);
   }
   return server;
 }
 
 Server::~Server() {
   if (!shut_down_) Shutdown(kDestructorGrace);
+}
+
+int Server::metrics_port() const {
+  return metrics_http_ == nullptr ? 0 : metrics_http_->port();
 }
 
 std::shared_ptr<grpc::Channel> Server::InProcessChannel() {
@@ -93,6 +148,8 @@ void Server::Shutdown(absl::Duration grace) {
   shut_down_ = true;
   server_->Shutdown(ToGprDeadline(grace));
   server_->Wait();
+  // Scrapes keep working while calls drain, so the last counts are seen.
+  metrics_http_.reset();
 }
 
 }  // namespace mll

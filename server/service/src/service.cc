@@ -1,5 +1,7 @@
 #include "mll/service/service.h"
 
+#include <chrono>
+#include <optional>
 #include <string>
 #include <utility>
 #include <vector>
@@ -10,8 +12,49 @@
 namespace mll {
 namespace {
 
-grpc::ServerUnaryReactor* FinishUnary(grpc::CallbackServerContext* context,
-                                      const absl::Status& status) {
+int64_t SteadyNowNs() {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(
+             std::chrono::steady_clock::now().time_since_epoch())
+      .count();
+}
+
+// The `authorization` metadata of a call, if present.
+std::optional<absl::string_view> Authorization(
+    const grpc::CallbackServerContext& context) {
+  const auto& metadata = context.client_metadata();
+  auto it = metadata.find(
+      grpc::string_ref(kAuthorizationKey.data(), kAuthorizationKey.size()));
+  if (it == metadata.end()) return std::nullopt;
+  return absl::string_view(it->second.data(), it->second.size());
+}
+
+// Times one call (or Session request) from construction to Record.
+class CallTimer {
+ public:
+  CallTimer(Metrics* metrics, Method method)
+      : metrics_(metrics), method_(method), start_ns_(SteadyNowNs()) {}
+  void Restart() { start_ns_ = SteadyNowNs(); }
+  void Record(const absl::Status& status) const {
+    metrics_->RecordCall(method_, status.code(), SteadyNowNs() - start_ns_);
+  }
+
+ private:
+  Metrics* const metrics_;
+  const Method method_;
+  int64_t start_ns_;
+};
+
+// Runs a unary call that completes in the handler: authenticates, runs
+// op(owner) -> absl::Status, records and finishes.
+template <typename Op>
+grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context,
+                                   const Authenticator& authenticator,
+                                   Metrics* metrics, Method method, Op op) {
+  const CallTimer timer(metrics, method);
+  absl::StatusOr<absl::string_view> owner =
+      authenticator.Authenticate(Authorization(*context));
+  const absl::Status status = owner.ok() ? op(*owner) : owner.status();
+  timer.Record(status);
   grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
   reactor->Finish(ToGrpcStatus(status));
   return reactor;
@@ -20,12 +63,23 @@ grpc::ServerUnaryReactor* FinishUnary(grpc::CallbackServerContext* context,
 // One Session stream: reads a request, runs it, writes its response, reads
 // the next; so responses come in request order and at most one operation of
 // the stream is in flight. Envs it created (not detached) are deleted when
-// the stream ends, however it ends.
+// the stream ends, however it ends. The caller is authenticated once, when
+// the stream opens; every request then acts as that owner.
 class SessionReactor final
     : public grpc::ServerBidiReactor<v1::SessionRequest, v1::SessionResponse> {
  public:
-  SessionReactor(Operations* operations, Registry* registry)
-      : operations_(operations), registry_(registry) {
+  SessionReactor(Operations* operations, Registry* registry, Metrics* metrics,
+                 absl::StatusOr<absl::string_view> owner)
+      : operations_(operations),
+        registry_(registry),
+        metrics_(metrics),
+        timer_(metrics, Method::kSession) {
+    if (!owner.ok()) {
+      timer_.Record(owner.status());
+      Finish(ToGrpcStatus(owner.status()));
+      return;
+    }
+    owner_ = *owner;
     StartRead(&request_);
   }
 
@@ -34,13 +88,21 @@ class SessionReactor final
       Finish(grpc::Status::OK);
       return;
     }
+    timer_.Restart();
     response_.Clear();
     response_.set_sequence(request_.sequence());
     if (request_.op_case() == v1::SessionRequest::kStepBatch) {
       // Runs on the worker pool; the write starts when the batch is done.
       operations_->StepBatch(
           request_.step_batch(), response_.mutable_step_batch(),
-          [this](absl::Status status) { Respond(status); });
+          [this](absl::Status status) {
+            if (status.ok()) {
+              metrics_->RecordStepBatch(Method::kSession,
+                                        response_.step_batch());
+            }
+            Respond(status);
+          },
+          owner_);
       return;
     }
     Respond(Run());
@@ -57,39 +119,53 @@ class SessionReactor final
   void OnDone() override {
     for (const std::string& name : bound_envs_) {
       // Already deleted or reclaimed is fine: the goal is that it is gone.
-      registry_->Delete(name, "name").IgnoreError();
+      registry_->Delete(name, "name", owner_).IgnoreError();
     }
     delete this;
   }
 
  private:
   absl::Status Run() {
+    absl::Status status;
     switch (request_.op_case()) {
       case v1::SessionRequest::kCreateEnv: {
         const bool bound = !request_.create_env().detached();
-        absl::Status status = operations_->CreateEnv(
-            request_.create_env(), bound, response_.mutable_env());
+        status = operations_->CreateEnv(request_.create_env(), bound,
+                                        response_.mutable_env(), owner_);
         if (status.ok() && bound) bound_envs_.push_back(response_.env().name());
         return status;
       }
       case v1::SessionRequest::kGetEnv:
-        return operations_->GetEnv(request_.get_env(), response_.mutable_env());
+        return operations_->GetEnv(request_.get_env(), response_.mutable_env(),
+                                   owner_);
       case v1::SessionRequest::kResetEnv:
-        return operations_->ResetEnv(request_.reset_env(),
-                                     response_.mutable_reset_env());
+        status = operations_->ResetEnv(request_.reset_env(),
+                                       response_.mutable_reset_env(), owner_);
+        if (status.ok()) metrics_->RecordReset();
+        return status;
       case v1::SessionRequest::kStepEnv:
-        return operations_->StepEnv(
+        status = operations_->StepEnv(
             request_.step_env(), "step_env.",
-            response_.mutable_step_env()->mutable_data());
+            response_.mutable_step_env()->mutable_data(), owner_);
+        if (status.ok()) {
+          metrics_->RecordStepData(Method::kSession,
+                                   response_.step_env().data());
+        }
+        return status;
       case v1::SessionRequest::kStepAgent:
-        return operations_->StepAgent(request_.step_agent(),
-                                      response_.mutable_step_agent());
+        status = operations_->StepAgent(request_.step_agent(),
+                                        response_.mutable_step_agent(), owner_);
+        if (status.ok()) {
+          metrics_->RecordStepAgent(Method::kSession,
+                                    request_.step_agent().has_action());
+        }
+        return status;
       case v1::SessionRequest::kRenderEnv:
         return operations_->RenderEnv(request_.render_env(),
-                                      response_.mutable_frame());
+                                      response_.mutable_frame(), owner_);
       case v1::SessionRequest::kDeleteEnv:
         response_.mutable_delete_env();
-        return operations_->DeleteEnv(request_.delete_env());
+        return operations_->DeleteEnv(request_.delete_env(), owner_);
       default:
         return absl::InvalidArgumentError(absl::StrCat(
             "op: not set (sequence ", request_.sequence(),
@@ -99,6 +175,7 @@ class SessionReactor final
   }
 
   void Respond(const absl::Status& status) {
+    timer_.Record(status);
     if (!status.ok()) {
       response_.clear_result();
       FillItemError(status, response_.mutable_error());
@@ -108,6 +185,10 @@ class SessionReactor final
 
   Operations* const operations_;
   Registry* const registry_;
+  Metrics* const metrics_;
+  // Points into the Authenticator, which outlives every call.
+  absl::string_view owner_;
+  CallTimer timer_;
   v1::SessionRequest request_;
   v1::SessionResponse response_;
   std::vector<std::string> bound_envs_;
@@ -116,75 +197,133 @@ class SessionReactor final
 }  // namespace
 
 MultiLunarLanderService::MultiLunarLanderService(const ServiceOptions& options)
-    : registry_(options.max_envs, options.idle_timeout),
+    : authenticator_(options.auth_tokens),
+      registry_(options.max_envs, options.idle_timeout),
       operations_(&registry_, &pool_),
       pool_(options.threads) {}
 
 MultiLunarLanderService::~MultiLunarLanderService() = default;
 
+std::string MultiLunarLanderService::MetricsText() {
+  return metrics_.Render(registry_.size());
+}
+
 grpc::ServerUnaryReactor* MultiLunarLanderService::CreateEnv(
     grpc::CallbackServerContext* context, const v1::CreateEnvRequest* request,
     v1::Env* response) {
-  return FinishUnary(context, operations_.CreateEnv(
-                                  *request, /*session_bound=*/false, response));
+  return RunUnary(context, authenticator_, &metrics_, Method::kCreateEnv,
+                  [&](absl::string_view owner) {
+                    return operations_.CreateEnv(
+                        *request, /*session_bound=*/false, response, owner);
+                  });
 }
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::GetEnv(
     grpc::CallbackServerContext* context, const v1::GetEnvRequest* request,
     v1::Env* response) {
-  return FinishUnary(context, operations_.GetEnv(*request, response));
+  return RunUnary(context, authenticator_, &metrics_, Method::kGetEnv,
+                  [&](absl::string_view owner) {
+                    return operations_.GetEnv(*request, response, owner);
+                  });
 }
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::ListEnvs(
     grpc::CallbackServerContext* context, const v1::ListEnvsRequest* request,
     v1::ListEnvsResponse* response) {
-  return FinishUnary(context, operations_.ListEnvs(*request, response));
+  return RunUnary(context, authenticator_, &metrics_, Method::kListEnvs,
+                  [&](absl::string_view owner) {
+                    return operations_.ListEnvs(*request, response, owner);
+                  });
 }
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::DeleteEnv(
     grpc::CallbackServerContext* context, const v1::DeleteEnvRequest* request,
     v1::DeleteEnvResponse* /*response*/) {
-  return FinishUnary(context, operations_.DeleteEnv(*request));
+  return RunUnary(context, authenticator_, &metrics_, Method::kDeleteEnv,
+                  [&](absl::string_view owner) {
+                    return operations_.DeleteEnv(*request, owner);
+                  });
 }
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::ResetEnv(
     grpc::CallbackServerContext* context, const v1::ResetEnvRequest* request,
     v1::ResetEnvResponse* response) {
-  return FinishUnary(context, operations_.ResetEnv(*request, response));
+  return RunUnary(context, authenticator_, &metrics_, Method::kResetEnv,
+                  [&](absl::string_view owner) {
+                    absl::Status status =
+                        operations_.ResetEnv(*request, response, owner);
+                    if (status.ok()) metrics_.RecordReset();
+                    return status;
+                  });
 }
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::StepEnv(
     grpc::CallbackServerContext* context, const v1::StepEnvRequest* request,
     v1::StepEnvResponse* response) {
-  return FinishUnary(context, operations_.StepEnv(*request, /*field=*/"",
-                                                  response->mutable_data()));
+  return RunUnary(context, authenticator_, &metrics_, Method::kStepEnv,
+                  [&](absl::string_view owner) {
+                    absl::Status status = operations_.StepEnv(
+                        *request, /*field=*/"", response->mutable_data(),
+                        owner);
+                    if (status.ok()) {
+                      metrics_.RecordStepData(Method::kStepEnv,
+                                              response->data());
+                    }
+                    return status;
+                  });
 }
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::StepAgent(
     grpc::CallbackServerContext* context, const v1::StepAgentRequest* request,
     v1::StepAgentResponse* response) {
-  return FinishUnary(context, operations_.StepAgent(*request, response));
+  return RunUnary(context, authenticator_, &metrics_, Method::kStepAgent,
+                  [&](absl::string_view owner) {
+                    absl::Status status =
+                        operations_.StepAgent(*request, response, owner);
+                    if (status.ok()) {
+                      metrics_.RecordStepAgent(Method::kStepAgent,
+                                               request->has_action());
+                    }
+                    return status;
+                  });
 }
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::StepBatch(
     grpc::CallbackServerContext* context, const v1::StepBatchRequest* request,
     v1::StepBatchResponse* response) {
   grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
-  operations_.StepBatch(*request, response, [reactor](absl::Status status) {
-    reactor->Finish(ToGrpcStatus(status));
-  });
+  const CallTimer timer(&metrics_, Method::kStepBatch);
+  absl::StatusOr<absl::string_view> owner =
+      authenticator_.Authenticate(Authorization(*context));
+  if (!owner.ok()) {
+    timer.Record(owner.status());
+    reactor->Finish(ToGrpcStatus(owner.status()));
+    return reactor;
+  }
+  operations_.StepBatch(
+      *request, response,
+      [this, reactor, response, timer](absl::Status status) {
+        if (status.ok()) metrics_.RecordStepBatch(Method::kStepBatch, *response);
+        timer.Record(status);
+        reactor->Finish(ToGrpcStatus(status));
+      },
+      *owner);
   return reactor;
 }
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::RenderEnv(
     grpc::CallbackServerContext* context, const v1::RenderEnvRequest* request,
     v1::Frame* response) {
-  return FinishUnary(context, operations_.RenderEnv(*request, response));
+  return RunUnary(context, authenticator_, &metrics_, Method::kRenderEnv,
+                  [&](absl::string_view owner) {
+                    return operations_.RenderEnv(*request, response, owner);
+                  });
 }
 
 grpc::ServerBidiReactor<v1::SessionRequest, v1::SessionResponse>*
-MultiLunarLanderService::Session(grpc::CallbackServerContext* /*context*/) {
-  return new SessionReactor(&operations_, &registry_);
+MultiLunarLanderService::Session(grpc::CallbackServerContext* context) {
+  return new SessionReactor(&operations_, &registry_, &metrics_,
+                            authenticator_.Authenticate(Authorization(*context)));
 }
 
 }  // namespace mll

@@ -9,6 +9,7 @@
 
 #include "absl/status/status.h"
 #include "absl/strings/string_view.h"
+#include "mll/service/auth.h"
 #include "mll/service/registry.h"
 #include "mll/service/worker_pool.h"
 #include "mll/v1/multi_lunar_lander.pb.h"
@@ -20,31 +21,43 @@ class Operations {
   // Neither is owned; both must outlive this object.
   Operations(Registry* registry, WorkerPool* pool);
 
+  // Every method acts for `owner`, the authenticated caller (auth.h): it
+  // creates envs for it and sees only its envs (Registry).
+
   // `session_bound`: the env dies with the session creating it.
   absl::Status CreateEnv(const v1::CreateEnvRequest& request,
-                         bool session_bound, v1::Env* out);
-  absl::Status GetEnv(const v1::GetEnvRequest& request, v1::Env* out);
+                         bool session_bound, v1::Env* out,
+                         absl::string_view owner = kAnonymousOwner);
+  absl::Status GetEnv(const v1::GetEnvRequest& request, v1::Env* out,
+                      absl::string_view owner = kAnonymousOwner);
   absl::Status ListEnvs(const v1::ListEnvsRequest& request,
-                        v1::ListEnvsResponse* out);
-  absl::Status DeleteEnv(const v1::DeleteEnvRequest& request);
+                        v1::ListEnvsResponse* out,
+                        absl::string_view owner = kAnonymousOwner);
+  absl::Status DeleteEnv(const v1::DeleteEnvRequest& request,
+                         absl::string_view owner = kAnonymousOwner);
   absl::Status ResetEnv(const v1::ResetEnvRequest& request,
-                        v1::ResetEnvResponse* out);
+                        v1::ResetEnvResponse* out,
+                        absl::string_view owner = kAnonymousOwner);
   // `field` prefixes the request's field names in errors ("" for a single
   // call, "steps[3]." inside a batch).
   absl::Status StepEnv(const v1::StepEnvRequest& request,
-                       absl::string_view field, v1::StepData* out);
+                       absl::string_view field, v1::StepData* out,
+                       absl::string_view owner = kAnonymousOwner);
   absl::Status StepAgent(const v1::StepAgentRequest& request,
-                         v1::StepAgentResponse* out);
-  absl::Status RenderEnv(const v1::RenderEnvRequest& request, v1::Frame* out);
+                         v1::StepAgentResponse* out,
+                         absl::string_view owner = kAnonymousOwner);
+  absl::Status RenderEnv(const v1::RenderEnvRequest& request, v1::Frame* out,
+                         absl::string_view owner = kAnonymousOwner);
 
   // Steps the batch's envs on the worker pool and calls done() with the
   // call's status once every item has its result or error in `out`. Returns
   // at once. A request-level error (duplicate names) calls done() before
   // returning, with no env stepped. `request` and `out` must live until
-  // done() runs.
+  // done() runs, and `owner`'s characters too.
   void StepBatch(const v1::StepBatchRequest& request,
                  v1::StepBatchResponse* out,
-                 std::function<void(absl::Status)> done);
+                 std::function<void(absl::Status)> done,
+                 absl::string_view owner = kAnonymousOwner);
 
  private:
   Registry* registry_;

@@ -25,6 +25,7 @@
 #include "mll/core/aec_env.h"
 #include "mll/core/env.h"
 #include "mll/core/env_config.h"
+#include "mll/service/auth.h"
 
 namespace mll {
 
@@ -37,13 +38,15 @@ enum class StepMode { kUnset, kParallel, kAec };
 // everything else needs `mu`.
 struct EnvSlot {
   EnvSlot(std::string name, uint64_t serial, std::unique_ptr<Env> env,
-          bool auto_reset, bool session_bound);
+          bool auto_reset, bool session_bound, std::string owner);
 
   const std::string name;      // envs/{id}
   const uint64_t serial;       // Creation order, for ListEnvs.
   const EnvConfig config;      // Copy of env->config(), readable unlocked.
   const bool auto_reset;       // EnvConfig.auto_reset of the proto.
   const bool session_bound;    // Dies with the session that created it.
+  // Who created it (auth.h); only the same owner can find it.
+  const std::string owner;
   // Steady-clock nanoseconds of the last lookup; read by the reaper.
   std::atomic<int64_t> last_touched_ns{0};
 
@@ -67,28 +70,36 @@ class Registry {
   Registry(const Registry&) = delete;
   Registry& operator=(const Registry&) = delete;
 
+  // Every call below takes the caller's `owner` (auth.h): an env belongs to
+  // the owner that created it, and to any other owner it is NOT_FOUND
+  // exactly as an unknown name, so that names of others' envs leak nothing.
+
   // Builds an env under a fresh unguessable name. RESOURCE_EXHAUSTED at
   // max_envs; INVALID_ARGUMENT for a bad config (from the core).
-  absl::StatusOr<std::shared_ptr<EnvSlot>> Create(const EnvConfig& config,
-                                                  bool auto_reset,
-                                                  bool session_bound);
+  absl::StatusOr<std::shared_ptr<EnvSlot>> Create(
+      const EnvConfig& config, bool auto_reset, bool session_bound,
+      absl::string_view owner = kAnonymousOwner);
 
   // The env called `name` (touching it: its idle clock restarts). `field`
   // names the request field in errors. INVALID_ARGUMENT for a name that is
   // not `envs/{id}`, NOT_FOUND for an unknown one.
-  absl::StatusOr<std::shared_ptr<EnvSlot>> Find(absl::string_view name,
-                                                absl::string_view field);
+  absl::StatusOr<std::shared_ptr<EnvSlot>> Find(
+      absl::string_view name, absl::string_view field,
+      absl::string_view owner = kAnonymousOwner);
 
   // Destroys the env (calls holding it finish first). NOT_FOUND if unknown.
-  absl::Status Delete(absl::string_view name, absl::string_view field);
+  absl::Status Delete(absl::string_view name, absl::string_view field,
+                      absl::string_view owner = kAnonymousOwner);
 
   struct Page {
     std::vector<std::shared_ptr<EnvSlot>> slots;
     std::string next_page_token;  // Empty on the last page.
   };
-  // Envs in creation order. page_size 0 means 100, larger than 1000 means
-  // 1000, negative is INVALID_ARGUMENT, as is a token not from a Page.
-  absl::StatusOr<Page> List(int page_size, absl::string_view page_token);
+  // The owner's envs in creation order. page_size 0 means 100, larger than
+  // 1000 means 1000, negative is INVALID_ARGUMENT, as is a token not from a
+  // Page.
+  absl::StatusOr<Page> List(int page_size, absl::string_view page_token,
+                            absl::string_view owner = kAnonymousOwner);
 
   // A seed for an env's first unseeded reset, so independent envs differ.
   // Service-level randomness; physics never draws from it.

@@ -1,6 +1,7 @@
 // A running Multi Lunar Lander server: the service plus gRPC's health
-// service and server reflection, listening on a TCP address and/or reachable
-// in-process. Used by mll_server and by the tests.
+// service and server reflection, listening on a TCP address (plaintext or
+// TLS) and/or reachable in-process, and optionally a Prometheus endpoint.
+// Used by mll_server and by the tests.
 #ifndef MLL_SERVICE_SERVER_H_
 #define MLL_SERVICE_SERVER_H_
 
@@ -11,6 +12,7 @@
 #include "absl/status/statusor.h"
 #include "absl/time/time.h"
 #include "grpcpp/grpcpp.h"
+#include "mll/service/metrics_http.h"
 #include "mll/service/service.h"
 
 namespace mll {
@@ -21,6 +23,14 @@ struct ServerOptions {
   std::string address = "127.0.0.1:50051";
   // Largest message received or sent, in MiB (--max_message_mb). 1..2047.
   int max_message_mb = 64;
+  // PEM files of the server's certificate chain and private key (--tls_cert,
+  // --tls_key): both set, the address serves TLS only; both empty,
+  // plaintext. One without the other is INVALID_ARGUMENT.
+  std::string tls_cert_file;
+  std::string tls_key_file;
+  // host:port of the Prometheus endpoint GET /metrics (--metrics_address);
+  // port 0 picks a free port; empty: no endpoint.
+  std::string metrics_address;
   ServiceOptions service;
 };
 
@@ -41,6 +51,9 @@ class Server {
 
   // The bound TCP port (0 when not listening).
   int port() const { return port_; }
+  // The bound port of the metrics endpoint (0 when off).
+  int metrics_port() const;
+  bool tls() const { return tls_; }
   // A channel to this server that bypasses the network.
   std::shared_ptr<grpc::Channel> InProcessChannel();
   MultiLunarLanderService& service() { return *service_; }
@@ -54,7 +67,9 @@ class Server {
 
   std::unique_ptr<MultiLunarLanderService> service_;
   std::unique_ptr<grpc::Server> server_;
+  std::unique_ptr<MetricsHttpServer> metrics_http_;
   int port_ = 0;
+  bool tls_ = false;
   bool shut_down_ = false;
 };
 

@@ -1,12 +1,18 @@
 // The gRPC face of the server: mll.v1.MultiLunarLander on gRPC's callback
-// API. Each handler parses nothing itself; it hands the request to
-// Operations and finishes with the status mapped by ToGrpcStatus. Handlers
-// never wait: StepBatch completes from the worker pool.
+// API. Each handler parses nothing itself: it authenticates the caller
+// (auth.h), hands the request to Operations on the caller's behalf, records
+// the call in Metrics and finishes with the status mapped by ToGrpcStatus.
+// Handlers never wait: StepBatch completes from the worker pool.
 #ifndef MLL_SERVICE_SERVICE_H_
 #define MLL_SERVICE_SERVICE_H_
 
+#include <string>
+#include <vector>
+
 #include "absl/time/time.h"
 #include "grpcpp/grpcpp.h"
+#include "mll/service/auth.h"
+#include "mll/service/metrics.h"
 #include "mll/service/operations.h"
 #include "mll/service/registry.h"
 #include "mll/service/worker_pool.h"
@@ -21,6 +27,9 @@ struct ServiceOptions {
   int max_envs = 10000;
   // An env untouched this long is destroyed (--idle_timeout_s). > 0.
   absl::Duration idle_timeout = absl::Seconds(300);
+  // Bearer tokens a caller must present (--auth_token_file, read with
+  // ReadTokenFile); empty: no authentication, one anonymous owner.
+  std::vector<std::string> auth_tokens;
 };
 
 class MultiLunarLanderService final
@@ -30,6 +39,10 @@ class MultiLunarLanderService final
   ~MultiLunarLanderService() override;
 
   Registry& registry() { return registry_; }
+  const Authenticator& authenticator() const { return authenticator_; }
+  Metrics& metrics() { return metrics_; }
+  // The Prometheus exposition of the metrics and the live env count.
+  std::string MetricsText();
 
   grpc::ServerUnaryReactor* CreateEnv(grpc::CallbackServerContext* context,
                                       const v1::CreateEnvRequest* request,
@@ -63,7 +76,10 @@ class MultiLunarLanderService final
 
  private:
   // Declared in this order so that destruction first stops the workers
-  // (finishing queued steps), which use the operations and the envs.
+  // (finishing queued steps), which use the operations, the envs, the
+  // owners' names and the metrics.
+  const Authenticator authenticator_;
+  Metrics metrics_;
   Registry registry_;
   Operations operations_;
   WorkerPool pool_;

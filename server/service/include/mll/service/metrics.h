@@ -1,0 +1,88 @@
+// Counters of what the server does, rendered in Prometheus' text exposition
+// format (version 0.0.4) for the /metrics endpoint. Recording is lock-free:
+// relaxed atomics, one cache-line-aligned block per method so that calls of
+// different methods on different threads do not share lines.
+#ifndef MLL_SERVICE_METRICS_H_
+#define MLL_SERVICE_METRICS_H_
+
+#include <array>
+#include <atomic>
+#include <cstdint>
+#include <string>
+
+#include "absl/status/status.h"
+#include "absl/strings/string_view.h"
+#include "mll/v1/multi_lunar_lander.pb.h"
+
+namespace mll {
+
+// The RPC methods of mll.v1.MultiLunarLander, as metric labels.
+enum class Method {
+  kCreateEnv,
+  kGetEnv,
+  kListEnvs,
+  kDeleteEnv,
+  kResetEnv,
+  kStepEnv,
+  kStepAgent,
+  kStepBatch,
+  kRenderEnv,
+  kSession,  // Each request of a Session stream counts as one call.
+};
+inline constexpr int kMethodCount = 10;
+
+absl::string_view MethodName(Method method);
+
+class Metrics {
+ public:
+  // Upper bounds of the latency histogram's buckets in nanoseconds, 25 us to
+  // 1 s in 1-2.5-5 steps: loopback calls take 40-300 us, batches and
+  // renders milliseconds. A +Inf bucket follows.
+  static constexpr std::array<int64_t, 15> kBucketBoundsNs = {
+      25'000,      50'000,      100'000,    250'000,     500'000,
+      1'000'000,   2'500'000,   5'000'000,  10'000'000,  25'000'000,
+      50'000'000,  100'000'000, 250'000'000, 500'000'000, 1'000'000'000};
+
+  Metrics() = default;
+  Metrics(const Metrics&) = delete;
+  Metrics& operator=(const Metrics&) = delete;
+
+  // One finished call (or Session request): its latency and, unless OK, its
+  // code.
+  void RecordCall(Method method, absl::StatusCode code, int64_t latency_ns);
+  // A successful parallel step's result: one env step and an agent-step per
+  // agent that acted, or, for an auto-reset instead of a step, an episode.
+  void RecordStepData(Method method, const v1::StepData& data);
+  // Every stepped item of a StepBatch response, as RecordStepData.
+  void RecordStepBatch(Method method, const v1::StepBatchResponse& response);
+  // A successful StepAgent: one step; an agent-step unless it was a dead
+  // step (no action).
+  void RecordStepAgent(Method method, bool acted);
+  // A successful ResetEnv.
+  void RecordReset();
+
+  // The exposition text, with `live_envs` as the environments gauge and the
+  // process's resident memory read from /proc/self/statm.
+  std::string Render(int live_envs) const;
+
+ private:
+  static constexpr int kBuckets = kBucketBoundsNs.size() + 1;  // With +Inf.
+  static constexpr int kCodes = 17;  // Canonical codes 0..16.
+
+  struct alignas(64) PerMethod {
+    std::atomic<uint64_t> buckets[kBuckets] = {};
+    std::atomic<uint64_t> latency_sum_ns{0};
+    std::atomic<uint64_t> errors[kCodes] = {};
+    std::atomic<uint64_t> steps{0};
+    std::atomic<uint64_t> agent_steps{0};
+  };
+
+  PerMethod& of(Method method) { return methods_[static_cast<int>(method)]; }
+
+  std::array<PerMethod, kMethodCount> methods_;
+  std::atomic<uint64_t> episodes_{0};
+};
+
+}  // namespace mll
+
+#endif  // MLL_SERVICE_METRICS_H_

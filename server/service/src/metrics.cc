@@ -1,0 +1,161 @@
+#include "mll/service/metrics.h"
+
+#include <unistd.h>
+
+#include <algorithm>
+#include <cstdio>
+
+#include "absl/strings/str_cat.h"
+
+namespace mll {
+namespace {
+
+constexpr std::memory_order kRelaxed = std::memory_order_relaxed;
+
+constexpr absl::string_view kMethodNames[kMethodCount] = {
+    "CreateEnv", "GetEnv",    "ListEnvs",  "DeleteEnv", "ResetEnv",
+    "StepEnv",   "StepAgent", "StepBatch", "RenderEnv", "Session"};
+
+// The methods that step environments, the only ones with step counters.
+constexpr Method kStepMethods[] = {Method::kStepEnv, Method::kStepAgent,
+                                   Method::kStepBatch, Method::kSession};
+
+void Family(absl::string_view name, absl::string_view type,
+            absl::string_view help, std::string* out) {
+  absl::StrAppend(out, "# HELP ", name, " ", help, "\n# TYPE ", name, " ",
+                  type, "\n");
+}
+
+std::string MethodLabel(Method method) {
+  return absl::StrCat("method=\"", MethodName(method), "\"");
+}
+
+// Resident set size from /proc/self/statm (pages), 0 if unreadable.
+int64_t ResidentBytes() {
+  FILE* statm = std::fopen("/proc/self/statm", "r");
+  if (statm == nullptr) return 0;
+  long total_pages = 0;
+  long resident_pages = 0;
+  const int read = std::fscanf(statm, "%ld %ld", &total_pages, &resident_pages);
+  std::fclose(statm);
+  if (read != 2) return 0;
+  return static_cast<int64_t>(resident_pages) * sysconf(_SC_PAGESIZE);
+}
+
+}  // namespace
+
+absl::string_view MethodName(Method method) {
+  return kMethodNames[static_cast<int>(method)];
+}
+
+void Metrics::RecordCall(Method method, absl::StatusCode code,
+                         int64_t latency_ns) {
+  PerMethod& m = of(method);
+  const int bucket = static_cast<int>(
+      std::lower_bound(kBucketBoundsNs.begin(), kBucketBoundsNs.end(),
+                       latency_ns) -
+      kBucketBoundsNs.begin());
+  m.buckets[bucket].fetch_add(1, kRelaxed);
+  m.latency_sum_ns.fetch_add(static_cast<uint64_t>(std::max<int64_t>(
+                                 latency_ns, 0)),
+                             kRelaxed);
+  const int code_index = static_cast<int>(code);
+  if (code != absl::StatusCode::kOk && code_index >= 0 && code_index < kCodes) {
+    m.errors[code_index].fetch_add(1, kRelaxed);
+  }
+}
+
+void Metrics::RecordStepData(Method method, const v1::StepData& data) {
+  if (data.auto_reset()) {
+    episodes_.fetch_add(1, kRelaxed);
+    return;
+  }
+  const std::string& stepped = data.stepped().data();
+  const uint64_t acted = static_cast<uint64_t>(
+      stepped.size() - std::count(stepped.begin(), stepped.end(), '\0'));
+  PerMethod& m = of(method);
+  m.steps.fetch_add(1, kRelaxed);
+  m.agent_steps.fetch_add(acted, kRelaxed);
+}
+
+void Metrics::RecordStepBatch(Method method,
+                              const v1::StepBatchResponse& response) {
+  for (const v1::StepBatchResult& result : response.results()) {
+    if (result.has_data()) RecordStepData(method, result.data());
+  }
+}
+
+void Metrics::RecordStepAgent(Method method, bool acted) {
+  PerMethod& m = of(method);
+  m.steps.fetch_add(1, kRelaxed);
+  if (acted) m.agent_steps.fetch_add(1, kRelaxed);
+}
+
+void Metrics::RecordReset() { episodes_.fetch_add(1, kRelaxed); }
+
+std::string Metrics::Render(int live_envs) const {
+  std::string out;
+  Family("mll_envs_live", "gauge", "Environments hosted now.", &out);
+  absl::StrAppend(&out, "mll_envs_live ", live_envs, "\n");
+  Family("mll_episodes_started_total", "counter",
+         "Episodes started, by ResetEnv or by an auto_reset step.", &out);
+  absl::StrAppend(&out, "mll_episodes_started_total ",
+                  episodes_.load(kRelaxed), "\n");
+  Family("mll_steps_total", "counter",
+         "Environment steps (StepAgent: agent turns), by method.", &out);
+  for (Method method : kStepMethods) {
+    absl::StrAppend(&out, "mll_steps_total{", MethodLabel(method), "} ",
+                    methods_[static_cast<int>(method)].steps.load(kRelaxed),
+                    "\n");
+  }
+  Family("mll_agent_steps_total", "counter",
+         "Actions applied to active landers, by method.", &out);
+  for (Method method : kStepMethods) {
+    absl::StrAppend(
+        &out, "mll_agent_steps_total{", MethodLabel(method), "} ",
+        methods_[static_cast<int>(method)].agent_steps.load(kRelaxed), "\n");
+  }
+  Family("mll_rpc_duration_seconds", "histogram",
+         "Time in the server from a call's (or Session request's) arrival at "
+         "its handler to its status, by method.",
+         &out);
+  for (int i = 0; i < kMethodCount; ++i) {
+    const PerMethod& m = methods_[i];
+    const std::string label = MethodLabel(static_cast<Method>(i));
+    // Cumulated here, so that _count always equals the +Inf bucket.
+    uint64_t cumulative = 0;
+    for (int b = 0; b < kBuckets; ++b) {
+      cumulative += m.buckets[b].load(kRelaxed);
+      const std::string le =
+          b < kBuckets - 1 ? absl::StrCat(kBucketBoundsNs[b] * 1e-9) : "+Inf";
+      absl::StrAppend(&out, "mll_rpc_duration_seconds_bucket{", label,
+                      ",le=\"", le, "\"} ", cumulative, "\n");
+    }
+    absl::StrAppend(&out, "mll_rpc_duration_seconds_sum{", label, "} ",
+                    m.latency_sum_ns.load(kRelaxed) * 1e-9, "\n");
+    absl::StrAppend(&out, "mll_rpc_duration_seconds_count{", label, "} ",
+                    cumulative, "\n");
+  }
+  Family("mll_rpc_errors_total", "counter",
+         "Calls (and Session requests) that ended in an error, by method and "
+         "gRPC code; combinations not seen yet are omitted.",
+         &out);
+  for (int i = 0; i < kMethodCount; ++i) {
+    for (int code = 1; code < kCodes; ++code) {
+      const uint64_t count = methods_[i].errors[code].load(kRelaxed);
+      if (count == 0) continue;
+      absl::StrAppend(
+          &out, "mll_rpc_errors_total{", MethodLabel(static_cast<Method>(i)),
+          ",code=\"",
+          absl::StatusCodeToString(static_cast<absl::StatusCode>(code)),
+          "\"} ", count, "\n");
+    }
+  }
+  Family("process_resident_memory_bytes", "gauge",
+         "Resident memory of the server process in bytes.", &out);
+  absl::StrAppend(&out, "process_resident_memory_bytes ", ResidentBytes(),
+                  "\n");
+  return out;
+}
+
+}  // namespace mll
