@@ -16,12 +16,29 @@ free loopback port (binary from $MLL_SERVER_BIN, else PATH, else the repository'
 build/server/service/mll_server), shared by all environments of the process that use it and
 stopped when the last of them is closed or garbage-collected, and at interpreter exit.
 
+Several servers (scale-out): address= also takes a sequence of "host:port" strings or one
+comma-separated string. An environment lives on exactly one server for its whole life (its
+state is there). `env`/`parallel_env` take server_index= (0-based into the list); without it
+they go round robin per process: the k-th env/parallel_env this process creates with the same
+address list lands on server k mod S. `vector_env(n, address=[...])` puts env i on server
+i mod S and steps with one StepBatch per server, all in flight at once; results are in env
+order and are the same bits as on one server (each env's physics is its own).
+
+TLS and token (servers started with --tls_cert/--tls_key, --auth_token_file):
+tls_root_cert= a PEM file's path or PEM bytes (the CA or the self-signed server certificate)
+turns on TLS; tls_server_name= overrides the name checked against the server's certificate.
+token= is sent as `authorization: Bearer <token>` on every call; token=None (default) takes
+$MLL_TOKEN when set and non-empty, token="" sends none. A missing or wrong token raises
+MLLError with code UNAUTHENTICATED; another token's envs are NOT_FOUND. The embedded server
+(address=None) is plaintext and needs no token.
+
 Errors reported by the server raise MLLError (attributes `code`, a grpc.StatusCode, and
 `message`, the server's message).
 """
 
 from __future__ import annotations
 
+from ._channel import TOKEN_ENV
 from ._errors import MLLError
 from ._remote import CONFIG_OPTIONS, OUTCOMES
 from ._server import ServerProcess, embedded_server, find_server_binary
@@ -36,6 +53,7 @@ __all__ = [
     "MultiLunarLanderEnv",
     "MultiLunarLanderParallelEnv",
     "OUTCOMES",
+    "TOKEN_ENV",
     "ServerProcess",
     "VectorEnv",
     "embedded_server",
@@ -48,7 +66,7 @@ __all__ = [
 ]
 
 
-def env(address: str | None = None, render_mode: str | None = None, **options) -> MultiLunarLanderEnv:
+def env(address=None, render_mode: str | None = None, **options) -> MultiLunarLanderEnv:
     """The AEC environment (pettingzoo.AECEnv)."""
     return MultiLunarLanderEnv(address=address, render_mode=render_mode, **options)
 
@@ -56,11 +74,12 @@ def env(address: str | None = None, render_mode: str | None = None, **options) -
 raw_env = env  # PettingZoo's naming; the env has no wrappers to strip.
 
 
-def parallel_env(address: str | None = None, render_mode: str | None = None, **options) -> MultiLunarLanderParallelEnv:
+def parallel_env(address=None, render_mode: str | None = None, **options) -> MultiLunarLanderParallelEnv:
     """The parallel environment (pettingzoo.ParallelEnv)."""
     return MultiLunarLanderParallelEnv(address=address, render_mode=render_mode, **options)
 
 
-def vector_env(num_envs: int, address: str | None = None, **options) -> VectorEnv:
-    """`num_envs` environments stepped with one StepBatch call per step (see VectorEnv)."""
+def vector_env(num_envs: int, address=None, **options) -> VectorEnv:
+    """`num_envs` environments stepped with one StepBatch call per server per step (see
+    VectorEnv)."""
     return VectorEnv(num_envs, address=address, **options)

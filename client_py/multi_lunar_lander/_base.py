@@ -11,7 +11,8 @@ import numpy as np
 
 from . import _arrays
 from ._errors import MLLError
-from ._remote import Connection, config_dict, make_config, space_from_proto
+from ._channel import Security
+from ._remote import Connection, config_dict, connect_single, make_config, space_from_proto
 from ._stubs import pb
 from ._viewer import Viewer
 
@@ -39,9 +40,16 @@ class RemoteEnvBase:
 
     metadata = METADATA
 
-    def _open(self, address: str | None, render_mode: str | None, options: dict[str, Any]) -> None:
+    def _open(
+        self,
+        address,
+        render_mode: str | None,
+        server_index: int | None,
+        security: Security,
+        options: dict[str, Any],
+    ) -> None:
         config = make_config(render_mode, False, options)
-        connection = Connection(address)
+        connection = connect_single(address, server_index, security)
         try:
             env = connection.call("CreateEnv", pb.CreateEnvRequest(config=config))
         except BaseException:
@@ -64,7 +72,8 @@ class RemoteEnvBase:
 
     @property
     def address(self) -> str:
-        """The server's address (the embedded server's when created with address=None)."""
+        """The address of the server this environment lives on (one of the `address=` list; the
+        embedded server's when created with address=None)."""
         return self._connection.address
 
     @property

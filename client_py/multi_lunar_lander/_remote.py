@@ -6,13 +6,15 @@ from __future__ import annotations
 
 import numbers
 import weakref
-from typing import Any, Callable, NamedTuple
+import threading
+from typing import Any, Callable, NamedTuple, Sequence
 
 import grpc
 import numpy as np
 from gymnasium import spaces
 
 from . import _arrays
+from ._channel import Security, open_channel, parse_addresses
 from ._errors import MLLError, from_rpc_error, invalid_argument
 from ._server import acquire_embedded
 from ._stubs import pb, pb_grpc
@@ -37,11 +39,6 @@ CONFIG_OPTIONS = (
     "terminate_reward",
 )
 RENDER_MODES = ("human", "rgb_array")
-
-_CHANNEL_OPTIONS = [
-    ("grpc.max_receive_message_length", 64 * 1024 * 1024),
-    ("grpc.max_send_message_length", 64 * 1024 * 1024),
-]
 
 
 def make_config(render_mode: str | None, auto_reset: bool, options: dict[str, Any]) -> "pb.EnvConfig":
@@ -167,36 +164,87 @@ def encode_agent_action(action, continuous: bool, agent: str, out: "pb.AgentActi
         out.discrete = int(values)
 
 
-class Connection:
-    """A channel and stub to one server. `address=None` leases the shared embedded server."""
+_ROUND_ROBIN_LOCK = threading.Lock()
+# Address list -> how many single environments this process has placed on it so far.
+_ROUND_ROBIN: dict[tuple[str, ...], int] = {}
 
-    def __init__(self, address: str | None):
+
+def choose_server(addresses: tuple[str, ...], server_index: int | None) -> int:
+    """The index into `addresses` of a single environment's server: `server_index` when given,
+    else round robin per process (the k-th environment this process creates with the same
+    address list goes to server k mod len(addresses))."""
+    count = len(addresses)
+    if server_index is not None:
+        if (
+            isinstance(server_index, (bool, np.bool_))
+            or not isinstance(server_index, numbers.Integral)
+            or not 0 <= server_index < count
+        ):
+            raise invalid_argument(
+                f"server_index is {server_index!r}; expected None or an integer in [0, {count}) "
+                f"(address lists {count} server(s))"
+            )
+        return int(server_index)
+    with _ROUND_ROBIN_LOCK:
+        placed = _ROUND_ROBIN.get(addresses, 0)
+        _ROUND_ROBIN[addresses] = placed + 1
+    return placed % count
+
+
+def connect_single(address, server_index: int | None, security: Security) -> "Connection":
+    """The connection of one AEC or parallel environment, pinned to one of the servers of
+    `address` for its lifetime (address=None: the embedded server)."""
+    addresses = parse_addresses(address)
+    if not addresses:
+        if server_index not in (None, 0):
+            raise invalid_argument(f"server_index is {server_index!r} but address is None (one embedded server)")
+        return Connection(None, security)
+    return Connection(addresses[choose_server(addresses, server_index)], security, addresses)
+
+
+class Connection:
+    """A channel and stub to one server. `address=None` leases the shared embedded server.
+
+    `peers` are all the addresses the caller was given (this one among them), named in the
+    message of a server that cannot be reached. Every call carries `security`'s token metadata.
+    """
+
+    def __init__(self, address: str | None, security: Security = Security(), peers: Sequence[str] = ()):
         self._lease = None
         if address is None:
+            if security.tls:
+                raise invalid_argument(
+                    "tls_root_cert is set but address is None; the embedded server speaks "
+                    "plaintext on loopback, so pass address='host:port' of a TLS server"
+                )
             self._lease = acquire_embedded()
             address = self._lease.address
             self._what = f"embedded mll_server at {address}"
         else:
+            others = [peer for peer in peers if peer != address]
             self._what = (
-                f"mll_server at {address} (start one with `mll_server --address={address}`, or pass "
-                "address=None for an embedded server)"
+                f"mll_server at {address} ({security.describe()}"
+                + (f"; the servers given: {', '.join(peers)}" if others else "")
+                + f"; start one with `mll_server --address={address}`, or pass address=None for an "
+                "embedded server)"
             )
         self.address = address
-        self.channel = grpc.insecure_channel(address, options=_CHANNEL_OPTIONS)
+        self.channel = open_channel(address, security)
         self.stub = pb_grpc.MultiLunarLanderStub(self.channel)
+        self._metadata = security.metadata
         # Closing on garbage collection too, without referencing self.
         self._finalizer = weakref.finalize(self, Connection._close, self.channel, self._lease)
 
     def call(self, method: str, request, timeout: float | None = None):
         """Calls a unary method; a failure raises MLLError with the server's code and message."""
         try:
-            return getattr(self.stub, method)(request, timeout=timeout)
+            return getattr(self.stub, method)(request, timeout=timeout, metadata=self._metadata)
         except grpc.RpcError as error:
             raise from_rpc_error(error, self._what) from None
 
     def future(self, method: str, request) -> Callable[[], Any]:
         """Starts a unary call; the returned function waits for it (raising MLLError)."""
-        call = getattr(self.stub, method).future(request)
+        call = getattr(self.stub, method).future(request, metadata=self._metadata)
 
         def result():
             try:

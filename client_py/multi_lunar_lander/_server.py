@@ -28,6 +28,7 @@ import weakref
 import grpc
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
+from ._channel import Security, open_channel
 from ._errors import MLLError
 
 SERVER_BIN_ENV = "MLL_SERVER_BIN"
@@ -78,10 +79,11 @@ def _terminate(process: subprocess.Popen, workdir: str, grace_s: float) -> None:
     shutil.rmtree(workdir, ignore_errors=True)
 
 
-def wait_until_serving(address: str, timeout_s: float) -> None:
-    """Blocks until the server's grpc.health.v1 service answers SERVING."""
+def wait_until_serving(address: str, timeout_s: float, security: Security = Security()) -> None:
+    """Blocks until the server's grpc.health.v1 service answers SERVING (over TLS when
+    `security` says so; the health service needs no token)."""
     deadline = time.monotonic() + timeout_s
-    with grpc.insecure_channel(address) as channel:
+    with open_channel(address, security) as channel:
         stub = health_pb2_grpc.HealthStub(channel)
         while True:
             remaining = deadline - time.monotonic()
@@ -119,7 +121,12 @@ class ServerProcess:
         extra_args: tuple[str, ...] = (),
         startup_timeout_s: float = 30.0,
         grace_s: float = 5.0,
+        tls_root_cert: str | bytes | None = None,
+        tls_server_name: str | None = None,
     ):
+        """extra_args: more flags (e.g. --tls_cert/--tls_key, --auth_token_file). With TLS on
+        the server, tls_root_cert (and tls_server_name) let the start-up health check reach it."""
+        health_security = Security.from_options(tls_root_cert, tls_server_name, token="")
         self.binary = binary or find_server_binary()
         self._workdir = tempfile.mkdtemp(prefix="mll_server_")
         port_file = os.path.join(self._workdir, "port")
@@ -155,7 +162,7 @@ class ServerProcess:
         try:
             port = self._wait_for_port(port_file, startup_timeout_s)
             self.address = f"127.0.0.1:{port}"
-            wait_until_serving(self.address, startup_timeout_s)
+            wait_until_serving(self.address, startup_timeout_s, health_security)
         except BaseException:
             self.stop()
             raise

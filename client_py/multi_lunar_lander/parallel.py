@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 from pettingzoo import ParallelEnv
 
 from . import _arrays
 from ._base import RemoteEnvBase
+from ._channel import Security
 from ._errors import invalid_argument
 from ._remote import Columns, action_array, seed_value
 from ._stubs import pb
@@ -35,8 +36,19 @@ class MultiLunarLanderParallelEnv(RemoteEnvBase, ParallelEnv):
     truncated.
     """
 
-    def __init__(self, address: str | None = None, render_mode: str | None = None, **options: Any):
-        self._open(address, render_mode, options)
+    def __init__(
+        self,
+        address: str | Sequence[str] | None = None,
+        render_mode: str | None = None,
+        *,
+        server_index: int | None = None,
+        tls_root_cert: str | bytes | None = None,
+        tls_server_name: str | None = None,
+        token: str | None = None,
+        **options: Any,
+    ):
+        security = Security.from_options(tls_root_cert, tls_server_name, token)
+        self._open(address, render_mode, server_index, security, options)
         self.agents: list[str] = []
         n = len(self.possible_agents)
         self._actions = np.zeros((n, 2) if self.continuous else (n,), np.float32 if self.continuous else np.int32)

@@ -1,4 +1,10 @@
-"""Many environments stepped together: one StepBatch call per step, arrays in and out.
+"""Many environments stepped together: one StepBatch call per server per step, arrays in and
+out.
+
+Several servers (address= a list or "host:port,host:port"): env i lives on server i mod S for
+its whole life (creation, reset, steps, deletion). Each step sends one StepBatch to every server
+at once, each with that server's envs, and puts the results back in env order. Each env's
+physics and generator are its own, so the results are the same bits as on one server.
 
 Episode ends (auto-reset): the environments are created with the server's `auto_reset`. When
 an environment's episode is over (no lander active), its NEXT step ignores the actions and
@@ -11,12 +17,13 @@ their `active` entries are False.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
 from . import _arrays
-from ._errors import from_item_error, invalid_argument
+from ._channel import Security, parse_addresses
+from ._errors import MLLError, from_item_error, invalid_argument
 from ._remote import Connection, action_array, config_dict, make_config, seed_value, space_from_proto
 from ._stubs import pb
 
@@ -33,8 +40,19 @@ _COLUMNS = (
 )
 
 
+class _Batch(NamedTuple):
+    """One server's share of a vector env: its connection, its StepBatch request, and the env
+    indices of the request's entries, in order."""
+
+    connection: Connection
+    request: "pb.StepBatchRequest"
+    envs: list
+
+
 class VectorEnv:
-    """`num_envs` Multi Lunar Lander environments with the same options.
+    """`num_envs` Multi Lunar Lander environments with the same options, on the server(s) of
+    `address` (env i on server i mod S; None: the embedded server). TLS and token: as for
+    `parallel_env` (tls_root_cert=, tls_server_name=, token=).
 
     reset(seed=None, options=None) -> (observations, infos): observations float32
       (num_envs, n_landers, 12); seed s gives env i the seed s + i (None continues each env's
@@ -49,22 +67,42 @@ class VectorEnv:
       "episode_length" int32 (num_envs, n_landers) (so far in the episode, final once done).
     """
 
-    def __init__(self, num_envs: int, address: str | None = None, **options: Any):
+    def __init__(
+        self,
+        num_envs: int,
+        address: str | Sequence[str] | None = None,
+        *,
+        tls_root_cert: str | bytes | None = None,
+        tls_server_name: str | None = None,
+        token: str | None = None,
+        **options: Any,
+    ):
         if int(num_envs) != num_envs or num_envs < 1:
             raise invalid_argument(f"num_envs is {num_envs!r}; expected an integer >= 1")
         self.num_envs = int(num_envs)
         config = make_config(None, True, options)
-        self._connection = Connection(address)
-        self._names: list[str] = []
+        security = Security.from_options(tls_root_cert, tls_server_name, token)
+        addresses = parse_addresses(address)
+        servers = addresses or (None,)  # None: the embedded server.
+        self._names: list[str | None] = [None] * self.num_envs  # None: not created.
+        # Env i lives on server i mod S; servers beyond num_envs get no connection.
+        self._connections: list[Connection] = []
         try:
+            for server in servers[: self.num_envs]:
+                self._connections.append(Connection(server, security, addresses))
             waits = [
-                self._connection.future("CreateEnv", pb.CreateEnvRequest(config=config))
-                for _ in range(self.num_envs)
+                self._connection_of(index).future("CreateEnv", pb.CreateEnvRequest(config=config))
+                for index in range(self.num_envs)
             ]
-            envs = []
-            for wait in waits:
-                envs.append(wait())
-                self._names.append(envs[-1].name)
+            envs, failure = [None] * self.num_envs, None
+            for index, wait in enumerate(waits):  # All are awaited: close() deletes what was made.
+                try:
+                    envs[index] = wait()
+                    self._names[index] = envs[index].name
+                except MLLError as error:
+                    failure = failure or error
+            if failure is not None:
+                raise failure
         except BaseException:
             self.close()
             raise
@@ -75,24 +113,42 @@ class VectorEnv:
         self.possible_agents = list(spec.possible_agents)
         self.single_observation_space = space_from_proto(spec.observation_space)
         self.single_action_space = space_from_proto(spec.action_space)
-        # The batch request is built once; each step only replaces the action bytes.
-        self._request = pb.StepBatchRequest()
+        # One batch request per server, built once; each step only replaces the action bytes.
+        # self._steps[i] is env i's entry in its server's request.
         self._action_dtype = action_dtype = pb.DTYPE_FLOAT32 if self.continuous else pb.DTYPE_INT32
         action_shape = (self.n_landers, 2) if self.continuous else (self.n_landers,)
-        for name in self._names:
-            step = self._request.steps.add(name=name)
+        self._batches = [_Batch(connection, pb.StepBatchRequest(), []) for connection in self._connections]
+        self._steps = []
+        for index, name in enumerate(self._names):
+            batch = self._batches[index % len(self._batches)]
+            step = batch.request.steps.add(name=name)
             step.actions.dtype = action_dtype
             step.actions.shape.extend(action_shape)
-        self._steps = list(self._request.steps)
+            batch.envs.append(index)
+            self._steps.append(step)
+
+    def _connection_of(self, index: int) -> Connection:
+        return self._connections[index % len(self._connections)]
 
     @property
     def address(self) -> str:
-        return self._connection.address
+        """The servers' addresses, comma-separated (a valid `address=` for another client)."""
+        return ",".join(self.addresses)
+
+    @property
+    def addresses(self) -> list[str]:
+        """The address of each server that holds environments, in server order."""
+        return [connection.address for connection in self._connections]
 
     @property
     def names(self) -> list[str]:
         """The server-side resource names, `envs/{id}`, in env order."""
         return list(self._names)
+
+    @property
+    def env_addresses(self) -> list[str]:
+        """The address of the server of each environment, in env order (env i: server i mod S)."""
+        return [self._connection_of(index).address for index in range(self.num_envs)]
 
     def _stack(self, datas: list, auto_reset: np.ndarray, episode_over: np.ndarray):
         columns = {
@@ -126,7 +182,7 @@ class VectorEnv:
             request = pb.ResetEnvRequest(name=name)
             if seed is not None:
                 request.seed = (seed + index) % 2**64
-            waits.append(self._connection.future("ResetEnv", request))
+            waits.append(self._connection_of(index).future("ResetEnv", request))
         datas = [wait().data for wait in waits]
         no = np.zeros(self.num_envs, dtype=bool)
         observations, _, _, _, _, infos = self._stack(datas, no, no.copy())
@@ -136,29 +192,41 @@ class VectorEnv:
         block = action_array(actions, self.continuous, (self.num_envs, self.n_landers), "actions")
         for step, data in zip(self._steps, _arrays.row_bytes(block, self._action_dtype)):
             step.actions.data = data
-        results = self._connection.call("StepBatch", self._request).results
-        datas = []
-        for index, result in enumerate(results):
-            if result.HasField("error"):
-                raise from_item_error(result.error.code, result.error.message, f"env {index} ({self._names[index]}): ")
-            datas.append(result.data)
+        # One StepBatch per server, all in flight at once: the first server's call runs on this
+        # thread while the others' futures proceed.
+        waits = [batch.connection.future("StepBatch", batch.request) for batch in self._batches[1:]]
+        replies = [self._batches[0].connection.call("StepBatch", self._batches[0].request)]
+        replies.extend(wait() for wait in waits)
+        datas = [None] * self.num_envs
+        for batch, reply in zip(self._batches, replies):
+            for index, result in zip(batch.envs, reply.results):
+                if result.HasField("error"):
+                    raise from_item_error(
+                        result.error.code, result.error.message, f"env {index} ({self._names[index]}): "
+                    )
+                datas[index] = result.data
         auto_reset = np.fromiter((data.auto_reset for data in datas), dtype=bool, count=self.num_envs)
         episode_over = np.fromiter((data.episode_over for data in datas), dtype=bool, count=self.num_envs)
         return self._stack(datas, auto_reset, episode_over)
 
     def close(self) -> None:
-        """Deletes the environments on the server and closes the connection. Idempotent."""
-        if self._connection.closed:
+        """Deletes the environments on their servers and closes the connections. Idempotent."""
+        if all(connection.closed for connection in self._connections):
             return
         try:
-            waits = [self._connection.future("DeleteEnv", pb.DeleteEnvRequest(name=n)) for n in self._names]
+            waits = [
+                self._connection_of(index).future("DeleteEnv", pb.DeleteEnvRequest(name=name))
+                for index, name in enumerate(self._names)
+                if name is not None
+            ]
             for wait in waits:
                 try:
                     wait()
                 except Exception:  # Already gone (e.g. reclaimed by the idle timeout).
                     pass
         finally:
-            self._connection.close()
+            for connection in self._connections:
+                connection.close()
 
     def __enter__(self) -> "VectorEnv":
         return self

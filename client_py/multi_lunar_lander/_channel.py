@@ -1,0 +1,149 @@
+"""Where a client connects and how: the `address=` forms, TLS and the bearer token, and the one
+function that opens a gRPC channel from them (used by every connection and health check).
+
+address= accepts "host:port", a comma-separated string of them, or a sequence of them.
+tls_root_cert= (a PEM file's path, or its bytes) turns TLS on: grpc.secure_channel with those
+root certificates; tls_server_name= overrides the name the server's certificate must carry
+(for a certificate issued to a name other than the dialled host, e.g. an IP address).
+token= is sent as `authorization: Bearer <token>` metadata on every call. Precedence: a
+`token=` argument wins; token=None (the default) takes $MLL_TOKEN when set and non-empty;
+token="" sends no token even when $MLL_TOKEN is set.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Sequence
+
+import grpc
+
+from ._errors import invalid_argument
+
+TOKEN_ENV = "MLL_TOKEN"
+
+CHANNEL_OPTIONS = (
+    ("grpc.max_receive_message_length", 64 * 1024 * 1024),
+    ("grpc.max_send_message_length", 64 * 1024 * 1024),
+)
+
+
+def parse_addresses(address: str | Sequence[str] | None) -> tuple[str, ...]:
+    """The server addresses of an `address=` argument, in order; () for None (the embedded
+    server). An address listed twice gets twice the share of a vector env's environments."""
+    if address is None:
+        return ()
+    if isinstance(address, str):
+        parts = address.split(",")
+    elif isinstance(address, Sequence) and all(isinstance(part, str) for part in address):
+        parts = list(address)
+    else:
+        raise invalid_argument(
+            f"address is {address!r}; expected None, 'host:port', 'host:port,host:port' or a "
+            "sequence of 'host:port' strings"
+        )
+    addresses = tuple(part.strip() for part in parts)
+    for part in addresses:
+        if not part or any(c.isspace() for c in part):
+            raise invalid_argument(
+                f"address {address!r} has the entry {part!r}; every entry must be a non-empty "
+                "'host:port' without spaces"
+            )
+    if not addresses:
+        raise invalid_argument(f"address is {address!r}; expected at least one 'host:port'")
+    return addresses
+
+
+def _read_root_cert(value) -> bytes:
+    if isinstance(value, (bytes, bytearray)):
+        pem = bytes(value)
+        source = "the given bytes"
+    elif isinstance(value, (str, os.PathLike)):
+        try:
+            with open(value, "rb") as file:
+                pem = file.read()
+        except OSError as error:
+            raise invalid_argument(
+                f"tls_root_cert is {os.fspath(value)!r}: cannot read it ({error.strerror}); "
+                "expected the path of a PEM file or its bytes"
+            ) from None
+        source = repr(os.fspath(value))
+    else:
+        raise invalid_argument(f"tls_root_cert is {value!r}; expected None, a PEM file's path or PEM bytes")
+    if b"-----BEGIN CERTIFICATE-----" not in pem:
+        raise invalid_argument(f"tls_root_cert {source} holds no PEM certificate ('-----BEGIN CERTIFICATE-----')")
+    return pem
+
+
+def _token_value(token: str | None) -> str | None:
+    if token is None:
+        token = os.environ.get(TOKEN_ENV) or None
+        where = f"${TOKEN_ENV}"
+    else:
+        where = "token"
+    if not isinstance(token, (str, type(None))):
+        raise invalid_argument(f"token is a {type(token).__name__}; expected a str or None")
+    if not token:
+        return None
+    # The server's rule for tokens; the value itself is never echoed.
+    if not all("!" <= c <= "~" for c in token):
+        raise invalid_argument(
+            f"{where} has a character outside printable ASCII or a space (allowed: '!'..'~', "
+            f"{len(token)} characters given)"
+        )
+    return token
+
+
+@dataclass(frozen=True)
+class Security:
+    """TLS and token settings of a client; the default is plaintext without a token."""
+
+    root_certificates: bytes | None = None
+    server_name: str | None = None
+    token: str | None = None
+
+    @classmethod
+    def from_options(cls, tls_root_cert=None, tls_server_name: str | None = None, token: str | None = None) -> "Security":
+        """Checks and loads the tls_root_cert=, tls_server_name= and token= arguments."""
+        if tls_server_name is not None:
+            if tls_root_cert is None:
+                raise invalid_argument(
+                    f"tls_server_name is {tls_server_name!r} but tls_root_cert is None; the name "
+                    "override only applies to TLS, which tls_root_cert turns on"
+                )
+            if not isinstance(tls_server_name, str) or not tls_server_name:
+                raise invalid_argument(f"tls_server_name is {tls_server_name!r}; expected a non-empty host name")
+        return cls(
+            root_certificates=None if tls_root_cert is None else _read_root_cert(tls_root_cert),
+            server_name=tls_server_name,
+            token=_token_value(token),
+        )
+
+    @property
+    def tls(self) -> bool:
+        return self.root_certificates is not None
+
+    @property
+    def metadata(self) -> tuple[tuple[str, str], ...] | None:
+        """The per-call metadata: the bearer token, if any. Sent on plaintext and TLS channels
+        alike, so one code path covers both (gRPC's call credentials refuse plaintext)."""
+        return (("authorization", f"Bearer {self.token}"),) if self.token else None
+
+    def describe(self) -> str:
+        """How the client connects, for error messages (never the token itself)."""
+        parts = ["TLS" if self.tls else "plaintext"]
+        if self.server_name:
+            parts.append(f"server name {self.server_name!r}")
+        parts.append("with a token" if self.token else "without a token")
+        return ", ".join(parts)
+
+
+def open_channel(address: str, security: Security) -> grpc.Channel:
+    """A channel to `address`: TLS with the root certificates when set, else plaintext."""
+    options = list(CHANNEL_OPTIONS)
+    if not security.tls:
+        return grpc.insecure_channel(address, options=options)
+    if security.server_name:
+        options.append(("grpc.ssl_target_name_override", security.server_name))
+    credentials = grpc.ssl_channel_credentials(root_certificates=security.root_certificates)
+    return grpc.secure_channel(address, credentials, options=options)

@@ -1,0 +1,133 @@
+"""Several servers: envs pinned to one server each, vector_env spread over the servers (env i on
+server i mod S) with one StepBatch per server, and the same bits as on one server."""
+
+import grpc
+import numpy as np
+import pytest
+
+import multi_lunar_lander as mll
+from multi_lunar_lander._stubs import pb, pb_grpc
+
+
+@pytest.fixture(scope="module")
+def two_servers():
+    with mll.ServerProcess(threads=1) as first, mll.ServerProcess(threads=1) as second:
+        yield first.address, second.address
+
+
+def listed_names(address):
+    """Every env name the server at `address` lists (all pages), through a plain stub."""
+    names, token = set(), ""
+    with grpc.insecure_channel(address) as channel:
+        stub = pb_grpc.MultiLunarLanderStub(channel)
+        while True:
+            page = stub.ListEnvs(pb.ListEnvsRequest(page_size=7, page_token=token), timeout=10)
+            names.update(env.name for env in page.envs)
+            token = page.next_page_token
+            if not token:
+                return names
+
+
+def rollout(vector, seed, steps):
+    """Every array the vector env returns over `steps` heuristic steps after reset(seed)."""
+    observations, _ = vector.reset(seed=seed)
+    record = [observations]
+    for _ in range(steps):
+        result = vector.step(mll.heuristic(observations, vector.continuous))
+        observations, infos = result[0], result[-1]
+        record.extend(result[:-1])
+        record.extend(infos[key] for key in sorted(infos))
+    return record
+
+
+def test_vector_env_spreads_envs_round_robin_over_the_servers(two_servers):
+    first, second = two_servers
+    before = listed_names(first), listed_names(second)
+    vector = mll.vector_env(5, address=[first, second], n_landers=2)
+    assert vector.addresses == [first, second] and vector.address == f"{first},{second}"
+    assert vector.env_addresses == [first, second, first, second, first]
+    names = vector.names
+    assert listed_names(first) - before[0] == {names[0], names[2], names[4]}
+    assert listed_names(second) - before[1] == {names[1], names[3]}
+    vector.close()
+    assert listed_names(first) == before[0] and listed_names(second) == before[1]
+
+
+@pytest.mark.parametrize("spec", ["list", "comma_string"])
+def test_two_servers_give_the_same_bits_as_one(address, two_servers, continuous, spec):
+    # max_cycles 40 over 90 steps: episodes end and auto-reset on both layouts.
+    options = dict(n_landers=3, continuous=continuous, max_cycles=40)
+    spread = mll.vector_env(
+        6, address=list(two_servers) if spec == "list" else ",".join(two_servers), **options
+    )
+    single = mll.vector_env(6, address=address, **options)
+    assert len(set(spread.env_addresses)) == 2 and set(single.env_addresses) == {address}
+    ours, reference = rollout(spread, 11, 90), rollout(single, 11, 90)
+    assert len(ours) == len(reference)
+    for got, expected in zip(ours, reference):
+        assert got.dtype == expected.dtype
+        np.testing.assert_array_equal(got, expected)
+    spread.close()
+    single.close()
+
+
+def test_more_servers_than_envs_uses_the_first_ones(two_servers, address):
+    vector = mll.vector_env(1, address=[*two_servers, address])
+    assert vector.addresses == [two_servers[0]] and vector.env_addresses == [two_servers[0]]
+    vector.close()
+
+
+def test_an_item_error_names_the_env_in_env_order(two_servers):
+    vector = mll.vector_env(4, address=list(two_servers), n_landers=1)
+    vector.reset(seed=0)
+    with grpc.insecure_channel(two_servers[1]) as channel:  # Env 3 lives on the second server.
+        pb_grpc.MultiLunarLanderStub(channel).DeleteEnv(pb.DeleteEnvRequest(name=vector.names[3]))
+    with pytest.raises(mll.MLLError) as caught:
+        vector.step(np.zeros((4, 1), np.int32))
+    assert caught.value.code == grpc.StatusCode.NOT_FOUND
+    assert caught.value.message.startswith(f"env 3 ({vector.names[3]}): ")
+    vector.close()
+
+
+def test_single_envs_are_pinned_by_server_index_or_round_robin(two_servers):
+    first, second = two_servers
+    pinned = mll.parallel_env(address=[first, second], server_index=1)
+    assert pinned.address == second and pinned.name in listed_names(second)
+    pinned.reset(seed=3)
+    pinned.step({agent: 0 for agent in pinned.agents})  # Every call goes to its server.
+    aec = mll.env(address=f"{first},{second}", server_index=0)
+    assert aec.address == first and aec.name in listed_names(first)
+    # Round robin per process over the same list: consecutive envs alternate.
+    spread = [mll.parallel_env(address=(first, second)) for _ in range(4)]
+    placed = [env.address for env in spread]
+    assert set(placed) == {first, second}
+    assert all(placed[i] != placed[i + 1] for i in range(3))
+    for env in [pinned, aec, *spread]:
+        env.close()
+
+
+@pytest.mark.parametrize("server_index", [2, -1, 0.5, True])
+def test_bad_server_index_is_invalid_argument(two_servers, server_index):
+    with pytest.raises(mll.MLLError) as caught:
+        mll.parallel_env(address=list(two_servers), server_index=server_index)
+    assert caught.value.code == grpc.StatusCode.INVALID_ARGUMENT
+    assert "server_index" in caught.value.message and "[0, 2)" in caught.value.message
+
+
+@pytest.mark.parametrize("address", ["", [], ["127.0.0.1:1", ""], "a:1, ,b:2", [50051], 50051])
+def test_bad_address_forms_are_invalid_argument(address):
+    with pytest.raises(mll.MLLError) as caught:
+        mll.vector_env(2, address=address)
+    assert caught.value.code == grpc.StatusCode.INVALID_ARGUMENT
+    assert "address" in caught.value.message
+
+
+def test_an_unreachable_server_in_the_list_is_named_with_the_servers_tried(two_servers):
+    first = two_servers[0]
+    before = listed_names(first)
+    with pytest.raises(mll.MLLError) as caught:
+        mll.vector_env(4, address=[first, "127.0.0.1:1"])
+    error = caught.value
+    assert error.code == grpc.StatusCode.UNAVAILABLE
+    assert error.message.startswith("mll_server at 127.0.0.1:1 ") and f"{first}, 127.0.0.1:1" in error.message
+    assert listed_names(first) == before  # The envs made on the reachable server were deleted.
