@@ -1,23 +1,38 @@
 #include "test_util.h"
 
 #include <random>
+#include <utility>
 
 #include "gtest/gtest.h"
 #include "mll/service/convert.h"
 
 namespace mll::testing {
 
-InProcess::InProcess(ServiceOptions options, int max_message_mb) {
-  ServerOptions server_options;
-  server_options.address = "";
-  server_options.max_message_mb = max_message_mb;
-  server_options.service = options;
-  absl::StatusOr<std::unique_ptr<Server>> started =
-      Server::Start(server_options);
+namespace {
+
+ServerOptions WithService(ServiceOptions service, int max_message_mb) {
+  ServerOptions options;
+  options.max_message_mb = max_message_mb;
+  options.service = std::move(service);
+  return options;
+}
+
+}  // namespace
+
+InProcess::InProcess(ServiceOptions options, int max_message_mb)
+    : InProcess(WithService(std::move(options), max_message_mb)) {}
+
+InProcess::InProcess(ServerOptions options) {
+  options.address = "";
+  absl::StatusOr<std::unique_ptr<Server>> started = Server::Start(options);
   EXPECT_TRUE(started.ok()) << started.status();
   if (!started.ok()) return;
   server = *std::move(started);
   stub = v1::MultiLunarLander::NewStub(server->InProcessChannel());
+}
+
+void AddToken(const std::string& token, grpc::ClientContext* context) {
+  context->AddMetadata("authorization", "Bearer " + token);
 }
 
 v1::Array DiscreteActions(const std::vector<int32_t>& actions) {

@@ -18,9 +18,14 @@ namespace mll::testing {
 struct InProcess {
   explicit InProcess(ServiceOptions options = ServiceOptions(),
                      int max_message_mb = 64);
+  // `options` as given, but listening on no gRPC address.
+  explicit InProcess(ServerOptions options);
   std::unique_ptr<Server> server;
   std::unique_ptr<v1::MultiLunarLander::Stub> stub;
 };
+
+// Adds `authorization: Bearer <token>` to the call's metadata.
+void AddToken(const std::string& token, grpc::ClientContext* context);
 
 v1::Array DiscreteActions(const std::vector<int32_t>& actions);
 v1::Array ContinuousActions(const std::vector<float>& actions);
