@@ -106,7 +106,9 @@ class FloorWorld {
     for (FloorLander& lander : landers_) {
       if (lander.body == nullptr) continue;
       const float x = lander.body->GetPosition().x;
-      if (Damaged(lander) || std::fabs(x - internal::kW / 2) >= internal::kW / 2) {
+      const bool out_of_bounds =
+          std::fabs(x - internal::kW / 2) >= internal::kW / 2;
+      if (Damaged(lander) || out_of_bounds) {
         over = true;  // terminate_on_damage: everyone stops.
       } else if (!lander.body->IsAwake()) {
         DestroyLander(lander);  // Landed: freed at once, as in the Env.
@@ -195,7 +197,8 @@ class FloorWorld {
       const int i = side == 0 ? -1 : 1;
       b2BodyDef leg_def;
       leg_def.type = b2_dynamicBody;
-      leg_def.position.Set(x - static_cast<float>(i * internal::kLegAway / kScale), y);
+      const float away = static_cast<float>(i * internal::kLegAway / kScale);
+      leg_def.position.Set(x - away, y);
       leg_def.angle = 0.05f * i;
       b2Body* leg = world_->CreateBody(&leg_def);
       b2PolygonShape box;
@@ -209,7 +212,7 @@ class FloorWorld {
       b2RevoluteJointDef joint;
       joint.bodyA = lander.body;
       joint.bodyB = leg;
-      joint.localAnchorB.Set(static_cast<float>(i * internal::kLegAway / kScale),
+      joint.localAnchorB.Set(away,
                              static_cast<float>(internal::kLegDown / kScale));
       joint.enableMotor = true;
       joint.enableLimit = true;
@@ -254,7 +257,8 @@ class FloorWorld {
       return;
     }
     body->ApplyLinearImpulse(
-        b2Vec2(static_cast<float>(-ox * power), static_cast<float>(-oy * power)),
+        b2Vec2(static_cast<float>(-ox * power),
+               static_cast<float>(-oy * power)),
         b2Vec2(static_cast<float>(impulse_x), static_cast<float>(impulse_y)),
         true);
   }

@@ -61,7 +61,8 @@ Scene MakeScene(const std::vector<Vec2>& lander_centres) {
   for (size_t i = 0; i < lander_centres.size(); ++i) {
     SceneLander lander;
     lander.agent = static_cast<int>(i);
-    lander.parts.push_back(LanderBody(lander_centres[i].x, lander_centres[i].y));
+    lander.parts.push_back(
+        LanderBody(lander_centres[i].x, lander_centres[i].y));
     scene.landers.push_back(lander);
   }
   return scene;

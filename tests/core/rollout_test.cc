@@ -40,10 +40,13 @@ RunResult RunRollout(const std::string& args, bool with_stderr = false) {
   std::string output;
   char buffer[4096];
   size_t n;
-  while ((n = fread(buffer, 1, sizeof(buffer), pipe)) > 0) output.append(buffer, n);
+  while ((n = fread(buffer, 1, sizeof(buffer), pipe)) > 0) {
+    output.append(buffer, n);
+  }
   const int status = pclose(pipe);
   result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  for (absl::string_view line : absl::StrSplit(output, '\n', absl::SkipEmpty())) {
+  for (absl::string_view line :
+       absl::StrSplit(output, '\n', absl::SkipEmpty())) {
     result.lines.emplace_back(line);
   }
   return result;
@@ -51,7 +54,8 @@ RunResult RunRollout(const std::string& args, bool with_stderr = false) {
 
 Struct ParseJson(const std::string& line) {
   Struct object;
-  const auto status = google::protobuf::util::JsonStringToMessage(line, &object);
+  const auto status =
+      google::protobuf::util::JsonStringToMessage(line, &object);
   EXPECT_TRUE(status.ok()) << status.ToString() << " in: " << line;
   return object;
 }
@@ -143,8 +147,8 @@ TEST(RolloutTest, RenderingDoesNotChangeTheEpisodes) {
   ASSERT_FALSE(rendered.lines.empty());
   EXPECT_EQ(plain.lines[0], rendered.lines[0]);
   // One frame after the reset and one after each step.
-  const int steps =
-      static_cast<int>(Field(ParseJson(plain.lines[0]), "steps").number_value());
+  const int steps = static_cast<int>(
+      Field(ParseJson(plain.lines[0]), "steps").number_value());
   int pngs = 0;
   for (const auto& entry : std::filesystem::directory_iterator(frames)) {
     pngs += entry.path().extension() == ".png";

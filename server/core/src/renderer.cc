@@ -130,7 +130,8 @@ void DrawSky(cairo_t* cr, const Scene& scene) {
   cairo_fill(cr);
 }
 
-// Gymnasium: color = max(0.2, 0.15 + ttl), max(0.2, 0.5 ttl), max(0.2, 0.5 ttl).
+// Gymnasium's particle colour: (max(0.2, 0.15 + ttl), max(0.2, 0.5 ttl),
+// max(0.2, 0.5 ttl)).
 void DrawParticles(cairo_t* cr, const Scene& scene) {
   for (const SceneParticle& p : scene.particles) {
     const double r = std::clamp(0.15 + p.ttl, 0.2, 1.0);

@@ -157,7 +157,8 @@ std::string PerAgentJson(int n_landers, ValueFn value) {
   std::vector<std::string> members;
   members.reserve(n_landers);
   for (int agent = 0; agent < n_landers; ++agent) {
-    members.push_back(absl::StrCat("\"", AgentName(agent), "\":", value(agent)));
+    members.push_back(
+        absl::StrCat("\"", AgentName(agent), "\":", value(agent)));
   }
   return absl::StrCat("{", absl::StrJoin(members, ","), "}");
 }
@@ -220,7 +221,8 @@ absl::Status Run(const Options& options) {
                                     return JsonNumber(env.episode_return(a));
                                   }),
                      ",\"lengths\":",
-                     PerAgentJson(n, [&](int a) { return env.episode_length(a); }),
+                     PerAgentJson(n,
+                                  [&](int a) { return env.episode_length(a); }),
                      ",\"outcomes\":",
                      PerAgentJson(n,
                                   [&](int a) {
