@@ -5,7 +5,9 @@
 // The raw variants build their request once and reuse it: the floor a
 // hand-written gRPC program reaches. Envs use auto_reset, so every call steps.
 //
-//   build-cppclient/bench/client_cpp/client_cpp_bench --benchmark_repetitions=3
+//   build-cppclient/bench/client_cpp/client_cpp_bench --benchmark_repetitions=3 \
+//       --benchmark_report_aggregates_only=true
+#include <iostream>
 #include <memory>
 #include <string>
 #include <vector>
@@ -24,19 +26,9 @@ namespace {
 constexpr int kBatchEnvs = 64;
 constexpr int kBatchLanders = 3;
 
-ServerProcess& Server() {
-  static ServerProcess* const server = [] {
-    absl::StatusOr<std::unique_ptr<ServerProcess>> started =
-        ServerProcess::Start(MLL_SERVER_PATH, {"--threads=2"});
-    if (!started.ok()) {
-      std::fprintf(stderr, "cannot start the server: %s\n",
-                   started.status().ToString().c_str());
-      std::abort();
-    }
-    return started->release();
-  }();
-  return *server;
-}
+// The server every benchmark talks to; started and stopped by main().
+ServerProcess* server = nullptr;
+ServerProcess& Server() { return *server; }
 
 Client MakeClient() {
   absl::StatusOr<Client> client = Client::Create(Server().address());
@@ -185,4 +177,17 @@ BENCHMARK(BM_Client_StepBatch)->UseRealTime();
 }  // namespace
 }  // namespace mll
 
-BENCHMARK_MAIN();
+int main(int argc, char** argv) {
+  benchmark::Initialize(&argc, argv);
+  if (benchmark::ReportUnrecognizedArguments(argc, argv)) return 1;
+  absl::StatusOr<std::unique_ptr<mll::ServerProcess>> server =
+      mll::ServerProcess::Start(MLL_SERVER_PATH, {"--threads=2"});
+  if (!server.ok()) {
+    std::cerr << "cannot start the server: " << server.status() << std::endl;
+    return 1;
+  }
+  mll::server = server->get();
+  benchmark::RunSpecifiedBenchmarks();
+  benchmark::Shutdown();
+  return 0;  // The server stops when `server` goes out of scope.
+}

@@ -2,6 +2,7 @@
 
 #include <fcntl.h>
 #include <signal.h>
+#include <sys/prctl.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -50,6 +51,9 @@ absl::StatusOr<pid_t> Spawn(const std::vector<std::string>& argv,
   const pid_t pid = fork();
   if (pid < 0) return absl::InternalError("fork failed");
   if (pid == 0) {
+    // A child outlives a crashed test otherwise, holding its output pipes
+    // open (ctest would wait for them) and its port.
+    prctl(PR_SET_PDEATHSIG, SIGTERM);
     if (!out_path.empty()) {
       const int out = open(out_path.c_str(), O_WRONLY | O_TRUNC);
       dup2(out, STDOUT_FILENO);
