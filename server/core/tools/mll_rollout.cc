@@ -1,7 +1,9 @@
 // mll_rollout: runs episodes of one environment in-process and prints one
 // JSON object per episode, then a summary line. Optionally writes a PNG per
 // step. Exit codes: 0 done, 1 runtime failure (e.g. a frame could not be
-// written), 2 bad flags or config (the core's message is printed).
+// written) or a flag absl cannot parse, 2 bad flags or config (the core's
+// message is printed). The summary's agent_steps_per_second is wall-clock
+// time over all episodes, frame writing included: bench/core measures speed.
 //
 //   mll_rollout --n_landers=3 --episodes=3 --seed=0 --policy=heuristic
 //       --frames_dir=out/frames --render_mode=rgb_array
