@@ -83,7 +83,8 @@ TEST(ServerBinaryTest, HelpListsEveryFlag) {
   const std::string output = RunServer("--help").second;
   for (const char* flag : {"--address", "--port_file", "--threads",
                            "--max_envs", "--idle_timeout_s",
-                           "--max_message_mb"}) {
+                           "--max_message_mb", "--tls_cert", "--tls_key",
+                           "--auth_token_file", "--metrics_address"}) {
     EXPECT_THAT(output, HasSubstr(flag));
   }
 }
