@@ -30,6 +30,9 @@ int main(int argc, char** argv) {
   mll::RemoteEnvConfig config;
   config.n_landers = n_landers;  // The server checks the range.
   config.continuous = continuous;
+  // Heuristic pilots all steer for the pad and may collide; let the others
+  // fly on when one is damaged.
+  config.terminate_on_damage = false;
   // The handle deletes the environment when it goes out of scope.
   absl::StatusOr<mll::RemoteEnv> env = client->CreateEnv(config);
   if (!env.ok()) {
