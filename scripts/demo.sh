@@ -1,12 +1,35 @@
 #!/usr/bin/env bash
-# The main job: installs what is missing, builds, and flies landers with the
-# heuristic pilot, printing one JSON line per episode and writing frames.
+# The main job: installs what is missing, builds, starts an mll_server on a free
+# loopback port, flies landers through it (the C++ CLI and the Python PettingZoo
+# client, both with Gymnasium's heuristic pilot), and shows the result: one JSON
+# line per episode, a rendered frame and an animated GIF under out/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh
 scripts/build.sh
 OUT=${OUT:-out}
-mkdir -p "$OUT/frames"
-./build/server/core/mll_rollout --n_landers=3 --episodes=3 --seed=0 --policy=heuristic \
-  --frames_dir="$OUT/frames" --render_mode=rgb_array
-echo "frames written to $OUT/frames"
+mkdir -p "$OUT"
+BIN=build/server/service/mll_server
+CLI=build/client_cpp/mll_cli
+
+port_file=$(mktemp)
+"$BIN" --address=127.0.0.1:0 --port_file="$port_file" --threads=2 &
+server_pid=$!
+trap 'kill -TERM "$server_pid" 2>/dev/null; wait "$server_pid" 2>/dev/null || true; rm -f "$port_file"' EXIT
+for _ in $(seq 100); do [ -s "$port_file" ] && break; sleep 0.1; done
+[ -s "$port_file" ] || { echo "demo: mll_server did not start" >&2; exit 1; }
+address="127.0.0.1:$(cat "$port_file")"
+"$CLI" health --address="$address"
+
+echo "== 3 landers, 3 episodes, heuristic pilot, through the server (mll_cli play)"
+"$CLI" play --address="$address" --n_landers=3 --episodes=3 --seed=0 --policy=heuristic
+
+echo "== the same through the Python PettingZoo client, rendered to $OUT/landers.gif"
+.venv/bin/python examples/play.py --address="$address" --n_landers=3 --episodes=1 --seed=0 \
+  --gif "$OUT/landers.gif"
+"$CLI" create --address="$address" --n_landers=3 --render_mode=rgb_array > "$OUT/env.txt"
+name=$(grep -o 'envs/[0-9a-f]*' "$OUT/env.txt" | head -n 1)
+"$CLI" reset "$name" --address="$address" --seed=0 > /dev/null
+"$CLI" render "$name" --address="$address" --out="$OUT/frame.png"
+"$CLI" delete "$name" --address="$address"
+echo "demo: results in $OUT/ (landers.gif, frame.png)"
