@@ -293,6 +293,13 @@ void Env::Impl::CreateLander(int agent) {
     joint.localAnchorA.Set(0.0f, 0.0f);
     joint.localAnchorB.Set(static_cast<float>(side * kLegAway / kScale),
                            static_cast<float>(kLegDown / kScale));
+    // Gymnasium builds this joint with pybox2d, whose revoluteJointDef sets
+    // referenceAngle = bodyB.angle - bodyA.angle (here 0.05 * side) whenever
+    // both bodies are given; the limits below are relative to it. Box2D's own
+    // default is 0, which would spread each leg 0.05 rad further out: the
+    // lander then rests 3.5 cm lower on springier legs, rocks after touchdown
+    // and falls asleep (lands) later or not at all.
+    joint.referenceAngle = leg_body->GetAngle() - lander.body->GetAngle();
     joint.enableMotor = true;
     joint.enableLimit = true;
     joint.maxMotorTorque = static_cast<float>(kLegSpringTorque);
