@@ -1,5 +1,7 @@
 #include "mll/service/metrics_http.h"
 
+#include <sys/socket.h>
+
 #include <chrono>
 #include <utility>
 
@@ -42,6 +44,12 @@ absl::StatusOr<std::unique_ptr<MetricsHttpServer>> MetricsHttpServer::Start(
   std::unique_ptr<MetricsHttpServer> server(new MetricsHttpServer());
   httplib::Server& http = *server->http_;
   http.new_task_queue = [] { return new httplib::ThreadPool(kHttpThreads); };
+  // SO_REUSEADDR only: httplib's default adds SO_REUSEPORT, with which a
+  // second server would share a port in use instead of failing to bind.
+  http.set_socket_options([](socket_t sock) {
+    const int yes = 1;
+    setsockopt(sock, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof(yes));
+  });
   http.set_read_timeout(kIoTimeoutS);
   http.set_write_timeout(kIoTimeoutS);
   http.Get("/metrics", [render = std::move(render)](
