@@ -222,11 +222,16 @@ class Connection:
             self._what = f"embedded mll_server at {address}"
         else:
             others = [peer for peer in peers if peer != address]
+            hint = (
+                "the server's certificate must be signed by tls_root_cert and name the host or tls_server_name"
+                if security.tls
+                else "a TLS server needs tls_root_cert="
+            )
             self._what = (
                 f"mll_server at {address} ({security.describe()}"
                 + (f"; the servers given: {', '.join(peers)}" if others else "")
                 + f"; start one with `mll_server --address={address}`, or pass address=None for an "
-                "embedded server)"
+                f"embedded server; {hint})"
             )
         self.address = address
         self.channel = open_channel(address, security)
