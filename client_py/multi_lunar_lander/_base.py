@@ -4,7 +4,7 @@ server-side environment, spaces, rendering and deletion."""
 from __future__ import annotations
 
 import weakref
-from typing import Any
+from typing import Any, Sequence
 
 import gymnasium
 import numpy as np
@@ -40,14 +40,21 @@ class RemoteEnvBase:
 
     metadata = METADATA
 
-    def _open(
+    def __init__(
         self,
-        address,
-        render_mode: str | None,
-        server_index: int | None,
-        security: Security,
-        options: dict[str, Any],
-    ) -> None:
+        address: str | Sequence[str] | None = None,
+        render_mode: str | None = None,
+        *,
+        server_index: int | None = None,
+        tls_root_cert: str | bytes | None = None,
+        tls_server_name: str | None = None,
+        token: str | None = None,
+        **options: Any,
+    ):
+        """Creates the environment on one server of `address` (see the package docstring for
+        address lists, server_index, TLS and token); `options` are the EnvConfig options."""
+        super().__init__()  # pettingzoo.AECEnv / ParallelEnv, next in the subclass's MRO.
+        security = Security.from_options(tls_root_cert, tls_server_name, token)
         config = make_config(render_mode, False, options)
         connection = connect_single(address, server_index, security)
         try:
@@ -69,6 +76,11 @@ class RemoteEnvBase:
         self.action_spaces = {a: space_from_proto(env.action_space) for a in self.possible_agents}
         self.metadata = dict(METADATA, render_fps=env.render_fps or METADATA["render_fps"])
         self._viewer: Viewer | None = None
+        self._init_state()
+
+    def _init_state(self) -> None:
+        """The subclass's own attributes, set once the server-side env exists."""
+        raise NotImplementedError
 
     @property
     def address(self) -> str:

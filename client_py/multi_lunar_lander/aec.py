@@ -7,14 +7,11 @@ attributes pettingzoo.AECEnv's own `last()`, `observe()` and `agent_iter()` read
 
 from __future__ import annotations
 
-from typing import Any, Sequence
-
 import numpy as np
 from pettingzoo import AECEnv
 
 from . import _arrays
 from ._base import RemoteEnvBase
-from ._channel import Security
 from ._remote import Columns, encode_agent_action, seed_value
 from ._stubs import pb
 
@@ -28,20 +25,7 @@ class MultiLunarLanderEnv(RemoteEnvBase, AECEnv):
     once the lander is done, with "episode_return" and "episode_length".
     """
 
-    def __init__(
-        self,
-        address: str | Sequence[str] | None = None,
-        render_mode: str | None = None,
-        *,
-        server_index: int | None = None,
-        tls_root_cert: str | bytes | None = None,
-        tls_server_name: str | None = None,
-        token: str | None = None,
-        **options: Any,
-    ):
-        AECEnv.__init__(self)
-        security = Security.from_options(tls_root_cert, tls_server_name, token)
-        self._open(address, render_mode, server_index, security, options)
+    def _init_state(self) -> None:
         self.agents: list[str] = []
         self.rewards: dict[str, float] = {}
         self._cumulative_rewards: dict[str, float] = {}

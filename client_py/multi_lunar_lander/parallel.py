@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-from typing import Any, Sequence
 
 import numpy as np
 from pettingzoo import ParallelEnv
 
 from . import _arrays
 from ._base import RemoteEnvBase
-from ._channel import Security
 from ._errors import invalid_argument
 from ._remote import Columns, action_array, seed_value
 from ._stubs import pb
@@ -36,19 +34,7 @@ class MultiLunarLanderParallelEnv(RemoteEnvBase, ParallelEnv):
     truncated.
     """
 
-    def __init__(
-        self,
-        address: str | Sequence[str] | None = None,
-        render_mode: str | None = None,
-        *,
-        server_index: int | None = None,
-        tls_root_cert: str | bytes | None = None,
-        tls_server_name: str | None = None,
-        token: str | None = None,
-        **options: Any,
-    ):
-        security = Security.from_options(tls_root_cert, tls_server_name, token)
-        self._open(address, render_mode, server_index, security, options)
+    def _init_state(self) -> None:
         self.agents: list[str] = []
         n = len(self.possible_agents)
         self._actions = np.zeros((n, 2) if self.continuous else (n,), np.float32 if self.continuous else np.int32)
