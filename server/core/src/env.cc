@@ -297,8 +297,8 @@ void Env::Impl::CreateLander(int agent) {
     // referenceAngle = bodyB.angle - bodyA.angle (here 0.05 * side) whenever
     // both bodies are given; the limits below are relative to it. Box2D's own
     // default is 0, which would spread each leg 0.05 rad further out: the
-    // lander then rests 3.5 cm lower on springier legs, rocks after touchdown
-    // and falls asleep (lands) later or not at all.
+    // lander then rests 3.5 cm lower, rocks longer after touchdown and falls
+    // asleep (lands) later or not at all.
     joint.referenceAngle = leg_body->GetAngle() - lander.body->GetAngle();
     joint.enableMotor = true;
     joint.enableLimit = true;
