@@ -109,7 +109,9 @@ def train(config: TrainConfig, out_dir: str, address: Optional[str] = None,
             transitions, episodes = collector.step(epsilon)
             if transitions is not None and len(transitions[1]):
                 start = time.perf_counter()
-                buffer.add(*transitions)
+                obs, actions, rewards, next_obs, discounts = transitions
+                buffer.add(obs, actions, rewards * config.reward_scale,
+                           next_obs, discounts)
                 timers.add("store", time.perf_counter() - start)
                 before = progress.transitions
                 progress.transitions += len(transitions[1])
@@ -167,8 +169,10 @@ _RESUME_MAY_CHANGE = ("episodes", "time_limit_s", "checkpoint_every")
 
 def _check_resumable(saved: Dict, config: TrainConfig, path: str) -> None:
     now = config.to_dict()
+    # Through the dataclass, so fields added since the save take defaults.
+    saved = TrainConfig.from_dict(saved).to_dict()
     changed = sorted(k for k in now if k not in _RESUME_MAY_CHANGE
-                     and now[k] != saved.get(k))
+                     and now[k] != saved[k])
     if changed:
         raise ValueError(
             f"checkpoint {path} was made with other values of {changed}; "

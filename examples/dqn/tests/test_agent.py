@@ -101,6 +101,7 @@ def test_paper_preset_is_table_iv():
     ("n_step", 0, "n_step = 0 is out of range; allowed: >= 1"),
     ("mode", "async", "mode = 'async' is out of range; allowed: parallel or"),
     ("gamma", 1.5, "gamma = 1.5 is out of range; allowed: [0, 1]"),
+    ("reward_scale", 0.0, "reward_scale = 0.0 is out of range; allowed: > 0"),
 ])
 def test_bad_config_names_field_value_and_range(field, value, message):
     config = dataclasses.replace(TrainConfig(), **{field: value})
