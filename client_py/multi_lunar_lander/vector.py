@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from typing import Any, NamedTuple, Sequence
 
+import grpc
 import numpy as np
 
 from . import _arrays
@@ -197,14 +198,20 @@ class VectorEnv:
         waits = [batch.connection.future("StepBatch", batch.request) for batch in self._batches[1:]]
         replies = [self._batches[0].connection.call("StepBatch", self._batches[0].request)]
         replies.extend(wait() for wait in waits)
-        datas = [None] * self.num_envs
+        results = [None] * self.num_envs
         for batch, reply in zip(self._batches, replies):
+            if len(reply.results) != len(batch.envs):
+                raise MLLError(
+                    grpc.StatusCode.INTERNAL,
+                    f"{batch.connection.address} answered StepBatch of {len(batch.envs)} envs with "
+                    f"{len(reply.results)} results",
+                )
             for index, result in zip(batch.envs, reply.results):
-                if result.HasField("error"):
-                    raise from_item_error(
-                        result.error.code, result.error.message, f"env {index} ({self._names[index]}): "
-                    )
-                datas[index] = result.data
+                results[index] = result
+        for index, result in enumerate(results):  # The first failed env in env order, as on one server.
+            if result.HasField("error"):
+                raise from_item_error(result.error.code, result.error.message, f"env {index} ({self._names[index]}): ")
+        datas = [result.data for result in results]
         auto_reset = np.fromiter((data.auto_reset for data in datas), dtype=bool, count=self.num_envs)
         episode_over = np.fromiter((data.episode_over for data in datas), dtype=bool, count=self.num_envs)
         return self._stack(datas, auto_reset, episode_over)

@@ -80,12 +80,14 @@ def test_more_servers_than_envs_uses_the_first_ones(two_servers, address):
 def test_an_item_error_names_the_env_in_env_order(two_servers):
     vector = mll.vector_env(4, address=list(two_servers), n_landers=1)
     vector.reset(seed=0)
-    with grpc.insecure_channel(two_servers[1]) as channel:  # Env 3 lives on the second server.
-        pb_grpc.MultiLunarLanderStub(channel).DeleteEnv(pb.DeleteEnvRequest(name=vector.names[3]))
+    # Behind the client's back: env 2 (first server) and env 1 (second server) go away.
+    for index in (2, 1):
+        with grpc.insecure_channel(vector.env_addresses[index]) as channel:
+            pb_grpc.MultiLunarLanderStub(channel).DeleteEnv(pb.DeleteEnvRequest(name=vector.names[index]))
     with pytest.raises(mll.MLLError) as caught:
         vector.step(np.zeros((4, 1), np.int32))
     assert caught.value.code == grpc.StatusCode.NOT_FOUND
-    assert caught.value.message.startswith(f"env 3 ({vector.names[3]}): ")
+    assert caught.value.message.startswith(f"env 1 ({vector.names[1]}): ")  # The first in env order.
     vector.close()
 
 
