@@ -13,7 +13,7 @@ token="" sends no token even when $MLL_TOKEN is set.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import grpc
@@ -83,6 +83,7 @@ def _token_value(token: str | None) -> str | None:
         where = "token"
     if not isinstance(token, (str, type(None))):
         raise invalid_argument(f"token is a {type(token).__name__}; expected a str or None")
+    token = (token or "").strip()  # As the server reads its token file: surrounding whitespace is not part of it.
     if not token:
         return None
     # The server's rule for tokens; the value itself is never echoed.
@@ -100,7 +101,7 @@ class Security:
 
     root_certificates: bytes | None = None
     server_name: str | None = None
-    token: str | None = None
+    token: str | None = field(default=None, repr=False)  # Never in logs.
 
     @classmethod
     def from_options(cls, tls_root_cert=None, tls_server_name: str | None = None, token: str | None = None) -> "Security":

@@ -154,6 +154,15 @@ def test_bad_security_options_are_invalid_argument(kwargs, field):
     assert "has space" not in error.message  # A token is never echoed.
 
 
+def test_the_token_stays_out_of_reprs_and_errors(monkeypatch):
+    security = Security.from_options(token=TOKEN_A)
+    assert security.metadata == (("authorization", f"Bearer {TOKEN_A}"),)
+    assert TOKEN_A not in repr(security) and TOKEN_A not in security.describe()
+    monkeypatch.setenv(mll.TOKEN_ENV, "two words")
+    error = _error(grpc.StatusCode.INVALID_ARGUMENT, Security.from_options)
+    assert mll.TOKEN_ENV in error.message and "two words" not in error.message
+
+
 def test_tls_with_the_embedded_server_is_refused(certificate):
     error = _error(grpc.StatusCode.INVALID_ARGUMENT, mll.vector_env, 1, tls_root_cert=str(certificate[0]))
     assert "tls_root_cert" in error.message and "embedded" in error.message
@@ -172,7 +181,7 @@ def test_right_token_works_missing_or_wrong_is_unauthenticated(auth_server, no_e
 
 @needs_auth
 def test_token_comes_from_the_environment_unless_given(auth_server, monkeypatch):
-    monkeypatch.setenv(mll.TOKEN_ENV, TOKEN_B)
+    monkeypatch.setenv(mll.TOKEN_ENV, TOKEN_B + "\n")  # As read from a file; whitespace is dropped.
     env = mll.env(address=auth_server)  # $MLL_TOKEN.
     env.reset(seed=0)
     env.close()
