@@ -1,6 +1,11 @@
 """Several servers: envs pinned to one server each, vector_env spread over the servers (env i on
 server i mod S) with one StepBatch per server, and the same bits as on one server."""
 
+import re
+import subprocess
+import time
+import urllib.request
+
 import grpc
 import numpy as np
 import pytest
@@ -13,6 +18,26 @@ from multi_lunar_lander._stubs import pb, pb_grpc
 def two_servers():
     with mll.ServerProcess(threads=1) as first, mll.ServerProcess(threads=1) as second:
         yield first.address, second.address
+
+
+def metrics_url(process):
+    """The /metrics URL the server logged at start-up (its --metrics_address had port 0)."""
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        found = re.search(r"metrics on (http://\S+/metrics)", process.log_tail(100000))
+        if found:
+            return found.group(1)
+        time.sleep(0.02)
+    raise AssertionError(f"no metrics URL in the log: {process.log_tail()!r}")
+
+
+def metric(url, series):
+    """The value of one series, e.g. 'mll_steps_total{method="StepBatch"}', scraped from `url`."""
+    with urllib.request.urlopen(url, timeout=10) as reply:
+        for line in reply.read().decode().splitlines():
+            if line.startswith(series + " "):
+                return float(line.split()[-1])
+    raise AssertionError(f"{series} not in {url}")
 
 
 def listed_names(address):
@@ -51,6 +76,27 @@ def test_vector_env_spreads_envs_round_robin_over_the_servers(two_servers):
     assert listed_names(second) - before[1] == {names[1], names[3]}
     vector.close()
     assert listed_names(first) == before[0] and listed_names(second) == before[1]
+
+
+@pytest.mark.skipif(
+    "--metrics_address" not in subprocess.run(
+        [mll.find_server_binary(), "--help"], capture_output=True, text=True, timeout=30
+    ).stdout,
+    reason="this mll_server has no --metrics_address flag",
+)
+def test_each_step_is_one_step_batch_per_server():
+    flags = ("--metrics_address=127.0.0.1:0",)
+    with mll.ServerProcess(threads=1, extra_args=flags) as a, mll.ServerProcess(threads=1, extra_args=flags) as b:
+        vector = mll.vector_env(5, address=[a.address, b.address], n_landers=2)
+        observations, _ = vector.reset(seed=4)
+        for _ in range(7):
+            observations = vector.step(mll.heuristic(observations))[0]
+        vector.close()
+        for process, envs in ((a, 3), (b, 2)):
+            url = metrics_url(process)
+            assert metric(url, 'mll_rpc_duration_seconds_count{method="StepBatch"}') == 7
+            assert metric(url, 'mll_steps_total{method="StepBatch"}') == 7 * envs
+            assert metric(url, 'mll_rpc_duration_seconds_count{method="ResetEnv"}') == envs
 
 
 @pytest.mark.parametrize("spec", ["list", "comma_string"])
