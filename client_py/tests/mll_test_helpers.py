@@ -25,6 +25,15 @@ def run_heuristic_parallel(env, seed):
     return seen, final
 
 
+def raises_code(code, call, *args, **kwargs):
+    """The MLLError that call(*args, **kwargs) raises, checked to carry `code` and a message."""
+    with pytest.raises(mll.MLLError) as caught:
+        call(*args, **kwargs)
+    assert caught.value.code == code, caught.value
+    assert caught.value.message
+    return caught.value
+
+
 def delete_env(raw_stub, name):
     raw_stub.DeleteEnv(pb.DeleteEnvRequest(name=name))
 

@@ -6,15 +6,7 @@ import pytest
 
 import multi_lunar_lander as mll
 
-from mll_test_helpers import delete_env
-
-
-def _raises(code, call, *args, **kwargs):
-    with pytest.raises(mll.MLLError) as caught:
-        call(*args, **kwargs)
-    assert caught.value.code == code, caught.value
-    assert caught.value.message
-    return caught.value
+from mll_test_helpers import delete_env, raises_code as _raises
 
 
 @pytest.mark.parametrize(

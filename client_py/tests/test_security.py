@@ -14,6 +14,8 @@ from multi_lunar_lander import _remote
 from multi_lunar_lander._channel import Security
 from multi_lunar_lander._stubs import pb
 
+from mll_test_helpers import raises_code as _error
+
 # The name in the test certificate: not the dialled 127.0.0.1, so tls_server_name is needed.
 SERVER_NAME = "mll-server.test"
 TOKEN_A = "token-a-Zx81"
@@ -88,13 +90,6 @@ def tls_auth_servers(certificate, token_file):
 @pytest.fixture
 def no_env_token(monkeypatch):
     monkeypatch.delenv(mll.TOKEN_ENV, raising=False)
-
-
-def _error(code, call, *args, **kwargs):
-    with pytest.raises(mll.MLLError) as caught:
-        call(*args, **kwargs)
-    assert caught.value.code == code, caught.value
-    return caught.value
 
 
 @needs_tls
