@@ -1,8 +1,10 @@
 #include "mll/client.h"
 
+#include <future>
 #include <string>
 #include <utility>
 
+#include "absl/container/flat_hash_set.h"
 #include "absl/strings/str_cat.h"
 #include "transport.h"
 #include "wire.h"
@@ -10,6 +12,37 @@
 namespace mll {
 
 using client_internal::Transport;
+
+namespace {
+
+// GetEnv on one server.
+absl::StatusOr<EnvInfo> GetEnvOn(Transport& transport, absl::string_view name,
+                                 int server) {
+  v1::SessionRequest request;
+  request.mutable_get_env()->set_name(std::string(name));
+  v1::SessionResponse response;
+  absl::Status status = transport.Call(request, &response);
+  if (!status.ok()) return status;
+  EnvInfo info = client_internal::DecodeEnv(response.env());
+  info.server = server;
+  return info;
+}
+
+absl::Status DeleteEnvOn(Transport& transport, absl::string_view name) {
+  v1::SessionRequest request;
+  request.mutable_delete_env()->set_name(std::string(name));
+  v1::SessionResponse response;
+  return transport.Call(request, &response);
+}
+
+// `status` with the server's address in front, so that a failure among
+// several servers says which one.
+absl::Status AtServer(const Transport& transport, const absl::Status& status) {
+  return absl::Status(status.code(), absl::StrCat("server ", transport.address(),
+                                                  ": ", status.message()));
+}
+
+}  // namespace
 
 absl::string_view LanderOutcomeName(LanderOutcome outcome) {
   switch (outcome) {
@@ -186,7 +219,8 @@ absl::StatusOr<EnvInfo> RemoteEnv::Refresh() {
     return absl::FailedPreconditionError(
         "Refresh on an empty RemoteEnv handle");
   }
-  absl::StatusOr<EnvInfo> info = Client(transport_).GetEnv(info_.name);
+  absl::StatusOr<EnvInfo> info =
+      GetEnvOn(*transport_, info_.name, info_.server);
   if (info.ok()) info_ = *info;
   return info;
 }
@@ -195,7 +229,7 @@ absl::Status RemoteEnv::Delete() {
   if (transport_ == nullptr) {
     return absl::FailedPreconditionError("Delete on an empty RemoteEnv handle");
   }
-  absl::Status status = Client(std::move(transport_)).DeleteEnv(info_.name);
+  absl::Status status = DeleteEnvOn(*transport_, info_.name);
   transport_ = nullptr;
   owned_ = false;
   return status;
@@ -208,94 +242,188 @@ std::string RemoteEnv::Release() {
 
 // ------------------------------------------------------------------- Client
 
-Client::Client(std::shared_ptr<Transport> transport)
-    : transport_(std::move(transport)) {}
+Client::Client(std::vector<std::shared_ptr<Transport>> transports)
+    : transports_(std::move(transports)),
+      next_server_(std::make_shared<std::atomic<uint64_t>>(0)) {}
 Client::Client(Client&&) noexcept = default;
 Client& Client::operator=(Client&&) noexcept = default;
 Client::~Client() = default;
 
 absl::StatusOr<Client> Client::Create(absl::string_view address,
                                       const ClientOptions& options) {
-  absl::StatusOr<std::shared_ptr<Transport>> transport =
-      client_internal::MakeUnaryTransport(address, options);
-  if (!transport.ok()) return transport.status();
-  return Client(*std::move(transport));
+  return Create(std::vector<std::string>{std::string(address)}, options);
+}
+
+absl::StatusOr<Client> Client::Create(const std::vector<std::string>& addresses,
+                                      const ClientOptions& options) {
+  if (addresses.empty()) {
+    return absl::InvalidArgumentError(
+        "addresses is empty; expected at least one host:port");
+  }
+  absl::flat_hash_set<std::string> seen;
+  std::vector<std::shared_ptr<Transport>> transports;
+  for (size_t i = 0; i < addresses.size(); ++i) {
+    // Two entries for one server would make names ambiguous and double its
+    // share of the placement.
+    if (!seen.insert(addresses[i]).second) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("addresses[", i, "] is \"", addresses[i],
+                       "\", which appears earlier; each server once"));
+    }
+    absl::StatusOr<std::shared_ptr<Transport>> transport =
+        client_internal::MakeUnaryTransport(addresses[i], options);
+    if (!transport.ok()) {
+      if (addresses.size() == 1) return transport.status();
+      return absl::Status(transport.status().code(),
+                          absl::StrCat("addresses[", i, "]: ",
+                                       transport.status().message()));
+    }
+    transports.push_back(*std::move(transport));
+  }
+  return Client(std::move(transports));
 }
 
 absl::StatusOr<Client> Client::OpenSession() const {
-  absl::StatusOr<std::shared_ptr<Transport>> session =
-      transport_->OpenSession();
-  if (!session.ok()) return session.status();
-  return Client(*std::move(session));
+  std::vector<std::shared_ptr<Transport>> sessions;
+  for (const std::shared_ptr<Transport>& transport : transports_) {
+    absl::StatusOr<std::shared_ptr<Transport>> session =
+        transport->OpenSession();
+    if (!session.ok()) return session.status();
+    sessions.push_back(*std::move(session));
+  }
+  return Client(std::move(sessions));
 }
 
-bool Client::is_session() const { return transport_->is_session(); }
+bool Client::is_session() const { return transports_.front()->is_session(); }
+
+const std::string& Client::address(int server) const {
+  return transports_.at(static_cast<size_t>(server))->address();
+}
 
 absl::Status Client::CheckHealth(absl::string_view service) const {
-  return transport_->CheckHealth(service);
+  for (const std::shared_ptr<Transport>& transport : transports_) {
+    absl::Status status = transport->CheckHealth(service);
+    if (!status.ok()) {
+      return transports_.size() == 1 ? status : AtServer(*transport, status);
+    }
+  }
+  return absl::OkStatus();
 }
 
 absl::StatusOr<RemoteEnv> Client::CreateEnv(const RemoteEnvConfig& config,
                                             bool detached) const {
+  const size_t server = next_server_->fetch_add(1, std::memory_order_relaxed) %
+                        transports_.size();
+  return CreateEnvAt(server, config, detached);
+}
+
+absl::StatusOr<RemoteEnv> Client::CreateEnvOn(int server,
+                                              const RemoteEnvConfig& config,
+                                              bool detached) const {
+  if (server < 0 || server >= server_count()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("server is ", server, "; allowed: 0..",
+                     server_count() - 1, " (one per address)"));
+  }
+  return CreateEnvAt(static_cast<size_t>(server), config, detached);
+}
+
+absl::StatusOr<RemoteEnv> Client::CreateEnvAt(size_t server,
+                                              const RemoteEnvConfig& config,
+                                              bool detached) const {
   v1::SessionRequest request;
   v1::CreateEnvRequest& create = *request.mutable_create_env();
   client_internal::EncodeConfig(config, create.mutable_config());
   create.set_detached(detached);
   v1::SessionResponse response;
-  absl::Status status = transport_->Call(request, &response);
+  absl::Status status = transports_[server]->Call(request, &response);
   if (!status.ok()) return status;
-  return RemoteEnv(transport_, client_internal::DecodeEnv(response.env()),
-                   /*owned=*/true);
+  EnvInfo info = client_internal::DecodeEnv(response.env());
+  info.server = static_cast<int>(server);
+  return RemoteEnv(transports_[server], std::move(info), /*owned=*/true);
 }
 
 absl::StatusOr<RemoteEnv> Client::Attach(absl::string_view name) const {
   absl::StatusOr<EnvInfo> info = GetEnv(name);
   if (!info.ok()) return info.status();
-  return RemoteEnv(transport_, *std::move(info), /*owned=*/false);
+  const size_t server = static_cast<size_t>(info->server);
+  return RemoteEnv(transports_[server], *std::move(info), /*owned=*/false);
 }
 
 absl::StatusOr<EnvInfo> Client::GetEnv(absl::string_view name) const {
-  v1::SessionRequest request;
-  request.mutable_get_env()->set_name(std::string(name));
-  v1::SessionResponse response;
-  absl::Status status = transport_->Call(request, &response);
-  if (!status.ok()) return status;
-  return client_internal::DecodeEnv(response.env());
+  absl::StatusOr<EnvInfo> info;
+  for (size_t server = 0; server < transports_.size(); ++server) {
+    info = GetEnvOn(*transports_[server], name, static_cast<int>(server));
+    if (info.status().code() != absl::StatusCode::kNotFound) break;
+  }
+  return info;
 }
 
 absl::StatusOr<std::vector<EnvInfo>> Client::ListEnvs() const {
   std::vector<EnvInfo> envs;
-  v1::ListEnvsRequest request;
-  request.set_page_size(1000);
-  do {
-    v1::ListEnvsResponse response;
-    absl::Status status = transport_->ListEnvs(request, &response);
-    if (!status.ok()) return status;
-    for (const v1::Env& env : response.envs()) {
-      envs.push_back(client_internal::DecodeEnv(env));
-    }
-    request.set_page_token(response.next_page_token());
-  } while (!request.page_token().empty());
+  for (size_t server = 0; server < transports_.size(); ++server) {
+    v1::ListEnvsRequest request;
+    request.set_page_size(1000);
+    do {
+      v1::ListEnvsResponse response;
+      absl::Status status = transports_[server]->ListEnvs(request, &response);
+      if (!status.ok()) {
+        return transports_.size() == 1 ? status
+                                       : AtServer(*transports_[server], status);
+      }
+      for (const v1::Env& env : response.envs()) {
+        envs.push_back(client_internal::DecodeEnv(env));
+        envs.back().server = static_cast<int>(server);
+      }
+      request.set_page_token(response.next_page_token());
+    } while (!request.page_token().empty());
+  }
   return envs;
 }
 
 absl::Status Client::DeleteEnv(absl::string_view name) const {
-  v1::SessionRequest request;
-  request.mutable_delete_env()->set_name(std::string(name));
-  v1::SessionResponse response;
-  return transport_->Call(request, &response);
+  absl::Status status;
+  for (const std::shared_ptr<Transport>& transport : transports_) {
+    status = DeleteEnvOn(*transport, name);
+    if (status.code() != absl::StatusCode::kNotFound) break;
+  }
+  return status;
+}
+
+absl::StatusOr<size_t> Client::ServerOf(const RemoteEnv* env,
+                                        absl::string_view what) const {
+  if (env == nullptr || env->transport_ == nullptr || env->name().empty()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(what, " is not a live RemoteEnv handle"));
+  }
+  // With one server, any handle's name goes there (as it always has).
+  if (transports_.size() == 1) return 0;
+  for (size_t server = 0; server < transports_.size(); ++server) {
+    if (transports_[server]->address() == env->transport_->address()) {
+      return server;
+    }
+  }
+  return absl::InvalidArgumentError(absl::StrCat(
+      what, " (", env->name(), ") lives on ", env->transport_->address(),
+      ", which is not one of this client's servers"));
 }
 
 absl::StatusOr<std::vector<absl::StatusOr<StepData>>> Client::StepBatch(
     absl::Span<const BatchStep> steps) const {
-  v1::SessionRequest request;
-  v1::StepBatchRequest& batch = *request.mutable_step_batch();
+  // One request per server, and where each of the caller's items went.
+  struct ServerCall {
+    v1::SessionRequest request;
+    v1::SessionResponse response;
+    std::vector<size_t> items;
+    absl::Status status;
+  };
+  std::vector<ServerCall> calls(transports_.size());
   for (size_t i = 0; i < steps.size(); ++i) {
-    if (steps[i].env == nullptr || steps[i].env->name().empty()) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("steps[", i, "].env is not a live RemoteEnv handle"));
-    }
-    v1::StepEnvRequest& step = *batch.add_steps();
+    absl::StatusOr<size_t> server =
+        ServerOf(steps[i].env, absl::StrCat("steps[", i, "].env"));
+    if (!server.ok()) return server.status();
+    ServerCall& call = calls[*server];
+    v1::StepEnvRequest& step = *call.request.mutable_step_batch()->add_steps();
     step.set_name(steps[i].env->name());
     absl::Status status = client_internal::EncodeActions(
         steps[i].actions, step.mutable_actions());
@@ -304,25 +432,63 @@ absl::StatusOr<std::vector<absl::StatusOr<StepData>>> Client::StepBatch(
           absl::StrCat("steps[", i, "] (", steps[i].env->name(),
                        "): ", status.message()));
     }
+    call.items.push_back(i);
   }
-  v1::SessionResponse response;
-  absl::Status status = transport_->Call(request, &response);
-  if (!status.ok()) return status;
-  const auto& results = response.step_batch().results();
-  if (results.size() != static_cast<int>(steps.size())) {
-    return absl::InternalError(
-        absl::StrCat("StepBatch sent ", steps.size(), " steps and received ",
-                     results.size(), " results"));
+
+  // Every server's call in flight at once; the last one runs in this thread.
+  std::vector<size_t> busy;
+  for (size_t server = 0; server < calls.size(); ++server) {
+    if (!calls[server].items.empty()) busy.push_back(server);
   }
-  std::vector<absl::StatusOr<StepData>> out;
-  out.reserve(steps.size());
-  for (const v1::StepBatchResult& result : results) {
-    if (result.has_error()) {
-      out.push_back(client_internal::FromItemError(result.error()));
-    } else {
-      out.push_back(client_internal::DecodeStepData(result.data()));
+  // An empty batch still makes one (empty) call, as a single server always
+  // has: the server's answer checks that it is there.
+  if (busy.empty()) {
+    busy.push_back(0);
+    calls[0].request.mutable_step_batch();
+  }
+  std::vector<std::future<absl::Status>> pending;
+  for (size_t k = 0; k + 1 < busy.size(); ++k) {
+    ServerCall& call = calls[busy[k]];
+    pending.push_back(
+        transports_[busy[k]]->CallAsync(call.request, &call.response));
+  }
+  ServerCall& last = calls[busy.back()];
+  last.status = transports_[busy.back()]->Call(last.request, &last.response);
+  for (size_t k = 0; k < pending.size(); ++k) {
+    calls[busy[k]].status = pending[k].get();
+  }
+
+  std::vector<absl::StatusOr<StepData>> out(steps.size());
+  absl::Status first_failure;
+  bool any_answered = false;
+  for (size_t server : busy) {
+    ServerCall& call = calls[server];
+    if (!call.status.ok()) {
+      if (transports_.size() > 1) {
+        call.status = AtServer(*transports_[server], call.status);
+      }
+      if (first_failure.ok()) first_failure = call.status;
+      for (size_t item : call.items) out[item] = call.status;
+      continue;
+    }
+    any_answered = true;
+    const auto& results = call.response.step_batch().results();
+    if (results.size() != static_cast<int>(call.items.size())) {
+      return absl::InternalError(absl::StrCat(
+          "StepBatch sent ", call.items.size(), " steps to ",
+          transports_[server]->address(), " and received ", results.size(),
+          " results"));
+    }
+    for (size_t k = 0; k < call.items.size(); ++k) {
+      const v1::StepBatchResult& result = results[static_cast<int>(k)];
+      out[call.items[k]] =
+          result.has_error()
+              ? absl::StatusOr<StepData>(
+                    client_internal::FromItemError(result.error()))
+              : client_internal::DecodeStepData(result.data());
     }
   }
+  if (!any_answered) return first_failure;
   return out;
 }
 

@@ -114,6 +114,25 @@ class UnaryTransport final : public Transport {
 
   bool is_session() const override { return false; }
 
+  std::future<absl::Status> CallAsync(v1::SessionRequest& request,
+                                      v1::SessionResponse* response) override {
+    // StepBatch is the one operation a client fans out over servers.
+    if (request.op_case() != v1::SessionRequest::kStepBatch) {
+      return Transport::CallAsync(request, response);
+    }
+    // The context lives until gRPC drops the callback, after the call ends.
+    auto context = std::make_shared<grpc::ClientContext>();
+    Prepare(context.get(), /*unary=*/true);
+    auto done = std::make_shared<std::promise<absl::Status>>();
+    std::future<absl::Status> result = done->get_future();
+    stub_->async()->StepBatch(
+        context.get(), &request.step_batch(), response->mutable_step_batch(),
+        [context, done](grpc::Status status) {
+          done->set_value(FromGrpc(status));
+        });
+    return result;
+  }
+
  private:
   template <typename Request, typename Response>
   absl::Status Unary(grpc::Status (v1::MultiLunarLander::Stub::*method)(
@@ -129,9 +148,9 @@ class UnaryTransport final : public Transport {
 // response), which is what keeps responses in request order.
 class SessionTransport final : public Transport {
  public:
-  SessionTransport(std::shared_ptr<grpc::Channel> channel,
+  SessionTransport(std::string address, std::shared_ptr<grpc::Channel> channel,
                    ClientOptions options)
-      : Transport(std::move(channel), std::move(options)) {
+      : Transport(std::move(address), std::move(channel), std::move(options)) {
     Prepare(&context_, /*unary=*/false);
     stream_ = stub_->Session(&context_);
   }
@@ -188,6 +207,22 @@ class SessionTransport final : public Transport {
   absl::Status end_status_ ABSL_GUARDED_BY(mu_);
 };
 
+// gRPC accepts only printable ASCII in metadata values; a token with a space
+// or a newline (a token file read whole) would fail every call obscurely.
+// The message never repeats the token.
+absl::Status CheckToken(const std::string& token) {
+  for (size_t i = 0; i < token.size(); ++i) {
+    const unsigned char c = static_cast<unsigned char>(token[i]);
+    if (c <= ' ' || c > '~') {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "token has character code ", static_cast<int>(c), " at position ",
+          i, " (of ", token.size(),
+          "); allowed: printable ASCII without spaces"));
+    }
+  }
+  return absl::OkStatus();
+}
+
 }  // namespace
 
 absl::Status FromGrpc(const grpc::Status& status) {
@@ -204,11 +239,19 @@ absl::Status FromItemError(const v1::ItemError& error) {
                       error.message());
 }
 
-Transport::Transport(std::shared_ptr<grpc::Channel> channel,
+Transport::Transport(std::string address, std::shared_ptr<grpc::Channel> channel,
                      ClientOptions options)
-    : channel_(std::move(channel)),
+    : address_(std::move(address)),
+      channel_(std::move(channel)),
       options_(std::move(options)),
       stub_(v1::MultiLunarLander::NewStub(channel_)) {}
+
+std::future<absl::Status> Transport::CallAsync(v1::SessionRequest& request,
+                                               v1::SessionResponse* response) {
+  return std::async(std::launch::async, [this, &request, response] {
+    return Call(request, response);
+  });
+}
 
 void Transport::Prepare(grpc::ClientContext* context, bool unary) const {
   if (!options_.token.empty()) {
@@ -259,7 +302,7 @@ absl::Status Transport::CheckHealth(absl::string_view service) const {
 
 absl::StatusOr<std::shared_ptr<Transport>> Transport::OpenSession() const {
   return std::shared_ptr<Transport>(
-      std::make_shared<SessionTransport>(channel_, options_));
+      std::make_shared<SessionTransport>(address_, channel_, options_));
 }
 
 absl::StatusOr<std::shared_ptr<Transport>> MakeUnaryTransport(
@@ -273,20 +316,33 @@ absl::StatusOr<std::shared_ptr<Transport>> MakeUnaryTransport(
         absl::StrCat("max_receive_message_bytes is ",
                      options.max_receive_message_bytes, "; must be > 0"));
   }
+  absl::Status token = CheckToken(options.token);
+  if (!token.ok()) return token;
+  if (!options.use_tls && (!options.tls_root_certificates.empty() ||
+                           !options.tls_target_name_override.empty())) {
+    // Silently speaking plaintext when TLS settings were given would send
+    // the token in the clear.
+    return absl::InvalidArgumentError(
+        "tls_root_certificates or tls_target_name_override is set but "
+        "use_tls is false; set use_tls for TLS");
+  }
   std::shared_ptr<grpc::ChannelCredentials> credentials;
+  grpc::ChannelArguments arguments;
   if (options.use_tls) {
     grpc::SslCredentialsOptions ssl;
     ssl.pem_root_certs = options.tls_root_certificates;
     credentials = grpc::SslCredentials(ssl);
+    if (!options.tls_target_name_override.empty()) {
+      arguments.SetSslTargetNameOverride(options.tls_target_name_override);
+    }
   } else {
     credentials = grpc::InsecureChannelCredentials();
   }
-  grpc::ChannelArguments arguments;
   arguments.SetMaxReceiveMessageSize(options.max_receive_message_bytes);
   std::shared_ptr<grpc::Channel> channel = grpc::CreateCustomChannel(
       std::string(address), credentials, arguments);
-  return std::shared_ptr<Transport>(
-      std::make_shared<UnaryTransport>(std::move(channel), options));
+  return std::shared_ptr<Transport>(std::make_shared<UnaryTransport>(
+      std::string(address), std::move(channel), options));
 }
 
 }  // namespace client_internal

@@ -5,7 +5,9 @@
 #ifndef MLL_CLIENT_SRC_TRANSPORT_H_
 #define MLL_CLIENT_SRC_TRANSPORT_H_
 
+#include <future>
 #include <memory>
+#include <string>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
@@ -25,7 +27,8 @@ absl::Status FromItemError(const v1::ItemError& error);
 
 class Transport {
  public:
-  Transport(std::shared_ptr<grpc::Channel> channel, ClientOptions options);
+  Transport(std::string address, std::shared_ptr<grpc::Channel> channel,
+            ClientOptions options);
   virtual ~Transport() = default;
   Transport(const Transport&) = delete;
   Transport& operator=(const Transport&) = delete;
@@ -36,6 +39,17 @@ class Transport {
   virtual absl::Status Call(v1::SessionRequest& request,
                             v1::SessionResponse* response) = 0;
   virtual bool is_session() const = 0;
+
+  // Call without waiting: the future holds Call's status, and `request` and
+  // `response` must live until it is ready. This base version runs Call on a
+  // thread of its own (a session's stream is synchronous); unary transports
+  // use gRPC's callback API instead, so that calls to several servers are in
+  // flight together without a thread each.
+  virtual std::future<absl::Status> CallAsync(v1::SessionRequest& request,
+                                              v1::SessionResponse* response);
+
+  // The address the transport was made for (the same for its sessions).
+  const std::string& address() const { return address_; }
 
   // Operations that exist only as unary RPCs, whatever the mode.
   absl::Status ListEnvs(const v1::ListEnvsRequest& request,
@@ -49,6 +63,7 @@ class Transport {
   // Adds the token and, for unary calls, the deadline.
   void Prepare(grpc::ClientContext* context, bool unary) const;
 
+  std::string address_;
   std::shared_ptr<grpc::Channel> channel_;
   ClientOptions options_;
   std::unique_ptr<v1::MultiLunarLander::Stub> stub_;

@@ -10,15 +10,30 @@
 //   mll_cli render envs/ID --out=frame.png
 //   mll_cli delete envs/ID
 //   mll_cli play --policy=heuristic --episodes=3 --n_landers=4 [--name=envs/ID]
+//   mll_cli play --address=HOST1:PORT,HOST2:PORT --envs=4
 //
-// Every command takes --address (default 127.0.0.1:50051). Exit codes: 0 done,
-// 1 the server or the transport failed (its code and message are printed),
-// 2 bad command line.
+// Every command takes --address (default 127.0.0.1:50051), a comma-separated
+// list for several servers: `list` lists all of them, `play` spreads its envs
+// over them round-robin and steps them with one StepBatch per server, `create`
+// uses --server (default the first), and commands naming an env find it on
+// whichever server has it. Security:
+//   --tls                  TLS with gRPC's default root certificates;
+//   --tls_root_cert=PATH   TLS trusting the PEM certificates in PATH (for a
+//                          self-signed server certificate, the certificate);
+//   --tls_server_name=NAME check the server's certificate for NAME;
+//   --token=T | --token_file=PATH | environment variable MLL_TOKEN
+//                          bearer token sent with every call. Precedence:
+//                          --token, then --token_file (giving both is an
+//                          error), then MLL_TOKEN; none sends no token.
+// Exit codes: 0 done, 1 the server or the transport failed (its code and
+// message are printed), 2 bad command line.
 #include <chrono>
 #include <cmath>
 #include <cstdint>
+#include <cstdlib>
 #include <fstream>
 #include <iostream>
+#include <iterator>
 #include <map>
 #include <optional>
 #include <string>
@@ -33,20 +48,39 @@
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
+#include "absl/strings/strip.h"
 #include "config_flags.h"
 #include "core_bridge.h"
 #include "mll/client.h"
 
-ABSL_FLAG(std::string, address, "127.0.0.1:50051", "Server address host:port.");
-ABSL_FLAG(std::string, token, "", "Bearer token sent with every call.");
+ABSL_FLAG(std::string, address, "127.0.0.1:50051",
+          "Server address host:port, or a comma-separated list of servers.");
+ABSL_FLAG(std::string, token, "",
+          "Bearer token sent with every call (beats --token_file's and "
+          "MLL_TOKEN's).");
+ABSL_FLAG(std::string, token_file, "",
+          "File holding the bearer token: its one line that is not blank and "
+          "does not start with '#' (beats MLL_TOKEN).");
+ABSL_FLAG(bool, tls, false, "TLS with gRPC's default root certificates.");
+ABSL_FLAG(std::string, tls_root_cert, "",
+          "TLS trusting the PEM root certificates in this file.");
+ABSL_FLAG(std::string, tls_server_name, "",
+          "TLS: check the server's certificate for this name instead of the "
+          "address's host.");
+ABSL_FLAG(int, server, -1,
+          "create: index of the server in --address's list (default: the "
+          "first).");
+ABSL_FLAG(int, envs, 0,
+          "play: number of envs flown together, spread over the servers "
+          "(default: one per server).");
 ABSL_FLAG(int, timeout_ms, 30000, "Deadline of each call in ms; 0 for none.");
 ABSL_FLAG(std::string, name, "",
           "Environment name envs/ID (or give it as the argument after the "
           "command). For play: fly this env instead of creating one.");
 ABSL_FLAG(std::string, seed, "",
           "reset: reseed with this unsigned integer (empty continues the "
-          "stream). play: episode k is reset with seed + k (default 0); also "
-          "seeds the random policy.");
+          "stream). play: episode k of env j (of N) is reset with seed + k*N "
+          "+ j (default seed 0); seed + j also seeds env j's random policy.");
 ABSL_FLAG(std::string, actions, "",
           "step: comma-separated actions, one per lander (discrete) or two per "
           "lander [main, lateral] (continuous).");
@@ -142,6 +176,68 @@ absl::StatusOr<std::optional<uint64_t>> SeedFlag() {
   return std::optional<uint64_t>(seed);
 }
 
+absl::StatusOr<std::string> ReadFile(const std::string& path,
+                                     absl::string_view flag) {
+  std::ifstream file(path, std::ios::binary);
+  if (!file) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(flag, " is \"", path, "\", which cannot be read"));
+  }
+  return std::string(std::istreambuf_iterator<char>(file), {});
+}
+
+// The token from --token, --token_file or MLL_TOKEN, in that order; the
+// messages never repeat a token.
+absl::StatusOr<std::string> Token() {
+  const std::string flag = absl::GetFlag(FLAGS_token);
+  const std::string path = absl::GetFlag(FLAGS_token_file);
+  if (!flag.empty() && !path.empty()) {
+    return absl::InvalidArgumentError(
+        "token and token_file are both set; give one");
+  }
+  if (!flag.empty()) return flag;
+  if (path.empty()) {
+    const char* environment = std::getenv("MLL_TOKEN");
+    return std::string(environment != nullptr ? environment : "");
+  }
+  absl::StatusOr<std::string> text = ReadFile(path, "token_file");
+  if (!text.ok()) return text.status();
+  std::vector<std::string> tokens;
+  for (absl::string_view line : absl::StrSplit(*text, '\n')) {
+    line = absl::StripAsciiWhitespace(line);
+    if (!line.empty() && line[0] != '#') tokens.emplace_back(line);
+  }
+  if (tokens.size() != 1) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "token_file \"", path, "\" has ", tokens.size(),
+        " tokens; expected exactly one line that is not blank or a comment"));
+  }
+  return tokens[0];
+}
+
+absl::StatusOr<ClientOptions> OptionsFromFlags() {
+  ClientOptions options;
+  const int timeout_ms = absl::GetFlag(FLAGS_timeout_ms);
+  if (timeout_ms < 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("timeout_ms is ", timeout_ms, "; must be >= 0"));
+  }
+  options.call_timeout = std::chrono::milliseconds(timeout_ms);
+  absl::StatusOr<std::string> token = Token();
+  if (!token.ok()) return token.status();
+  options.token = *std::move(token);
+  const std::string root_path = absl::GetFlag(FLAGS_tls_root_cert);
+  if (!root_path.empty()) {
+    absl::StatusOr<std::string> roots = ReadFile(root_path, "tls_root_cert");
+    if (!roots.ok()) return roots.status();
+    options.tls_root_certificates = *std::move(roots);
+  }
+  options.tls_target_name_override = absl::GetFlag(FLAGS_tls_server_name);
+  options.use_tls = absl::GetFlag(FLAGS_tls) || !root_path.empty() ||
+                    !options.tls_target_name_override.empty();
+  return options;
+}
+
 absl::Status WriteFile(const std::string& path, const std::string& bytes) {
   std::ofstream file(path, std::ios::binary);
   file.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
@@ -179,7 +275,14 @@ Result Create(const Client& client, const std::vector<std::string>& args) {
   if (!config.ok()) return Usage(config.status());
   RemoteEnvConfig remote = RemoteConfigFrom(*config);
   remote.auto_reset = absl::GetFlag(FLAGS_auto_reset);
-  absl::StatusOr<RemoteEnv> env = client.CreateEnv(remote);
+  const int server = absl::GetFlag(FLAGS_server);
+  if (server < -1 || server >= client.server_count()) {
+    return Usage(absl::InvalidArgumentError(absl::StrCat(
+        "server is ", server, "; allowed: -1 (the first) or 0..",
+        client.server_count() - 1, " (an index into --address's list)")));
+  }
+  absl::StatusOr<RemoteEnv> env =
+      client.CreateEnvOn(server < 0 ? 0 : server, remote);
   if (!env.ok()) return Server(env.status());
   // The env outlives this process: the caller refers to it by name.
   env->Release();
@@ -278,8 +381,10 @@ Result Render(const Client& client, const std::vector<std::string>& args) {
   return std::nullopt;
 }
 
-// Flies every lander of an env through the server; prints one line per
-// episode and a summary, in mll_rollout's format.
+// Flies every lander of N envs (spread over the servers) through the
+// servers, stepping them together with StepBatch; prints one line per env and
+// episode and a summary, in mll_rollout's format (with one env, the same
+// lines as mll_rollout's).
 Result Play(const Client& client, const std::vector<std::string>& args) {
   if (!args.empty()) {
     return Usage(absl::InvalidArgumentError(
@@ -296,19 +401,41 @@ Result Play(const Client& client, const std::vector<std::string>& args) {
   absl::StatusOr<std::optional<uint64_t>> seed_flag = SeedFlag();
   if (!seed_flag.ok()) return Usage(seed_flag.status());
   const uint64_t base_seed = seed_flag->value_or(0);
-
-  absl::StatusOr<RemoteEnv> env;
   const std::string name = absl::GetFlag(FLAGS_name);
+  const int envs_flag = absl::GetFlag(FLAGS_envs);
+  // Bounded so that a typo cannot ask the servers for millions of envs.
+  constexpr int kMaxPlayEnvs = 1024;
+  if (envs_flag < 0 || envs_flag > kMaxPlayEnvs ||
+      (!name.empty() && envs_flag > 1)) {
+    return Usage(absl::InvalidArgumentError(absl::StrCat(
+        "envs is ", envs_flag, "; allowed: 0 (one per server) or 1..",
+        kMaxPlayEnvs, ", and only 0 or 1 with --name")));
+  }
+  const int n_envs =
+      !name.empty() ? 1 : (envs_flag > 0 ? envs_flag : client.server_count());
+
+  std::vector<RemoteEnv> envs;
   if (name.empty()) {
     absl::StatusOr<EnvConfig> config = EnvConfigFromFlags();
     if (!config.ok()) return Usage(config.status());
-    env = client.CreateEnv(RemoteConfigFrom(*config));  // Deleted at exit.
+    for (int j = 0; j < n_envs; ++j) {
+      // Round-robin over the servers; deleted at exit.
+      absl::StatusOr<RemoteEnv> env =
+          client.CreateEnv(RemoteConfigFrom(*config));
+      if (!env.ok()) return Server(env.status());
+      envs.push_back(*std::move(env));
+    }
   } else {
-    env = client.Attach(name);
+    absl::StatusOr<RemoteEnv> env = client.Attach(name);
+    if (!env.ok()) return Server(env.status());
+    envs.push_back(*std::move(env));
   }
-  if (!env.ok()) return Server(env.status());
-  const int n = env->n_landers();
-  RemotePilot pilot(*policy, n, env->continuous(), base_seed);
+  const int n = envs[0].n_landers();
+  std::vector<RemotePilot> pilots;
+  for (int j = 0; j < n_envs; ++j) {
+    pilots.emplace_back(*policy, n, envs[j].continuous(),
+                        base_seed + static_cast<uint64_t>(j));
+  }
 
   std::vector<double> return_sums(n, 0.0);
   int64_t landed = 0;
@@ -316,49 +443,82 @@ Result Play(const Client& client, const std::vector<std::string>& args) {
   int64_t agent_steps = 0;
   const auto start = std::chrono::steady_clock::now();
   for (int episode = 0; episode < episodes; ++episode) {
-    const uint64_t seed = base_seed + static_cast<uint64_t>(episode);
-    absl::StatusOr<StepData> data = env->Reset(seed);
-    if (!data.ok()) return Server(data.status());
-    int steps = 0;
-    while (!data->episode_over) {
-      data = env->Step(pilot.Act(*data));
+    std::vector<StepData> last(n_envs);
+    std::vector<uint64_t> seeds(n_envs);
+    std::vector<int> steps(n_envs, 0);
+    for (int j = 0; j < n_envs; ++j) {
+      seeds[j] = base_seed + static_cast<uint64_t>(episode) * n_envs + j;
+      absl::StatusOr<StepData> data = envs[j].Reset(seeds[j]);
       if (!data.ok()) return Server(data.status());
-      ++steps;
+      last[j] = *std::move(data);
     }
-    // Outcomes, returns and lengths are reported for every agent, done or not.
-    const std::vector<float>& returns = data->episode_returns;
-    const std::vector<int32_t>& lengths = data->episode_lengths;
-    const std::vector<LanderOutcome>& outcomes = data->outcomes;
-    for (int a = 0; a < n; ++a) {
-      return_sums[a] += returns[a];
-      landed += outcomes[a] == LanderOutcome::kLanded;
-      agent_steps += lengths[a];
+    // Every env still flying, one StepBatch call per server, until all are
+    // over (episodes are bounded by max_cycles).
+    std::vector<int> flying;
+    for (int j = 0; j < n_envs; ++j) {
+      if (!last[j].episode_over) flying.push_back(j);
     }
-    total_steps += steps;
-    std::cout << absl::StrCat(
-                     "{\"episode\":", episode, ",\"seed\":", seed,
-                     ",\"steps\":", steps, ",\"returns\":",
-                     PerAgent(n, [&](int a) { return JsonNumber(returns[a]); }),
-                     ",\"lengths\":",
-                     PerAgent(n, [&](int a) { return lengths[a]; }),
-                     ",\"outcomes\":", PerAgent(n, [&](int a) {
-                       return Quoted(LanderOutcomeName(outcomes[a]));
-                     }),
-                     "}")
-              << std::endl;
+    while (!flying.empty()) {
+      std::vector<BatchStep> batch;
+      for (int j : flying) batch.push_back({&envs[j], pilots[j].Act(last[j])});
+      absl::StatusOr<std::vector<absl::StatusOr<StepData>>> results =
+          client.StepBatch(batch);
+      if (!results.ok()) return Server(results.status());
+      std::vector<int> still_flying;
+      for (size_t k = 0; k < flying.size(); ++k) {
+        const int j = flying[k];
+        absl::StatusOr<StepData>& result = (*results)[k];
+        if (!result.ok()) {
+          return Server(absl::Status(
+              result.status().code(),
+              absl::StrCat(envs[j].name(), ": ", result.status().message())));
+        }
+        last[j] = *std::move(result);
+        ++steps[j];
+        if (!last[j].episode_over) still_flying.push_back(j);
+      }
+      flying = std::move(still_flying);
+    }
+    for (int j = 0; j < n_envs; ++j) {
+      // Outcomes, returns and lengths are reported for every agent, done or
+      // not.
+      const std::vector<float>& returns = last[j].episode_returns;
+      const std::vector<int32_t>& lengths = last[j].episode_lengths;
+      const std::vector<LanderOutcome>& outcomes = last[j].outcomes;
+      for (int a = 0; a < n; ++a) {
+        return_sums[a] += returns[a];
+        landed += outcomes[a] == LanderOutcome::kLanded;
+        agent_steps += lengths[a];
+      }
+      total_steps += steps[j];
+      std::cout << absl::StrCat(
+                       "{\"episode\":", episode, ",\"seed\":", seeds[j],
+                       ",\"steps\":", steps[j], ",\"returns\":",
+                       PerAgent(n, [&](int a) { return JsonNumber(returns[a]); }),
+                       ",\"lengths\":",
+                       PerAgent(n, [&](int a) { return lengths[a]; }),
+                       ",\"outcomes\":", PerAgent(n, [&](int a) {
+                         return Quoted(LanderOutcomeName(outcomes[a]));
+                       }),
+                       ",\"env\":", Quoted(envs[j].name()), ",\"server\":",
+                       Quoted(client.address(envs[j].server())), "}")
+                << std::endl;
+    }
   }
   const double seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
           .count();
+  const int64_t env_episodes = static_cast<int64_t>(episodes) * n_envs;
   std::cout << absl::StrCat(
                    "{\"summary\":true,\"episodes\":", episodes,
+                   ",\"envs\":", n_envs,
                    ",\"mean_return\":", PerAgent(n, [&](int a) {
-                     return JsonNumber(return_sums[a] / episodes);
+                     return JsonNumber(return_sums[a] / env_episodes);
                    }),
                    ",\"landing_rate\":",
-                   JsonNumber(static_cast<double>(landed) / (episodes * n)),
+                   JsonNumber(static_cast<double>(landed) / (env_episodes * n)),
                    ",\"mean_steps\":",
-                   JsonNumber(static_cast<double>(total_steps) / episodes),
+                   JsonNumber(static_cast<double>(total_steps) / env_episodes),
                    ",\"agent_steps\":", agent_steps,
                    ",\"agent_steps_per_second\":",
                    JsonNumber(seconds > 0 ? agent_steps / seconds : 0.0), "}")
@@ -396,17 +556,14 @@ int Run(const std::vector<char*>& positional) {
               << "\"; one of " << CommandNames() << std::endl;
     return kExitUsage;
   }
-  const int timeout_ms = absl::GetFlag(FLAGS_timeout_ms);
-  if (timeout_ms < 0) {
-    std::cerr << "mll_cli: timeout_ms is " << timeout_ms << "; must be >= 0"
-              << std::endl;
+  absl::StatusOr<ClientOptions> options = OptionsFromFlags();
+  if (!options.ok()) {
+    std::cerr << "mll_cli: " << options.status() << std::endl;
     return kExitUsage;
   }
-  ClientOptions options;
-  options.token = absl::GetFlag(FLAGS_token);
-  options.call_timeout = std::chrono::milliseconds(timeout_ms);
-  absl::StatusOr<Client> client =
-      Client::Create(absl::GetFlag(FLAGS_address), options);
+  const std::vector<std::string> addresses =
+      absl::StrSplit(absl::GetFlag(FLAGS_address), ',');
+  absl::StatusOr<Client> client = Client::Create(addresses, *options);
   if (!client.ok()) {
     std::cerr << "mll_cli: " << client.status() << std::endl;
     return kExitUsage;

@@ -33,11 +33,8 @@ class CliTest : public ::testing::Test {
 
   // mll_cli <args> --address=<the server>.
   static CommandResult Cli(std::vector<std::string> args) {
-    args.insert(args.begin(), MLL_CLI_PATH);
     args.push_back(absl::StrCat("--address=", server_->address()));
-    absl::StatusOr<CommandResult> result = RunCommand(args);
-    EXPECT_TRUE(result.ok()) << result.status();
-    return result.ok() ? *result : CommandResult();
+    return RunCli(std::move(args));
   }
 
   // Creates an env and returns its name, from create's JSON.
@@ -45,10 +42,9 @@ class CliTest : public ::testing::Test {
     flags.insert(flags.begin(), "create");
     const CommandResult created = Cli(flags);
     EXPECT_EQ(created.exit_code, 0) << created.err;
-    std::smatch match;
-    static const std::regex kName("\"name\":\"(envs/[^\"]+)\"");
-    EXPECT_TRUE(std::regex_search(created.out, match, kName)) << created.out;
-    return match.size() > 1 ? match[1].str() : "";
+    const std::string name = EnvNameIn(created.out);
+    EXPECT_FALSE(name.empty()) << created.out;
+    return name;
   }
 
   static inline ServerProcess* server_ = nullptr;

@@ -9,6 +9,7 @@
 #include <chrono>
 #include <cstdlib>
 #include <fstream>
+#include <regex>
 #include <sstream>
 #include <thread>
 
@@ -62,7 +63,7 @@ absl::StatusOr<pid_t> Spawn(const std::vector<std::string>& argv,
       const int err = open(err_path.c_str(), O_WRONLY | O_TRUNC);
       dup2(err, STDERR_FILENO);
     }
-    execv(args[0], args.data());
+    execvp(args[0], args.data());
     _exit(127);
   }
   return pid;
@@ -165,6 +166,64 @@ absl::StatusOr<CommandResult> RunCommand(const std::vector<std::string>& argv,
   unlink(out_path->c_str());
   unlink(err_path->c_str());
   return result;
+}
+
+CommandResult RunCli(std::vector<std::string> args) {
+  args.insert(args.begin(), MLL_CLI_PATH);
+  absl::StatusOr<CommandResult> result = RunCommand(args);
+  if (result.ok()) return *result;
+  CommandResult failed;
+  failed.err = result.status().ToString();
+  return failed;
+}
+
+std::string EnvNameIn(const std::string& json) {
+  static const std::regex kName("\"name\":\"(envs/[^\"]+)\"");
+  std::smatch match;
+  return std::regex_search(json, match, kName) ? match[1].str() : "";
+}
+
+absl::StatusOr<std::string> WriteTempFile(const std::string& stem,
+                                          const std::string& contents) {
+  absl::StatusOr<std::string> path = MakeTempFile(stem);
+  if (!path.ok()) return path.status();
+  std::ofstream file(*path, std::ios::binary | std::ios::trunc);
+  file << contents;
+  file.close();
+  if (!file) return absl::InternalError(absl::StrCat("cannot write ", *path));
+  return path;
+}
+
+absl::StatusOr<Certificate> MakeSelfSignedCertificate(
+    const std::string& stem, const std::string& subject_alt_names) {
+  Certificate certificate;
+  absl::StatusOr<std::string> cert_file = MakeTempFile(stem + "_cert");
+  if (!cert_file.ok()) return cert_file.status();
+  absl::StatusOr<std::string> key_file = MakeTempFile(stem + "_key");
+  if (!key_file.ok()) return key_file.status();
+  certificate.cert_file = *cert_file;
+  certificate.key_file = *key_file;
+  absl::StatusOr<CommandResult> openssl = RunCommand(
+      {"openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt",
+       "ec_paramgen_curve:prime256v1", "-nodes", "-days", "2", "-subj",
+       "/CN=mll-test", "-addext",
+       absl::StrCat("subjectAltName=", subject_alt_names), "-keyout",
+       certificate.key_file, "-out", certificate.cert_file},
+      60);
+  if (!openssl.ok()) return openssl.status();
+  if (openssl->exit_code != 0) {
+    return absl::InternalError(absl::StrCat("openssl req exited ",
+                                            openssl->exit_code, ": ",
+                                            openssl->err));
+  }
+  certificate.cert_pem = ReadFile(certificate.cert_file);
+  if (certificate.cert_pem.find("-----BEGIN CERTIFICATE-----") ==
+      std::string::npos) {
+    return absl::InternalError(
+        absl::StrCat("openssl wrote no PEM certificate to ",
+                     certificate.cert_file));
+  }
+  return certificate;
 }
 
 }  // namespace mll

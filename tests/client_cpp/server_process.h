@@ -48,9 +48,32 @@ struct CommandResult {
 };
 
 // Runs `argv` to completion (killed after `timeout_seconds`), capturing both
-// output streams.
+// output streams. argv[0] without a slash is looked up in PATH.
 absl::StatusOr<CommandResult> RunCommand(const std::vector<std::string>& argv,
                                          int timeout_seconds = 120);
+
+// mll_cli (the build's, MLL_CLI_PATH) with `args`, to completion; when it
+// cannot be run, exit_code is -1 and err says why.
+CommandResult RunCli(std::vector<std::string> args);
+
+// The env name in mll_cli's JSON output (`"name":"envs/..."`); empty if none.
+std::string EnvNameIn(const std::string& json);
+
+// A new file in the temporary directory holding `contents`; its path.
+absl::StatusOr<std::string> WriteTempFile(const std::string& stem,
+                                          const std::string& contents);
+
+// A fresh self-signed P-256 certificate and its key, made with the openssl
+// CLI for `subject_alt_names` (e.g. "DNS:localhost,IP:127.0.0.1"), in files
+// of the temporary directory.
+struct Certificate {
+  std::string cert_file;
+  std::string key_file;
+  // The certificate's PEM text: a client's root for this server.
+  std::string cert_pem;
+};
+absl::StatusOr<Certificate> MakeSelfSignedCertificate(
+    const std::string& stem, const std::string& subject_alt_names);
 
 }  // namespace mll
 

@@ -6,6 +6,20 @@
 // OpenSession()` returns a client whose calls travel over one bidirectional
 // `Session` stream instead (the lowest latency), with the same methods.
 //
+// Several servers (scale-out): `Client::Create(addresses)` makes one client
+// over a list of servers. Each environment lives on one server for its life:
+// CreateEnv places them round-robin (CreateEnvOn picks the server), and the
+// handle's calls go to that server only. StepBatch splits a batch by server,
+// sends one StepBatch per server, all in flight at once, and returns results
+// in the caller's order. ListEnvs concatenates every server's list; GetEnv,
+// Attach and DeleteEnv look a name up on each server in turn. A session
+// client over several servers holds one stream per server.
+//
+// Security: `ClientOptions` selects TLS (root certificates, target name
+// override) and a bearer token, which is sent on every call: unary calls,
+// Session streams and health checks (a server with tokens answers health
+// checks without one too).
+//
 // Results are plain C++ types; no protobuf or gRPC type appears here. Errors
 // are absl::Status values carrying the server's canonical code and message
 // (INVALID_ARGUMENT, NOT_FOUND, FAILED_PRECONDITION, UNAVAILABLE, ...).
@@ -20,6 +34,7 @@
 #define MLL_CLIENT_H_
 
 #include <array>
+#include <atomic>
 #include <chrono>
 #include <cstdint>
 #include <memory>
@@ -42,10 +57,16 @@ class Transport;
 struct ClientOptions {
   // TLS instead of a plaintext channel.
   bool use_tls = false;
-  // PEM root certificates for TLS; empty uses gRPC's default roots.
+  // PEM root certificates for TLS (the text, not a path); empty uses gRPC's
+  // default roots. A self-signed server certificate is its own root.
   std::string tls_root_certificates;
+  // TLS: when non-empty, the name the server's certificate is checked
+  // against instead of the address's host (e.g. a certificate for
+  // "mll.internal" reached as 10.0.0.7:50051).
+  std::string tls_target_name_override;
   // When non-empty, sent as `authorization: Bearer <token>` on every call
   // (the server answers UNAUTHENTICATED when it wants one and this is wrong).
+  // Printable ASCII without spaces, else Create fails INVALID_ARGUMENT.
   std::string token;
   // Deadline of each unary call; zero means none. Session calls have none:
   // the stream lives as long as the session.
@@ -124,6 +145,9 @@ struct EnvInfo {
   int cycles = 0;
   int64_t episodes = 0;
   bool session_bound = false;
+  // Index of the server hosting the environment in the client's address
+  // list (0 with one server).
+  int server = 0;
   // The whole resource in protobuf's JSON mapping (field names as in the
   // proto), for logs and tools such as mll_cli.
   std::string json;
@@ -249,6 +273,8 @@ class RemoteEnv {
   const EnvInfo& info() const { return info_; }
   int n_landers() const { return info_.n_landers(); }
   bool continuous() const { return info_.continuous(); }
+  // Index of the environment's server in its client's address list.
+  int server() const { return info_.server; }
   // Whether destruction deletes the environment.
   bool owned() const { return owned_; }
 
@@ -306,9 +332,15 @@ struct BatchStep {
 
 class Client {
  public:
-  // A client for the server at `address` ("host:port"). Connects lazily: an
-  // unreachable server shows as UNAVAILABLE on the first call.
+  // A client for the server at `address` ("host:port", or any gRPC target).
+  // Connects lazily: an unreachable server shows as UNAVAILABLE on the first
+  // call. INVALID_ARGUMENT for an empty address or bad options.
   static absl::StatusOr<Client> Create(absl::string_view address,
+                                       const ClientOptions& options = {});
+  // A client over several servers (see the top of this file), all with the
+  // same options; server i is addresses[i]. INVALID_ARGUMENT when the list is
+  // empty, an address is empty or appears twice.
+  static absl::StatusOr<Client> Create(const std::vector<std::string>& addresses,
                                        const ClientOptions& options = {});
 
   Client(Client&&) noexcept;
@@ -321,29 +353,62 @@ class Client {
   absl::StatusOr<Client> OpenSession() const;
   bool is_session() const;
 
-  // grpc.health.v1 Check of `service` ("" is the whole server): OK when
-  // SERVING, UNAVAILABLE otherwise.
+  // Number of servers, and the address of server `server` (0..count-1).
+  int server_count() const { return static_cast<int>(transports_.size()); }
+  const std::string& address(int server) const;
+
+  // grpc.health.v1 Check of `service` ("" is the whole server) on every
+  // server: OK when all are SERVING; else the first failure (UNAVAILABLE when
+  // not SERVING), prefixed with its address when there are several servers.
   absl::Status CheckHealth(absl::string_view service = "") const;
 
-  // Creates an environment; the handle owns it. `detached` matters on a
-  // session only: the env outlives the stream.
+  // Creates an environment on the next server in round-robin order (shared
+  // by the threads using this client); the handle owns it. `detached`
+  // matters on a session only: the env outlives the stream.
   absl::StatusOr<RemoteEnv> CreateEnv(const RemoteEnvConfig& config = {},
                                        bool detached = false) const;
+  // Creates an environment on server `server`; INVALID_ARGUMENT when it is
+  // not in 0..server_count()-1.
+  absl::StatusOr<RemoteEnv> CreateEnvOn(int server,
+                                         const RemoteEnvConfig& config = {},
+                                         bool detached = false) const;
   // A handle to an existing environment that does not own it.
   absl::StatusOr<RemoteEnv> Attach(absl::string_view name) const;
+  // With several servers, each is asked in order until one does not answer
+  // NOT_FOUND; NOT_FOUND when none has the name.
   absl::StatusOr<EnvInfo> GetEnv(absl::string_view name) const;
-  // Every environment, following the pages (always unary).
+  // Every environment of every server (server 0's first), following the
+  // pages (always unary). A server's failure fails the whole list.
   absl::StatusOr<std::vector<EnvInfo>> ListEnvs() const;
+  // Looks the name up as GetEnv does.
   absl::Status DeleteEnv(absl::string_view name) const;
-  // One parallel step of many environments in one call. The outer status is
-  // the call's; each item has its own (errors of one env leave the others).
+  // One parallel step of many environments; results in `steps` order. Each
+  // item goes to its handle's server, which must be one of this client's
+  // (INVALID_ARGUMENT otherwise); each server gets one StepBatch call, all in
+  // flight at once. Each item has its own status (errors of one env leave the
+  // others); when a server's call fails (e.g. UNAVAILABLE), each of its items
+  // carries that status, prefixed with the server's address when there are
+  // several. The outer status fails on bad input, or when every server's
+  // call failed (the first such status).
   absl::StatusOr<std::vector<absl::StatusOr<StepData>>> StepBatch(
       absl::Span<const BatchStep> steps) const;
 
  private:
   friend class RemoteEnv;
-  explicit Client(std::shared_ptr<client_internal::Transport> transport);
-  std::shared_ptr<client_internal::Transport> transport_;
+  explicit Client(
+      std::vector<std::shared_ptr<client_internal::Transport>> transports);
+  absl::StatusOr<RemoteEnv> CreateEnvAt(size_t server,
+                                         const RemoteEnvConfig& config,
+                                         bool detached) const;
+  // Index of the server whose transport `env` uses; INVALID_ARGUMENT naming
+  // `what` when it is not a live handle or none of this client's servers has
+  // its address.
+  absl::StatusOr<size_t> ServerOf(const RemoteEnv* env,
+                                  absl::string_view what) const;
+
+  std::vector<std::shared_ptr<client_internal::Transport>> transports_;
+  // Round-robin placement counter; on the heap because atomics cannot move.
+  std::shared_ptr<std::atomic<uint64_t>> next_server_;
 };
 
 }  // namespace mll
