@@ -1,0 +1,55 @@
+// Fuzz harnesses shared by the libFuzzer targets (fuzz/*_fuzzer.cc) and the
+// regression test that replays their corpora and crash inputs
+// (tests/reliability/fuzz_regression_test.cc), so that a crash found by the
+// fuzzer is replayed through exactly the same code.
+//
+// A harness returns normally for every input the code under test handles
+// correctly (an OK result or a clean error with the documented code) and
+// aborts with a message on anything else: a wrong status code, a non-finite
+// result, a response that does not match its request.
+#ifndef MLL_FUZZ_HARNESS_H_
+#define MLL_FUZZ_HARNESS_H_
+
+#include <cstddef>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+namespace mll::fuzz {
+
+// The service's request handlers (mll::Operations over a real Registry and
+// WorkerPool). The input is a sequence of operations, each
+//   [kind: 1 byte][length: 2 bytes little-endian][length bytes of proto]
+// where kind (mod kServiceOpKinds) picks the request message the bytes are
+// parsed as: see ServiceOpKind. Names of the form "@<digit>" are replaced by
+// the name of the env created n-th by this input (mod the count), so that the
+// fuzzer reaches live environments. Every env the input created is deleted
+// at its end, so each input runs from the same empty state.
+void RunServiceInput(const uint8_t* data, size_t size);
+
+// The simulation core (Env, AecEnv, RenderEnv/EncodePng): a config decoded
+// field by field from the bytes (out-of-range values included), then
+// episodes of parallel or AEC steps with arbitrary (NaN, infinite,
+// out-of-range) actions, resets and renders.
+void RunCoreInput(const uint8_t* data, size_t size);
+
+enum ServiceOpKind : uint8_t {
+  kCreateEnv = 0,
+  kGetEnv,
+  kListEnvs,
+  kDeleteEnv,
+  kResetEnv,
+  kStepEnv,
+  kStepAgent,
+  kStepBatch,
+  kRenderEnv,
+  kServiceOpKinds,
+};
+
+// Appends one framed operation to `input` (for seed corpora and tests).
+void AppendServiceOp(ServiceOpKind kind, const std::string& proto_bytes,
+                     std::vector<uint8_t>* input);
+
+}  // namespace mll::fuzz
+
+#endif  // MLL_FUZZ_HARNESS_H_

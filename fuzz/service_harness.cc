@@ -1,0 +1,290 @@
+// RunServiceInput: arbitrary request bytes through mll::Operations, the code
+// every unary handler and Session operation of the service calls.
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/strings/str_cat.h"
+#include "absl/synchronization/notification.h"
+#include "absl/time/time.h"
+#include "harness.h"
+#include "mll/service/operations.h"
+#include "mll/service/registry.h"
+#include "mll/service/worker_pool.h"
+#include "mll/v1/multi_lunar_lander.pb.h"
+
+namespace mll::fuzz {
+namespace {
+
+// Small, so that inputs reach RESOURCE_EXHAUSTED and stay cheap.
+constexpr int kMaxEnvs = 6;
+// Bounds the work of one input (each step of a 32-lander env costs ~0.5 ms).
+constexpr int kMaxOps = 96;
+constexpr int kWorkers = 2;
+
+[[noreturn]] void Fail(const std::string& what) {
+  std::fprintf(stderr, "service harness: %s\n", what.c_str());
+  std::fflush(stderr);
+  std::abort();
+}
+
+// Every failure must be a clean error with one of the codes the contract
+// allows for this call, and a message that says what was wrong.
+void CheckCode(const absl::Status& status,
+               std::initializer_list<absl::StatusCode> allowed,
+               const char* call) {
+  if (status.ok()) return;
+  for (absl::StatusCode code : allowed) {
+    if (status.code() == code) {
+      if (status.message().empty()) {
+        Fail(absl::StrCat(call, ": error without a message: ",
+                          status.ToString()));
+      }
+      return;
+    }
+  }
+  Fail(absl::StrCat(call, ": unexpected status ", status.ToString()));
+}
+
+void CheckFloats(const v1::Array& array, size_t count, const char* what) {
+  if (array.dtype() != v1::DTYPE_FLOAT32 ||
+      array.data().size() != count * sizeof(float)) {
+    Fail(absl::StrCat(what, ": dtype ", array.dtype(), ", ",
+                      array.data().size(), " bytes, want ", count,
+                      " float32"));
+  }
+  std::vector<float> values(count);
+  std::memcpy(values.data(), array.data().data(), array.data().size());
+  for (size_t i = 0; i < count; ++i) {
+    if (!std::isfinite(values[i])) {
+      Fail(absl::StrCat(what, "[", i, "] is ", values[i]));
+    }
+  }
+}
+
+// A successful step's or reset's columns have n_landers rows and finite
+// values, whatever the actions were.
+void CheckStepData(const v1::StepData& data, int n_landers) {
+  CheckFloats(data.observations(), n_landers * 12, "observations");
+  CheckFloats(data.rewards(), n_landers, "rewards");
+  CheckFloats(data.episode_returns(), n_landers, "episode_returns");
+  if (data.terminations().data().size() != static_cast<size_t>(n_landers)) {
+    Fail("terminations: wrong size");
+  }
+}
+
+struct Service {
+  Service()
+      : registry(kMaxEnvs, absl::Hours(1)),
+        operations(&registry, &pool),
+        pool(kWorkers) {}
+  // In the service's order: the workers stop first.
+  Registry registry;
+  Operations operations;
+  WorkerPool pool;
+};
+
+Service& TheService() {
+  // Built once per process: the fuzzer runs millions of inputs against it.
+  static Service* const service = new Service();
+  return *service;
+}
+
+// "@<digit>" names the env created n-th by this input.
+void Resolve(const std::vector<std::string>& created, std::string* name) {
+  if (created.empty() || name->size() != 2 || (*name)[0] != '@' ||
+      (*name)[1] < '0' || (*name)[1] > '9') {
+    return;
+  }
+  *name = created[((*name)[1] - '0') % created.size()];
+}
+
+// n_landers of the env called `name`, or 0 when there is none.
+int LandersOf(Service& service, const std::string& name) {
+  v1::GetEnvRequest request;
+  request.set_name(name);
+  v1::Env env;
+  if (!service.operations.GetEnv(request, &env).ok()) return 0;
+  return env.config().n_landers();
+}
+
+constexpr std::initializer_list<absl::StatusCode> kStepCodes = {
+    absl::StatusCode::kInvalidArgument, absl::StatusCode::kNotFound,
+    absl::StatusCode::kFailedPrecondition};
+constexpr std::initializer_list<absl::StatusCode> kLookupCodes = {
+    absl::StatusCode::kInvalidArgument, absl::StatusCode::kNotFound};
+
+void RunOp(Service& service, ServiceOpKind kind, const std::string& bytes,
+           std::vector<std::string>* created) {
+  Operations& ops = service.operations;
+  switch (kind) {
+    case kCreateEnv: {
+      v1::CreateEnvRequest request;
+      if (!request.ParseFromString(bytes)) return;
+      v1::Env env;
+      absl::Status status =
+          ops.CreateEnv(request, request.detached(), &env);
+      CheckCode(status,
+                {absl::StatusCode::kInvalidArgument,
+                 absl::StatusCode::kResourceExhausted},
+                "CreateEnv");
+      if (status.ok()) created->push_back(env.name());
+      return;
+    }
+    case kGetEnv: {
+      v1::GetEnvRequest request;
+      if (!request.ParseFromString(bytes)) return;
+      Resolve(*created, request.mutable_name());
+      v1::Env env;
+      CheckCode(ops.GetEnv(request, &env), kLookupCodes, "GetEnv");
+      return;
+    }
+    case kListEnvs: {
+      v1::ListEnvsRequest request;
+      if (!request.ParseFromString(bytes)) return;
+      v1::ListEnvsResponse response;
+      absl::Status status = ops.ListEnvs(request, &response);
+      CheckCode(status, {absl::StatusCode::kInvalidArgument}, "ListEnvs");
+      if (status.ok() && response.envs_size() > kMaxEnvs) {
+        Fail(absl::StrCat("ListEnvs: ", response.envs_size(), " envs"));
+      }
+      return;
+    }
+    case kDeleteEnv: {
+      v1::DeleteEnvRequest request;
+      if (!request.ParseFromString(bytes)) return;
+      Resolve(*created, request.mutable_name());
+      CheckCode(ops.DeleteEnv(request), kLookupCodes, "DeleteEnv");
+      return;
+    }
+    case kResetEnv: {
+      v1::ResetEnvRequest request;
+      if (!request.ParseFromString(bytes)) return;
+      Resolve(*created, request.mutable_name());
+      v1::ResetEnvResponse response;
+      absl::Status status = ops.ResetEnv(request, &response);
+      CheckCode(status, kLookupCodes, "ResetEnv");
+      if (status.ok()) {
+        CheckStepData(response.data(), LandersOf(service, request.name()));
+      }
+      return;
+    }
+    case kStepEnv: {
+      v1::StepEnvRequest request;
+      if (!request.ParseFromString(bytes)) return;
+      Resolve(*created, request.mutable_name());
+      v1::StepData data;
+      absl::Status status = ops.StepEnv(request, "", &data);
+      CheckCode(status, kStepCodes, "StepEnv");
+      if (status.ok()) CheckStepData(data, LandersOf(service, request.name()));
+      return;
+    }
+    case kStepAgent: {
+      v1::StepAgentRequest request;
+      if (!request.ParseFromString(bytes)) return;
+      Resolve(*created, request.mutable_name());
+      v1::StepAgentResponse response;
+      absl::Status status = ops.StepAgent(request, &response);
+      CheckCode(status, kStepCodes, "StepAgent");
+      if (status.ok()) {
+        const int n = LandersOf(service, request.name());
+        CheckFloats(response.aec().observations(), n * 12, "aec.observations");
+        CheckFloats(response.aec().cumulative_rewards(), n,
+                    "aec.cumulative_rewards");
+      }
+      return;
+    }
+    case kStepBatch: {
+      v1::StepBatchRequest request;
+      if (!request.ParseFromString(bytes)) return;
+      for (v1::StepEnvRequest& step : *request.mutable_steps()) {
+        Resolve(*created, step.mutable_name());
+      }
+      v1::StepBatchResponse response;
+      absl::Notification finished;
+      absl::Status batch_status;
+      ops.StepBatch(request, &response, [&](absl::Status status) {
+        batch_status = status;
+        finished.Notify();
+      });
+      finished.WaitForNotification();
+      CheckCode(batch_status, {absl::StatusCode::kInvalidArgument},
+                "StepBatch");
+      if (!batch_status.ok()) return;
+      if (response.results_size() != request.steps_size()) {
+        Fail("StepBatch: one result per step expected");
+      }
+      for (int i = 0; i < response.results_size(); ++i) {
+        const v1::StepBatchResult& result = response.results(i);
+        if (result.has_error()) {
+          CheckCode(absl::Status(static_cast<absl::StatusCode>(
+                                     result.error().code()),
+                                 result.error().message()),
+                    kStepCodes, "StepBatch item");
+        } else {
+          CheckStepData(result.data(),
+                        LandersOf(service, request.steps(i).name()));
+        }
+      }
+      return;
+    }
+    case kRenderEnv: {
+      v1::RenderEnvRequest request;
+      if (!request.ParseFromString(bytes)) return;
+      Resolve(*created, request.mutable_name());
+      v1::Frame frame;
+      absl::Status status = ops.RenderEnv(request, &frame);
+      CheckCode(status, kStepCodes, "RenderEnv");
+      if (!status.ok()) return;
+      const bool png = frame.format() == v1::FRAME_FORMAT_PNG;
+      if (png ? frame.data().compare(0, 4, "\x89PNG") != 0
+              : frame.data().size() !=
+                    static_cast<size_t>(frame.width()) * frame.height() * 3) {
+        Fail("RenderEnv: malformed frame");
+      }
+      return;
+    }
+    case kServiceOpKinds:
+      return;
+  }
+}
+
+}  // namespace
+
+void AppendServiceOp(ServiceOpKind kind, const std::string& proto_bytes,
+                     std::vector<uint8_t>* input) {
+  input->push_back(kind);
+  input->push_back(proto_bytes.size() & 0xff);
+  input->push_back((proto_bytes.size() >> 8) & 0xff);
+  input->insert(input->end(), proto_bytes.begin(), proto_bytes.end());
+}
+
+void RunServiceInput(const uint8_t* data, size_t size) {
+  Service& service = TheService();
+  std::vector<std::string> created;
+  size_t offset = 0;
+  for (int op = 0; op < kMaxOps && offset + 3 <= size; ++op) {
+    const auto kind = static_cast<ServiceOpKind>(data[offset] % kServiceOpKinds);
+    size_t length = data[offset + 1] | (size_t{data[offset + 2]} << 8);
+    offset += 3;
+    if (length > size - offset) length = size - offset;
+    RunOp(service, kind,
+          std::string(reinterpret_cast<const char*>(data) + offset, length),
+          &created);
+    offset += length;
+  }
+  for (const std::string& name : created) {
+    service.registry.Delete(name, "name").IgnoreError();
+  }
+  if (service.registry.size() != 0) {
+    Fail(absl::StrCat(service.registry.size(),
+                      " envs left after deleting every env created"));
+  }
+}
+
+}  // namespace mll::fuzz
