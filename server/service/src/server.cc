@@ -1,5 +1,6 @@
 #include "mll/service/server.h"
 
+#include <algorithm>
 #include <fstream>
 #include <sstream>
 #include <utility>
@@ -14,6 +15,10 @@ namespace {
 
 constexpr int kMaxMessageMb = 2047;  // gRPC sizes messages in an int.
 constexpr absl::Duration kDestructorGrace = absl::Seconds(1);
+// How long Shutdown refuses new calls with UNAVAILABLE before gRPC's own
+// shutdown, which fails calls that reach it before the client has seen its
+// GOAWAY with CANCELLED, a code clients do not retry elsewhere.
+constexpr absl::Duration kRefusalPeriod = absl::Milliseconds(100);
 
 absl::Status OutOfRange(absl::string_view flag, double value,
                         absl::string_view allowed) {
@@ -146,7 +151,14 @@ std::shared_ptr<grpc::Channel> Server::InProcessChannel() {
 void Server::Shutdown(absl::Duration grace) {
   if (shut_down_ || server_ == nullptr) return;
   shut_down_ = true;
-  server_->Shutdown(ToGprDeadline(grace));
+  service_->RefuseNewCalls();
+  if (grpc::HealthCheckServiceInterface* health =
+          server_->GetHealthCheckService()) {
+    health->Shutdown();  // NOT_SERVING from now on.
+  }
+  const absl::Duration refusal = std::min(grace / 2, kRefusalPeriod);
+  absl::SleepFor(refusal);
+  server_->Shutdown(ToGprDeadline(grace - refusal));
   server_->Wait();
   // Scrapes keep working while calls drain, so the last counts are seen.
   metrics_http_.reset();

@@ -44,15 +44,13 @@ class CallTimer {
   int64_t start_ns_;
 };
 
-// Runs a unary call that completes in the handler: authenticates, runs
+// Runs a unary call that completes in the handler, admitted as `owner`: runs
 // op(owner) -> absl::Status, records and finishes.
 template <typename Op>
 grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context,
-                                   const Authenticator& authenticator,
+                                   absl::StatusOr<absl::string_view> owner,
                                    Metrics* metrics, Method method, Op op) {
   const CallTimer timer(metrics, method);
-  absl::StatusOr<absl::string_view> owner =
-      authenticator.Authenticate(Authorization(*context));
   const absl::Status status = owner.ok() ? op(*owner) : owner.status();
   timer.Record(status);
   grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
@@ -208,10 +206,19 @@ std::string MultiLunarLanderService::MetricsText() {
   return metrics_.Render(registry_.size());
 }
 
+absl::StatusOr<absl::string_view> MultiLunarLanderService::Admit(
+    const grpc::CallbackServerContext& context) const {
+  if (refusing_.load()) {
+    return absl::UnavailableError(
+        "the server is shutting down; retry on another server");
+  }
+  return authenticator_.Authenticate(Authorization(context));
+}
+
 grpc::ServerUnaryReactor* MultiLunarLanderService::CreateEnv(
     grpc::CallbackServerContext* context, const v1::CreateEnvRequest* request,
     v1::Env* response) {
-  return RunUnary(context, authenticator_, &metrics_, Method::kCreateEnv,
+  return RunUnary(context, Admit(*context), &metrics_, Method::kCreateEnv,
                   [&](absl::string_view owner) {
                     return operations_.CreateEnv(
                         *request, /*session_bound=*/false, response, owner);
@@ -221,7 +228,7 @@ grpc::ServerUnaryReactor* MultiLunarLanderService::CreateEnv(
 grpc::ServerUnaryReactor* MultiLunarLanderService::GetEnv(
     grpc::CallbackServerContext* context, const v1::GetEnvRequest* request,
     v1::Env* response) {
-  return RunUnary(context, authenticator_, &metrics_, Method::kGetEnv,
+  return RunUnary(context, Admit(*context), &metrics_, Method::kGetEnv,
                   [&](absl::string_view owner) {
                     return operations_.GetEnv(*request, response, owner);
                   });
@@ -230,7 +237,7 @@ grpc::ServerUnaryReactor* MultiLunarLanderService::GetEnv(
 grpc::ServerUnaryReactor* MultiLunarLanderService::ListEnvs(
     grpc::CallbackServerContext* context, const v1::ListEnvsRequest* request,
     v1::ListEnvsResponse* response) {
-  return RunUnary(context, authenticator_, &metrics_, Method::kListEnvs,
+  return RunUnary(context, Admit(*context), &metrics_, Method::kListEnvs,
                   [&](absl::string_view owner) {
                     return operations_.ListEnvs(*request, response, owner);
                   });
@@ -239,7 +246,7 @@ grpc::ServerUnaryReactor* MultiLunarLanderService::ListEnvs(
 grpc::ServerUnaryReactor* MultiLunarLanderService::DeleteEnv(
     grpc::CallbackServerContext* context, const v1::DeleteEnvRequest* request,
     v1::DeleteEnvResponse* /*response*/) {
-  return RunUnary(context, authenticator_, &metrics_, Method::kDeleteEnv,
+  return RunUnary(context, Admit(*context), &metrics_, Method::kDeleteEnv,
                   [&](absl::string_view owner) {
                     return operations_.DeleteEnv(*request, owner);
                   });
@@ -248,7 +255,7 @@ grpc::ServerUnaryReactor* MultiLunarLanderService::DeleteEnv(
 grpc::ServerUnaryReactor* MultiLunarLanderService::ResetEnv(
     grpc::CallbackServerContext* context, const v1::ResetEnvRequest* request,
     v1::ResetEnvResponse* response) {
-  return RunUnary(context, authenticator_, &metrics_, Method::kResetEnv,
+  return RunUnary(context, Admit(*context), &metrics_, Method::kResetEnv,
                   [&](absl::string_view owner) {
                     absl::Status status =
                         operations_.ResetEnv(*request, response, owner);
@@ -260,7 +267,7 @@ grpc::ServerUnaryReactor* MultiLunarLanderService::ResetEnv(
 grpc::ServerUnaryReactor* MultiLunarLanderService::StepEnv(
     grpc::CallbackServerContext* context, const v1::StepEnvRequest* request,
     v1::StepEnvResponse* response) {
-  return RunUnary(context, authenticator_, &metrics_, Method::kStepEnv,
+  return RunUnary(context, Admit(*context), &metrics_, Method::kStepEnv,
                   [&](absl::string_view owner) {
                     absl::Status status = operations_.StepEnv(
                         *request, /*field=*/"", response->mutable_data(),
@@ -276,7 +283,7 @@ grpc::ServerUnaryReactor* MultiLunarLanderService::StepEnv(
 grpc::ServerUnaryReactor* MultiLunarLanderService::StepAgent(
     grpc::CallbackServerContext* context, const v1::StepAgentRequest* request,
     v1::StepAgentResponse* response) {
-  return RunUnary(context, authenticator_, &metrics_, Method::kStepAgent,
+  return RunUnary(context, Admit(*context), &metrics_, Method::kStepAgent,
                   [&](absl::string_view owner) {
                     absl::Status status =
                         operations_.StepAgent(*request, response, owner);
@@ -294,7 +301,7 @@ grpc::ServerUnaryReactor* MultiLunarLanderService::StepBatch(
   grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
   const CallTimer timer(&metrics_, Method::kStepBatch);
   absl::StatusOr<absl::string_view> owner =
-      authenticator_.Authenticate(Authorization(*context));
+      Admit(*context);
   if (!owner.ok()) {
     timer.Record(owner.status());
     reactor->Finish(ToGrpcStatus(owner.status()));
@@ -314,7 +321,7 @@ grpc::ServerUnaryReactor* MultiLunarLanderService::StepBatch(
 grpc::ServerUnaryReactor* MultiLunarLanderService::RenderEnv(
     grpc::CallbackServerContext* context, const v1::RenderEnvRequest* request,
     v1::Frame* response) {
-  return RunUnary(context, authenticator_, &metrics_, Method::kRenderEnv,
+  return RunUnary(context, Admit(*context), &metrics_, Method::kRenderEnv,
                   [&](absl::string_view owner) {
                     return operations_.RenderEnv(*request, response, owner);
                   });
@@ -323,7 +330,7 @@ grpc::ServerUnaryReactor* MultiLunarLanderService::RenderEnv(
 grpc::ServerBidiReactor<v1::SessionRequest, v1::SessionResponse>*
 MultiLunarLanderService::Session(grpc::CallbackServerContext* context) {
   return new SessionReactor(&operations_, &registry_, &metrics_,
-                            authenticator_.Authenticate(Authorization(*context)));
+                            Admit(*context));
 }
 
 }  // namespace mll

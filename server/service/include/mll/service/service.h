@@ -6,6 +6,7 @@
 #ifndef MLL_SERVICE_SERVICE_H_
 #define MLL_SERVICE_SERVICE_H_
 
+#include <atomic>
 #include <string>
 #include <vector>
 
@@ -43,6 +44,9 @@ class MultiLunarLanderService final
   Metrics& metrics() { return metrics_; }
   // The Prometheus exposition of the metrics and the live env count.
   std::string MetricsText();
+  // From now on new calls and Session streams get UNAVAILABLE, so clients
+  // go elsewhere while admitted calls finish (Server::Shutdown).
+  void RefuseNewCalls() { refusing_.store(true); }
 
   grpc::ServerUnaryReactor* CreateEnv(grpc::CallbackServerContext* context,
                                       const v1::CreateEnvRequest* request,
@@ -75,6 +79,12 @@ class MultiLunarLanderService final
       grpc::CallbackServerContext* context) override;
 
  private:
+  // The caller of a new call (see Authenticator), or UNAVAILABLE once
+  // RefuseNewCalls ran.
+  absl::StatusOr<absl::string_view> Admit(
+      const grpc::CallbackServerContext& context) const;
+
+  std::atomic<bool> refusing_{false};
   // Declared in this order so that destruction first stops the workers
   // (finishing queued steps), which use the operations, the envs, the
   // owners' names and the metrics.
