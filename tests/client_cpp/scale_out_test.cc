@@ -28,18 +28,22 @@ using ::testing::UnorderedElementsAreArray;
 
 constexpr int kServers = 2;
 
+// Starts kServers plain servers into `servers`, their addresses in order.
+void StartServers(std::vector<std::unique_ptr<ServerProcess>>* servers,
+                  std::vector<std::string>* addresses) {
+  for (int i = 0; i < kServers; ++i) {
+    absl::StatusOr<std::unique_ptr<ServerProcess>> server =
+        ServerProcess::Start(MLL_SERVER_PATH);
+    ASSERT_TRUE(server.ok()) << server.status();
+    addresses->push_back((*server)->address());
+    servers->push_back(*std::move(server));
+  }
+}
+
 // Two servers for the whole suite: tests use their own environments.
 class TwoServers : public ::testing::Environment {
  public:
-  void SetUp() override {
-    for (int i = 0; i < kServers; ++i) {
-      absl::StatusOr<std::unique_ptr<ServerProcess>> server =
-          ServerProcess::Start(MLL_SERVER_PATH);
-      ASSERT_TRUE(server.ok()) << server.status();
-      addresses_.push_back((*server)->address());
-      servers_.push_back(*std::move(server));
-    }
-  }
+  void SetUp() override { StartServers(&servers_, &addresses_); }
   void TearDown() override { servers_.clear(); }
   static const std::vector<std::string>& addresses() { return addresses_; }
 
@@ -343,13 +347,7 @@ TEST(ScaleOutTest, SessionEnvsLiveOnBothServersAndDieWithIt) {
 TEST(ScaleOutFailureTest, ADeadServerFailsOnlyItsItems) {
   std::vector<std::unique_ptr<ServerProcess>> servers;
   std::vector<std::string> addresses;
-  for (int i = 0; i < kServers; ++i) {
-    absl::StatusOr<std::unique_ptr<ServerProcess>> server =
-        ServerProcess::Start(MLL_SERVER_PATH);
-    ASSERT_TRUE(server.ok()) << server.status();
-    addresses.push_back((*server)->address());
-    servers.push_back(*std::move(server));
-  }
+  ASSERT_NO_FATAL_FAILURE(StartServers(&servers, &addresses));
   ClientOptions options;
   options.call_timeout = std::chrono::seconds(10);
   absl::StatusOr<Client> client = Client::Create(addresses, options);
