@@ -153,6 +153,7 @@ def _fast() -> TrainConfig:
         tau=4e-3,
         lr=1e-3,
         eps_decay=0.99,
+        reward_scale=0.01,
     )
 
 
