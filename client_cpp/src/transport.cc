@@ -155,8 +155,9 @@ class SessionTransport final : public Transport {
     stream_ = stub_->Session(&context_);
   }
 
-  // Half-closes and waits for the server's end of stream: the server then
-  // destroys the session's environments before this returns.
+  // Half-closes and waits for the server's end of stream; the server
+  // destroys the session's environments as the stream ends (possibly just
+  // after this returns: it sends the final status first).
   ~SessionTransport() override {
     absl::MutexLock lock(&mu_);
     if (!finished_) {

@@ -168,6 +168,15 @@ absl::StatusOr<CommandResult> RunCommand(const std::vector<std::string>& argv,
   return result;
 }
 
+bool Eventually(const std::function<bool()>& condition, int seconds) {
+  const auto deadline = Clock::now() + std::chrono::seconds(seconds);
+  while (!condition()) {
+    if (Clock::now() >= deadline) return false;
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  return true;
+}
+
 CommandResult RunCli(std::vector<std::string> args) {
   args.insert(args.begin(), MLL_CLI_PATH);
   absl::StatusOr<CommandResult> result = RunCommand(args);

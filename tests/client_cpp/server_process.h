@@ -5,6 +5,7 @@
 
 #include <sys/types.h>
 
+#include <functional>
 #include <memory>
 #include <string>
 #include <vector>
@@ -58,6 +59,11 @@ CommandResult RunCli(std::vector<std::string> args);
 
 // The env name in mll_cli's JSON output (`"name":"envs/..."`); empty if none.
 std::string EnvNameIn(const std::string& json);
+
+// Polls `condition` every 10 ms until it holds or `seconds` pass; whether it
+// held. For what a server does just after answering: it deletes a session's
+// envs once the stream has ended, after the client has its final status.
+bool Eventually(const std::function<bool()>& condition, int seconds = 10);
 
 // A new file in the temporary directory holding `contents`; its path.
 absl::StatusOr<std::string> WriteTempFile(const std::string& stem,
