@@ -38,8 +38,9 @@ absl::Status DeleteEnvOn(Transport& transport, absl::string_view name) {
 // `status` with the server's address in front, so that a failure among
 // several servers says which one.
 absl::Status AtServer(const Transport& transport, const absl::Status& status) {
-  return absl::Status(status.code(), absl::StrCat("server ", transport.address(),
-                                                  ": ", status.message()));
+  return absl::Status(status.code(),
+                      absl::StrCat("server ", transport.address(), ": ",
+                                   status.message()));
 }
 
 }  // namespace

@@ -240,7 +240,8 @@ absl::Status FromItemError(const v1::ItemError& error) {
                       error.message());
 }
 
-Transport::Transport(std::string address, std::shared_ptr<grpc::Channel> channel,
+Transport::Transport(std::string address,
+                     std::shared_ptr<grpc::Channel> channel,
                      ClientOptions options)
     : address_(std::move(address)),
       channel_(std::move(channel)),

@@ -491,10 +491,11 @@ Result Play(const Client& client, const std::vector<std::string>& args) {
         agent_steps += lengths[a];
       }
       total_steps += steps[j];
+      const std::string returns_json =
+          PerAgent(n, [&](int a) { return JsonNumber(returns[a]); });
       std::cout << absl::StrCat(
                        "{\"episode\":", episode, ",\"seed\":", seeds[j],
-                       ",\"steps\":", steps[j], ",\"returns\":",
-                       PerAgent(n, [&](int a) { return JsonNumber(returns[a]); }),
+                       ",\"steps\":", steps[j], ",\"returns\":", returns_json,
                        ",\"lengths\":",
                        PerAgent(n, [&](int a) { return lengths[a]; }),
                        ",\"outcomes\":", PerAgent(n, [&](int a) {

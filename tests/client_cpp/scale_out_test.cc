@@ -224,7 +224,9 @@ class Fleet {
     }
     if (order.empty()) return {};
     std::vector<BatchStep> batch;
-    for (size_t j : order) batch.push_back({&envs_[j], pilots_[j].Act(last_[j])});
+    for (size_t j : order) {
+      batch.push_back({&envs_[j], pilots_[j].Act(last_[j])});
+    }
     absl::StatusOr<std::vector<absl::StatusOr<StepData>>> results =
         client_.StepBatch(batch);
     EXPECT_TRUE(results.ok()) << results.status();
@@ -276,8 +278,8 @@ TEST_P(ScaleOutBatchTest, BatchAcrossServersIsBitIdenticalToOneServer) {
   while (!a.empty()) {
     ASSERT_EQ(a.size(), b.size()) << "step " << steps;
     for (size_t k = 0; k < a.size(); ++k) {
-      ASSERT_NO_FATAL_FAILURE(
-          ExpectSameBits(a[k], b[k], absl::StrCat("step ", steps, " item ", k)));
+      ASSERT_NO_FATAL_FAILURE(ExpectSameBits(
+          a[k], b[k], absl::StrCat("step ", steps, " item ", k)));
     }
     a = spread.Step();
     b = single.Step();
@@ -340,8 +342,9 @@ TEST(ScaleOutTest, SessionEnvsLiveOnBothServersAndDieWithIt) {
   // The session's streams have ended: each server destroys its env.
   for (int server = 0; server < kServers; ++server) {
     const Client one = ConnectOne(server);
-    EXPECT_TRUE(Eventually([&] { return Names(one).count(names[server]) == 0; }))
-        << names[server] << " on server " << server;
+    EXPECT_TRUE(Eventually([&] {
+      return Names(one).count(names[server]) == 0;
+    })) << names[server] << " on server " << server;
   }
 }
 
@@ -388,11 +391,13 @@ std::string BothFlag() {
   return "--address=" + absl::StrJoin(TwoServers::addresses(), ",");
 }
 
-TEST(ScaleOutCliTest, ListAndCreateCoverEveryServer) {
+TEST(ScaleOutCliTest, HealthListAndCreateCoverEveryServer) {
+  const CommandResult health = RunCli({"health", BothFlag()});
+  EXPECT_EQ(health.exit_code, 0) << health.err;
   std::vector<std::string> names;
   for (int server = 0; server < kServers; ++server) {
     const CommandResult created = RunCli({"create", BothFlag(), "--n_landers=7",
-                                       absl::StrCat("--server=", server)});
+                                          absl::StrCat("--server=", server)});
     ASSERT_EQ(created.exit_code, 0) << created.err;
     names.push_back(EnvNameIn(created.out));
     ASSERT_FALSE(names.back().empty()) << created.out;

@@ -49,10 +49,11 @@ class SecureServers : public ::testing::Environment {
     ASSERT_TRUE(tokens.ok()) << tokens.status();
     token_file_ = *tokens;
 
-    absl::StatusOr<std::unique_ptr<ServerProcess>> secure = ServerProcess::Start(
-        MLL_SERVER_PATH, {"--tls_cert=" + local_.cert_file,
-                          "--tls_key=" + local_.key_file,
-                          "--auth_token_file=" + token_file_});
+    absl::StatusOr<std::unique_ptr<ServerProcess>> secure =
+        ServerProcess::Start(MLL_SERVER_PATH,
+                             {"--tls_cert=" + local_.cert_file,
+                              "--tls_key=" + local_.key_file,
+                              "--auth_token_file=" + token_file_});
     ASSERT_TRUE(secure.ok()) << secure.status();
     secure_ = *std::move(secure);
     absl::StatusOr<std::unique_ptr<ServerProcess>> named = ServerProcess::Start(
@@ -154,8 +155,9 @@ TEST(TlsTest, PlaintextAndUntrustingClientsCannotTalk) {
   EXPECT_EQ(plaintext.CreateEnv().status().code(),
             absl::StatusCode::kUnavailable);
   EXPECT_EQ(plaintext.CheckHealth().code(), absl::StatusCode::kUnavailable);
-  const Client untrusting = Connect(SecureServers::secure_address(),
-                                    Options(&SecureServers::stranger(), kTokenA));
+  const Client untrusting =
+      Connect(SecureServers::secure_address(),
+              Options(&SecureServers::stranger(), kTokenA));
   EXPECT_EQ(untrusting.CreateEnv().status().code(),
             absl::StatusCode::kUnavailable);
   EXPECT_EQ(untrusting.CheckHealth().code(), absl::StatusCode::kUnavailable);
@@ -242,8 +244,9 @@ TEST(TokenTest, EnvsOfOneTokenAreNotFoundForAnother) {
 
 TEST(TokenTest, TokenThatCannotTravelIsRejectedWithoutEchoingIt) {
   for (const std::string token : {"two words", "line\n", "caf\xc3\xa9"}) {
-    absl::StatusOr<Client> client = Client::Create(
-        SecureServers::secure_address(), Options(&SecureServers::local(), token));
+    absl::StatusOr<Client> client =
+        Client::Create(SecureServers::secure_address(),
+                       Options(&SecureServers::local(), token));
     EXPECT_EQ(client.status().code(), absl::StatusCode::kInvalidArgument);
     EXPECT_THAT(client.status().message(), HasSubstr("token has character"));
     EXPECT_THAT(client.status().message(), Not(HasSubstr(token)));
@@ -272,8 +275,9 @@ TEST(SecureCliTest, TlsRootCertAndTokenFlags) {
   const CommandResult health = RunCli({"health", SecureFlag(), RootFlag()});
   EXPECT_EQ(health.exit_code, 0) << health.err;
   const CommandResult play =
-      RunCli({"play", SecureFlag(), RootFlag(), std::string("--token=") + kTokenA,
-           "--n_landers=2", "--max_cycles=30"});
+      RunCli({"play", SecureFlag(), RootFlag(),
+              std::string("--token=") + kTokenA, "--n_landers=2",
+              "--max_cycles=30"});
   EXPECT_EQ(play.exit_code, 0) << play.err;
   EXPECT_THAT(play.out, HasSubstr("\"summary\":true"));
 
@@ -286,12 +290,12 @@ TEST(SecureCliTest, TlsRootCertAndTokenFlags) {
   EXPECT_THAT(plaintext.err, HasSubstr("UNAVAILABLE"));
   const CommandResult untrusting =
       RunCli({"list", SecureFlag(), std::string("--token=") + kTokenA,
-           "--tls_root_cert=" + SecureServers::stranger().cert_file});
+              "--tls_root_cert=" + SecureServers::stranger().cert_file});
   EXPECT_EQ(untrusting.exit_code, 1);
   const CommandResult renamed =
       RunCli({"health", "--address=" + SecureServers::renamed_address(),
-           "--tls_root_cert=" + SecureServers::renamed().cert_file,
-           "--tls_server_name=mll.test"});
+              "--tls_root_cert=" + SecureServers::renamed().cert_file,
+              "--tls_server_name=mll.test"});
   EXPECT_EQ(renamed.exit_code, 0) << renamed.err;
 }
 
@@ -302,7 +306,7 @@ TEST(SecureCliTest, TokenFromFlagFileOrEnvironmentInThatOrder) {
   ASSERT_TRUE(file_b.ok()) << file_b.status();
   const CommandResult created =
       RunCli({"create", SecureFlag(), RootFlag(), "--token_file=" + *file_b,
-           "--n_landers=1"});
+              "--n_landers=1"});
   ASSERT_EQ(created.exit_code, 0) << created.err;
   const std::string name = EnvNameIn(created.out);
   ASSERT_FALSE(name.empty()) << created.out;
@@ -313,7 +317,7 @@ TEST(SecureCliTest, TokenFromFlagFileOrEnvironmentInThatOrder) {
     EXPECT_EQ(get.exit_code, 0) << get.err;
     // --token beats MLL_TOKEN.
     const CommandResult as_a = RunCli({"get", name, SecureFlag(), RootFlag(),
-                                    std::string("--token=") + kTokenA});
+                                       std::string("--token=") + kTokenA});
     EXPECT_EQ(as_a.exit_code, 1);
     EXPECT_THAT(as_a.err, HasSubstr("NOT_FOUND"));
   }
@@ -327,14 +331,14 @@ TEST(SecureCliTest, TokenFromFlagFileOrEnvironmentInThatOrder) {
     EXPECT_EQ(as_a.exit_code, 1);
     EXPECT_THAT(as_a.err, HasSubstr("NOT_FOUND"));
   }
-  const CommandResult deleted = RunCli({"delete", name, SecureFlag(), RootFlag(),
-                                     "--token_file=" + *file_b});
+  const CommandResult deleted = RunCli(
+      {"delete", name, SecureFlag(), RootFlag(), "--token_file=" + *file_b});
   EXPECT_EQ(deleted.exit_code, 0) << deleted.err;
 
   // Bad token sources are command-line errors that never print the token.
   const CommandResult both = RunCli({"list", SecureFlag(), RootFlag(),
-                                  std::string("--token=") + kTokenA,
-                                  "--token_file=" + *file_b});
+                                     std::string("--token=") + kTokenA,
+                                     "--token_file=" + *file_b});
   EXPECT_EQ(both.exit_code, 2);
   EXPECT_THAT(both.err, HasSubstr("both set"));
   absl::StatusOr<std::string> two = WriteTempFile(
@@ -346,7 +350,7 @@ TEST(SecureCliTest, TokenFromFlagFileOrEnvironmentInThatOrder) {
   EXPECT_THAT(many.err, HasSubstr("has 2 tokens"));
   EXPECT_THAT(many.err, Not(HasSubstr(kTokenA)));
   const CommandResult missing = RunCli({"list", SecureFlag(), RootFlag(),
-                                     "--token_file=/nonexistent/token"});
+                                        "--token_file=/nonexistent/token"});
   EXPECT_EQ(missing.exit_code, 2);
   EXPECT_THAT(missing.err, HasSubstr("cannot be read"));
 }

@@ -340,8 +340,9 @@ class Client {
   // A client over several servers (see the top of this file), all with the
   // same options; server i is addresses[i]. INVALID_ARGUMENT when the list is
   // empty, an address is empty or appears twice.
-  static absl::StatusOr<Client> Create(const std::vector<std::string>& addresses,
-                                       const ClientOptions& options = {});
+  static absl::StatusOr<Client> Create(
+      const std::vector<std::string>& addresses,
+      const ClientOptions& options = {});
 
   Client(Client&&) noexcept;
   Client& operator=(Client&&) noexcept;
