@@ -29,9 +29,7 @@ constexpr int kMaxSteps = 600;
 constexpr int kMaxRenders = 3;
 
 [[noreturn]] void Fail(const std::string& what) {
-  std::fprintf(stderr, "core harness: %s\n", what.c_str());
-  std::fflush(stderr);
-  std::abort();
+  HarnessFailure("core harness", what);
 }
 
 // Consumes the input front to back; zeros once it is exhausted.

@@ -46,6 +46,11 @@ enum ServiceOpKind : uint8_t {
   kServiceOpKinds,
 };
 
+// Reports a broken contract and aborts (so libFuzzer and the regression test
+// both see a crash with the reason on stderr).
+[[noreturn]] void HarnessFailure(const std::string& harness,
+                                 const std::string& what);
+
 // Appends one framed operation to `input` (for seed corpora and tests).
 void AppendServiceOp(ServiceOpKind kind, const std::string& proto_bytes,
                      std::vector<uint8_t>* input);

@@ -28,9 +28,7 @@ constexpr int kMaxOps = 96;
 constexpr int kWorkers = 2;
 
 [[noreturn]] void Fail(const std::string& what) {
-  std::fprintf(stderr, "service harness: %s\n", what.c_str());
-  std::fflush(stderr);
-  std::abort();
+  HarnessFailure("service harness", what);
 }
 
 // Every failure must be a clean error with one of the codes the contract
@@ -255,6 +253,12 @@ void RunOp(Service& service, ServiceOpKind kind, const std::string& bytes,
 }
 
 }  // namespace
+
+void HarnessFailure(const std::string& harness, const std::string& what) {
+  std::fprintf(stderr, "%s: %s\n", harness.c_str(), what.c_str());
+  std::fflush(stderr);
+  std::abort();
+}
 
 void AppendServiceOp(ServiceOpKind kind, const std::string& proto_bytes,
                      std::vector<uint8_t>* input) {

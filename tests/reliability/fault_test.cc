@@ -25,6 +25,7 @@
 #include "mll/service/convert.h"
 #include "mll/v1/multi_lunar_lander.grpc.pb.h"
 #include "subprocess.h"
+#include "test_util.h"  // tests/service: action arrays.
 
 namespace mll::testing {
 namespace {
@@ -42,20 +43,6 @@ std::unique_ptr<MultiLunarLander::Stub> NewStub(const std::string& address,
   if (max_receive_bytes > 0) args.SetMaxReceiveMessageSize(max_receive_bytes);
   return MultiLunarLander::NewStub(grpc::CreateCustomChannel(
       address, grpc::InsecureChannelCredentials(), args));
-}
-
-v1::Array Discrete(const std::vector<int32_t>& values) {
-  v1::Array array;
-  const int shape[] = {static_cast<int>(values.size())};
-  FillArray<int32_t>(values, shape, &array);
-  return array;
-}
-
-v1::Array Continuous(const std::vector<float>& values) {
-  v1::Array array;
-  const int shape[] = {static_cast<int>(values.size() / 2), 2};
-  FillArray<float>(values, shape, &array);
-  return array;
 }
 
 std::string Create(MultiLunarLander::Stub& stub, const v1::EnvConfig& config) {
@@ -171,7 +158,7 @@ struct HeavyBatch {
       v1::StepEnvRequest* step = request.add_steps();
       step->set_name(name);
       *step->mutable_actions() =
-          Discrete(std::vector<int32_t>(kMaxLanders, 0));
+          DiscreteActions(std::vector<int32_t>(kMaxLanders, 0));
       names.push_back(name);
     }
   }
@@ -240,16 +227,28 @@ TEST(FaultTest, KilledClientsSessionEnvsGoAtOnceItsUnaryEnvsAtTheIdleTimeout) {
   // The server is unaffected: a new client is served normally.
   const std::string name = Create(*stub, Landers(2));
   EXPECT_TRUE(Reset(*stub, name).ok());
-  EXPECT_TRUE(Step(*stub, name, Discrete({2, 2})).ok());
+  EXPECT_TRUE(Step(*stub, name, DiscreteActions({2, 2})).ok());
 }
 
-TEST(FaultTest, SigtermUnderLoadFinishesInFlightCallsRefusesNewOnesExitsZero) {
-  absl::StatusOr<ServerUnderTest> server =
-      StartServer({"--threads=1", "--max_envs=1000"});
-  ASSERT_TRUE(server.ok()) << server.status();
-  auto stub = NewStub(server->address);
-  HeavyBatch batch(*stub, kHeavyBatchEnvs);
-  const absl::Duration batch_time = batch.Time(*stub);
+// A server with one worker thread and a heavy batch ready, timed once.
+class HeavyBatchTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    absl::StatusOr<ServerUnderTest> started =
+        StartServer({"--threads=1", "--max_envs=1000"});
+    ASSERT_TRUE(started.ok()) << started.status();
+    server = *std::move(started);
+    stub = NewStub(server.address);
+    batch = std::make_unique<HeavyBatch>(*stub, kHeavyBatchEnvs);
+    batch_time = batch->Time(*stub);
+  }
+  ServerUnderTest server;
+  std::unique_ptr<MultiLunarLander::Stub> stub;
+  std::unique_ptr<HeavyBatch> batch;
+  absl::Duration batch_time;
+};
+
+TEST_F(HeavyBatchTest, SigtermUnderLoadFinishesInFlightCallsRefusesNewOnesExitsZero) {
 
   // Load: clients on their own connections stepping auto-reset envs until
   // the server refuses them.
@@ -261,14 +260,14 @@ TEST(FaultTest, SigtermUnderLoadFinishesInFlightCallsRefusesNewOnesExitsZero) {
   std::atomic<int> started{0};
   for (int c = 0; c < kClients; ++c) {
     clients.emplace_back([&, c] {
-      auto own = NewStub(server->address);
+      auto own = NewStub(server.address);
       v1::EnvConfig config = Landers(3);
       config.set_auto_reset(true);
       const std::string name = Create(*own, config);
       EXPECT_TRUE(Reset(*own, name).ok());
       ++started;
       for (int i = 0; i < kMaxCallsPerClient; ++i) {
-        const grpc::Status status = Step(*own, name, Discrete({2, 0, 2}));
+        const grpc::Status status = Step(*own, name, DiscreteActions({2, 0, 2}));
         ++codes[c][status.error_code()];
         if (!status.ok()) {
           last_error[c] = status.error_message();
@@ -284,14 +283,14 @@ TEST(FaultTest, SigtermUnderLoadFinishesInFlightCallsRefusesNewOnesExitsZero) {
   v1::StepBatchResponse batch_response;
   std::thread in_flight([&] {
     grpc::ClientContext context;
-    batch_status = stub->StepBatch(&context, batch.request, &batch_response);
+    batch_status = stub->StepBatch(&context, batch->request, &batch_response);
   });
   absl::SleepFor(std::max(batch_time / 4, absl::Milliseconds(10)));
-  server->process->Signal(SIGTERM);
+  server.process->Signal(SIGTERM);
   absl::SleepFor(absl::Milliseconds(20));
 
   // New calls, on a new connection or the old one, are refused.
-  auto late = NewStub(server->address);
+  auto late = NewStub(server.address);
   grpc::ClientContext late_context;
   late_context.set_deadline(std::chrono::system_clock::now() +
                             std::chrono::seconds(5));
@@ -318,29 +317,23 @@ TEST(FaultTest, SigtermUnderLoadFinishesInFlightCallsRefusesNewOnesExitsZero) {
     EXPECT_EQ(codes[c][grpc::StatusCode::UNAVAILABLE], 1);
     EXPECT_EQ(codes[c].size(), 2u) << "a code other than OK or UNAVAILABLE";
   }
-  const std::optional<int> exit = server->process->Wait(Scaled(absl::Seconds(15)));
+  const std::optional<int> exit = server.process->Wait(Scaled(absl::Seconds(15)));
   ASSERT_TRUE(exit.has_value()) << "mll_server did not exit after SIGTERM";
   EXPECT_TRUE(WIFEXITED(*exit));
   EXPECT_EQ(WEXITSTATUS(*exit), 0);
 }
 
-TEST(FaultTest, DeadlinesExpiringMidCallLeaveServerAndEnvsUsable) {
-  absl::StatusOr<ServerUnderTest> server =
-      StartServer({"--threads=1", "--max_envs=1000"});
-  ASSERT_TRUE(server.ok()) << server.status();
-  auto stub = NewStub(server->address);
-  HeavyBatch batch(*stub, kHeavyBatchEnvs);
-  const absl::Duration batch_time = batch.Time(*stub);
+TEST_F(HeavyBatchTest, DeadlinesExpiringMidCallLeaveServerAndEnvsUsable) {
   {
     grpc::ClientContext context;
     context.set_deadline(absl::ToChronoTime(absl::Now() + batch_time / 10));
     v1::StepBatchResponse response;
-    EXPECT_EQ(stub->StepBatch(&context, batch.request, &response).error_code(),
+    EXPECT_EQ(stub->StepBatch(&context, batch->request, &response).error_code(),
               grpc::StatusCode::DEADLINE_EXCEEDED);
   }
   // The abandoned batch still finishes on the server; every env is usable.
-  batch.Time(*stub);
-  for (const std::string& name : batch.names) {
+  batch->Time(*stub);
+  for (const std::string& name : batch->names) {
     EXPECT_GE(Get(*stub, name).cycles(), 2);
   }
 
@@ -359,7 +352,7 @@ TEST(FaultTest, DeadlinesExpiringMidCallLeaveServerAndEnvsUsable) {
     EXPECT_EQ(stub->RenderEnv(&context, request, &frame).error_code(),
               grpc::StatusCode::DEADLINE_EXCEEDED);
   }
-  EXPECT_TRUE(Step(*stub, drawn, Discrete({1, 2, 3})).ok());
+  EXPECT_TRUE(Step(*stub, drawn, DiscreteActions({1, 2, 3})).ok());
 
   // A Session whose deadline expires while it is open: the stream ends
   // with DEADLINE_EXCEEDED and takes its envs along.
@@ -381,7 +374,7 @@ TEST(FaultTest, DeadlinesExpiringMidCallLeaveServerAndEnvsUsable) {
     EXPECT_EQ(stream->Finish().error_code(), grpc::StatusCode::DEADLINE_EXCEEDED);
   }
   EXPECT_TRUE(WaitUntilGone(*stub, bound, Scaled(absl::Seconds(5))));
-  EXPECT_TRUE(ContainsAll(ListNames(*stub), batch.names));
+  EXPECT_TRUE(ContainsAll(ListNames(*stub), batch->names));
 }
 
 TEST(FaultTest, OversizedMessagesAreResourceExhausted) {
@@ -394,7 +387,7 @@ TEST(FaultTest, OversizedMessagesAreResourceExhausted) {
   ASSERT_TRUE(Reset(*stub, name).ok());
 
   // A request over --max_message_mb: refused before it is parsed.
-  v1::Array huge = Discrete({0, 0, 0});
+  v1::Array huge = DiscreteActions({0, 0, 0});
   huge.mutable_data()->append(2 << 20, '\xff');
   grpc::Status status = Step(*stub, name, huge);
   EXPECT_EQ(status.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED)
@@ -424,7 +417,7 @@ TEST(FaultTest, OversizedMessagesAreResourceExhausted) {
   }
   // Nothing was stepped and the env is usable.
   EXPECT_EQ(Get(*stub, name).cycles(), 0);
-  EXPECT_TRUE(Step(*stub, name, Discrete({2, 2, 2})).ok());
+  EXPECT_TRUE(Step(*stub, name, DiscreteActions({2, 2, 2})).ok());
   grpc::ClientContext context;
   v1::RenderEnvRequest request;
   request.set_name(name);
@@ -450,20 +443,20 @@ TEST(FaultTest, BadValuesGetTheirCodeAndLeaveTheEnvUsable) {
   const std::string continuous = Create(*stub, continuous_config);
 
   // Before any reset: FAILED_PRECONDITION.
-  EXPECT_EQ(Step(*stub, discrete, Discrete({0, 0, 0})).error_code(),
+  EXPECT_EQ(Step(*stub, discrete, DiscreteActions({0, 0, 0})).error_code(),
             grpc::StatusCode::FAILED_PRECONDITION);
   ASSERT_TRUE(Reset(*stub, discrete).ok());
   ASSERT_TRUE(Reset(*stub, continuous).ok());
 
-  v1::Array garbage = Discrete({0, 0, 0});
+  v1::Array garbage = DiscreteActions({0, 0, 0});
   garbage.set_data("\x01\x02\x03\x04\x05");
-  v1::Array as_float = Continuous({0, 0, 0, 0, 0, 0});
+  v1::Array as_float = ContinuousActions({0, 0, 0, 0, 0, 0});
   as_float.clear_shape();
   as_float.add_shape(3);
   as_float.set_data(std::string(12, '\0'));
-  v1::Array no_dtype = Discrete({0, 0, 0});
+  v1::Array no_dtype = DiscreteActions({0, 0, 0});
   no_dtype.set_dtype(v1::DTYPE_UNSPECIFIED);
-  v1::Array two_d = Discrete({0, 0, 0});
+  v1::Array two_d = DiscreteActions({0, 0, 0});
   two_d.add_shape(1);
   const float nan = std::numeric_limits<float>::quiet_NaN();
   const float inf = std::numeric_limits<float>::infinity();
@@ -472,15 +465,15 @@ TEST(FaultTest, BadValuesGetTheirCodeAndLeaveTheEnvUsable) {
       {discrete, {"float32 for discrete", as_float, grpc::StatusCode::INVALID_ARGUMENT, "actions: dtype"}},
       {discrete, {"no dtype", no_dtype, grpc::StatusCode::INVALID_ARGUMENT, "actions: dtype"}},
       {discrete, {"shape [3, 1]", two_d, grpc::StatusCode::INVALID_ARGUMENT, "actions: shape [3, 1]"}},
-      {discrete, {"4 agents for 3", Discrete({0, 0, 0, 0}), grpc::StatusCode::INVALID_ARGUMENT, "actions: shape [4]"}},
-      {discrete, {"action 4", Discrete({0, 4, 0}), grpc::StatusCode::INVALID_ARGUMENT, "lander_1 = 4"}},
-      {discrete, {"action -1", Discrete({-1, 0, 0}), grpc::StatusCode::INVALID_ARGUMENT, "lander_0 = -1"}},
-      {continuous, {"NaN", Continuous({0, 0, 0.5f, nan}), grpc::StatusCode::INVALID_ARGUMENT, "lander_1"}},
-      {continuous, {"+inf", Continuous({inf, 0, 0, 0}), grpc::StatusCode::INVALID_ARGUMENT, "not finite"}},
-      {continuous, {"-inf", Continuous({0, -inf, 0, 0}), grpc::StatusCode::INVALID_ARGUMENT, "not finite"}},
-      {continuous, {"int32 for continuous", Discrete({0, 0}), grpc::StatusCode::INVALID_ARGUMENT, "actions: dtype"}},
-      {"envs/00000000000000000000000000000000", {"unknown env", Discrete({0}), grpc::StatusCode::NOT_FOUND, "does not exist"}},
-      {"lander_0", {"not an env name", Discrete({0}), grpc::StatusCode::INVALID_ARGUMENT, "is not an env name"}},
+      {discrete, {"4 agents for 3", DiscreteActions({0, 0, 0, 0}), grpc::StatusCode::INVALID_ARGUMENT, "actions: shape [4]"}},
+      {discrete, {"action 4", DiscreteActions({0, 4, 0}), grpc::StatusCode::INVALID_ARGUMENT, "lander_1 = 4"}},
+      {discrete, {"action -1", DiscreteActions({-1, 0, 0}), grpc::StatusCode::INVALID_ARGUMENT, "lander_0 = -1"}},
+      {continuous, {"NaN", ContinuousActions({0, 0, 0.5f, nan}), grpc::StatusCode::INVALID_ARGUMENT, "lander_1"}},
+      {continuous, {"+inf", ContinuousActions({inf, 0, 0, 0}), grpc::StatusCode::INVALID_ARGUMENT, "not finite"}},
+      {continuous, {"-inf", ContinuousActions({0, -inf, 0, 0}), grpc::StatusCode::INVALID_ARGUMENT, "not finite"}},
+      {continuous, {"int32 for continuous", DiscreteActions({0, 0}), grpc::StatusCode::INVALID_ARGUMENT, "actions: dtype"}},
+      {"envs/00000000000000000000000000000000", {"unknown env", DiscreteActions({0}), grpc::StatusCode::NOT_FOUND, "does not exist"}},
+      {"lander_0", {"not an env name", DiscreteActions({0}), grpc::StatusCode::INVALID_ARGUMENT, "is not an env name"}},
   };
   for (const auto& [name, bad] : cases) {
     SCOPED_TRACE(bad.what);
@@ -511,8 +504,8 @@ TEST(FaultTest, BadValuesGetTheirCodeAndLeaveTheEnvUsable) {
   // No bad call moved an env; both step normally now.
   EXPECT_EQ(Get(*stub, discrete).cycles(), 0);
   EXPECT_EQ(Get(*stub, continuous).cycles(), 0);
-  EXPECT_TRUE(Step(*stub, discrete, Discrete({1, 2, 3})).ok());
-  EXPECT_TRUE(Step(*stub, continuous, Continuous({1, 0.5f, -1, 0})).ok());
+  EXPECT_TRUE(Step(*stub, discrete, DiscreteActions({1, 2, 3})).ok());
+  EXPECT_TRUE(Step(*stub, continuous, ContinuousActions({1, 0.5f, -1, 0})).ok());
 
   // AEC: an action for an agent that is not agent_selection, or out of range.
   const std::string aec = Create(*stub, Landers(2));
@@ -527,7 +520,7 @@ TEST(FaultTest, BadValuesGetTheirCodeAndLeaveTheEnvUsable) {
             grpc::StatusCode::FAILED_PRECONDITION);  // Dead step for a live one.
   EXPECT_TRUE(StepAgent(*stub, aec, 2, /*agent=*/0).ok());
   // The other step API within an AEC episode.
-  EXPECT_EQ(Step(*stub, aec, Discrete({0, 0})).error_code(),
+  EXPECT_EQ(Step(*stub, aec, DiscreteActions({0, 0})).error_code(),
             grpc::StatusCode::FAILED_PRECONDITION);
 }
 
@@ -543,10 +536,10 @@ TEST(FaultTest, StepsAfterTheEpisodeEndedAreRefusedUntilReset) {
   ASSERT_TRUE(Reset(*stub, aec).ok());
 
   v1::StepEnvResponse response;
-  ASSERT_TRUE(Step(*stub, parallel, Discrete({0, 0})).ok());
-  ASSERT_TRUE(Step(*stub, parallel, Discrete({0, 0}), &response).ok());
+  ASSERT_TRUE(Step(*stub, parallel, DiscreteActions({0, 0})).ok());
+  ASSERT_TRUE(Step(*stub, parallel, DiscreteActions({0, 0}), &response).ok());
   ASSERT_TRUE(response.data().episode_over());
-  grpc::Status status = Step(*stub, parallel, Discrete({0, 0}));
+  grpc::Status status = Step(*stub, parallel, DiscreteActions({0, 0}));
   EXPECT_EQ(status.error_code(), grpc::StatusCode::FAILED_PRECONDITION);
   EXPECT_THAT(status.error_message(), HasSubstr("episode is over"));
   EXPECT_EQ(Get(*stub, parallel).cycles(), 2);
@@ -566,7 +559,7 @@ TEST(FaultTest, StepsAfterTheEpisodeEndedAreRefusedUntilReset) {
   // A reset makes both usable again.
   for (const std::string& name : {parallel, aec}) {
     ASSERT_TRUE(Reset(*stub, name).ok());
-    EXPECT_TRUE(Step(*stub, name, Discrete({2, 2})).ok());
+    EXPECT_TRUE(Step(*stub, name, DiscreteActions({2, 2})).ok());
   }
 }
 
