@@ -8,11 +8,12 @@
 #include <string>
 #include <vector>
 
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
 #include "absl/strings/strip.h"
-#include "absl/strings/match.h"
+#include "cli_runner.h"
 #include "core_bridge.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"

@@ -177,15 +177,6 @@ bool Eventually(const std::function<bool()>& condition, int seconds) {
   return true;
 }
 
-CommandResult RunCli(std::vector<std::string> args) {
-  args.insert(args.begin(), MLL_CLI_PATH);
-  absl::StatusOr<CommandResult> result = RunCommand(args);
-  if (result.ok()) return *result;
-  CommandResult failed;
-  failed.err = result.status().ToString();
-  return failed;
-}
-
 std::string EnvNameIn(const std::string& json) {
   static const std::regex kName("\"name\":\"(envs/[^\"]+)\"");
   std::smatch match;

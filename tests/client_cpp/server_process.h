@@ -53,10 +53,6 @@ struct CommandResult {
 absl::StatusOr<CommandResult> RunCommand(const std::vector<std::string>& argv,
                                          int timeout_seconds = 120);
 
-// mll_cli (the build's, MLL_CLI_PATH) with `args`, to completion; when it
-// cannot be run, exit_code is -1 and err says why.
-CommandResult RunCli(std::vector<std::string> args);
-
 // The env name in mll_cli's JSON output (`"name":"envs/..."`); empty if none.
 std::string EnvNameIn(const std::string& json);
 

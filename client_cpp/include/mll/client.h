@@ -354,7 +354,8 @@ class Client {
   absl::StatusOr<Client> OpenSession() const;
   bool is_session() const;
 
-  // Number of servers, and the address of server `server` (0..count-1).
+  // Number of servers, and the address of server `server`, which must be in
+  // 0..server_count()-1 (as RemoteEnv::server() and EnvInfo::server are).
   int server_count() const { return static_cast<int>(transports_.size()); }
   const std::string& address(int server) const;
 
