@@ -1,7 +1,10 @@
 // The client library's overhead against the raw generated stubs, in one run
 // against one real mll_server on loopback (started here, --threads=2):
 //   single parallel step (unary and session stream) of a 1-lander env, and
-//   StepBatch over 64 envs of 3 landers.
+//   StepBatch over 64 envs of 3 landers;
+// and the scale-out path: the same StepBatch through a client over two
+// servers (a second mll_server started here), one call per server in flight
+// at once, beside the one-server client in the same run.
 // The raw variants build their request once and reuse it: the floor a
 // hand-written gRPC program reaches. Envs use auto_reset, so every call steps.
 //
@@ -26,8 +29,10 @@ namespace {
 constexpr int kBatchEnvs = 64;
 constexpr int kBatchLanders = 3;
 
-// The server every benchmark talks to; started and stopped by main().
+// The server every benchmark talks to, and the second server of the
+// scale-out variant; started and stopped by main().
 ServerProcess* server = nullptr;
+ServerProcess* second_server = nullptr;
 ServerProcess& Server() { return *server; }
 
 Client MakeClient() {
@@ -157,8 +162,9 @@ void BM_RawStub_StepBatch(benchmark::State& state) {
 }
 BENCHMARK(BM_RawStub_StepBatch)->UseRealTime();
 
-void BM_Client_StepBatch(benchmark::State& state) {
-  Client client = MakeClient();
+// StepBatch of kBatchEnvs envs created through `client` (round-robin over
+// its servers), every iteration.
+void ClientBatchLoop(benchmark::State& state, const Client& client) {
   std::vector<RemoteEnv> envs = MakeBatchEnvs(client);
   const std::vector<int32_t> actions(kBatchLanders, 0);
   std::vector<BatchStep> steps;
@@ -172,7 +178,28 @@ void BM_Client_StepBatch(benchmark::State& state) {
   }
   state.SetItemsProcessed(state.iterations() * kBatchEnvs * kBatchLanders);
 }
+
+void BM_Client_StepBatch(benchmark::State& state) {
+  ClientBatchLoop(state, MakeClient());
+}
 BENCHMARK(BM_Client_StepBatch)->UseRealTime();
+// Process CPU as well: with two servers, gRPC's callback threads receive and
+// parse one server's response, which the calling thread's CPU would miss.
+BENCHMARK(BM_Client_StepBatch)
+    ->Name("BM_Client_StepBatch_OneServer/process_cpu")
+    ->MeasureProcessCPUTime()
+    ->UseRealTime();
+
+void BM_Client_StepBatchTwoServers(benchmark::State& state) {
+  absl::StatusOr<Client> client =
+      Client::Create({Server().address(), second_server->address()});
+  if (!client.ok()) return Fail(state, client.status().ToString());
+  ClientBatchLoop(state, *client);
+}
+BENCHMARK(BM_Client_StepBatchTwoServers)
+    ->Name("BM_Client_StepBatch_TwoServers/process_cpu")
+    ->MeasureProcessCPUTime()
+    ->UseRealTime();
 
 }  // namespace
 }  // namespace mll
@@ -186,8 +213,16 @@ int main(int argc, char** argv) {
     std::cerr << "cannot start the server: " << server.status() << std::endl;
     return 1;
   }
+  absl::StatusOr<std::unique_ptr<mll::ServerProcess>> second =
+      mll::ServerProcess::Start(MLL_SERVER_PATH, {"--threads=2"});
+  if (!second.ok()) {
+    std::cerr << "cannot start the second server: " << second.status()
+              << std::endl;
+    return 1;
+  }
   mll::server = server->get();
+  mll::second_server = second->get();
   benchmark::RunSpecifiedBenchmarks();
   benchmark::Shutdown();
-  return 0;  // The server stops when `server` goes out of scope.
+  return 0;  // The servers stop when `server` and `second` go out of scope.
 }

@@ -10,9 +10,11 @@
 #include "google/protobuf/io/coded_stream.h"
 #include "google/protobuf/io/zero_copy_stream_impl_lite.h"
 #include "google/protobuf/wire_format_lite.h"
+#include "grpcpp/completion_queue.h"
 #include "grpcpp/create_channel.h"
 #include "grpcpp/generic/generic_stub.h"
 #include "grpcpp/security/credentials.h"
+#include "grpcpp/support/async_unary_call.h"
 #include "grpcpp/support/byte_buffer.h"
 #include "grpcpp/support/channel_arguments.h"
 
@@ -120,17 +122,45 @@ class UnaryTransport final : public Transport {
     if (request.op_case() != v1::SessionRequest::kStepBatch) {
       return Transport::CallAsync(request, response);
     }
-    // The context lives until gRPC drops the callback, after the call ends.
-    auto context = std::make_shared<grpc::ClientContext>();
-    Prepare(context.get(), /*unary=*/true);
-    auto done = std::make_shared<std::promise<absl::Status>>();
-    std::future<absl::Status> result = done->get_future();
-    stub_->async()->StepBatch(
-        context.get(), &request.step_batch(), response->mutable_step_batch(),
-        [context, done](grpc::Status status) {
-          done->set_value(FromGrpc(status));
-        });
-    return result;
+    // Started now on a completion queue of its own, and completed by the
+    // thread that waits for the future: no thread is made or woken for it.
+    struct Pending {
+      // Drains the queue, as gRPC requires before destroying it; cancels
+      // first if nobody waited for the call.
+      ~Pending() {
+        if (!completed) context.TryCancel();
+        queue.Shutdown();
+        void* tag = nullptr;
+        bool ok = false;
+        while (queue.Next(&tag, &ok)) {
+        }
+      }
+      grpc::ClientContext context;
+      grpc::CompletionQueue queue;
+      grpc::Status status;
+      std::unique_ptr<grpc::ClientAsyncResponseReader<v1::StepBatchResponse>>
+          reader;
+      bool completed = false;
+    };
+    auto pending = std::make_shared<Pending>();
+    Prepare(&pending->context, /*unary=*/true);
+    pending->reader = stub_->PrepareAsyncStepBatch(
+        &pending->context, request.step_batch(), &pending->queue);
+    pending->reader->StartCall();
+    pending->reader->Finish(response->mutable_step_batch(), &pending->status,
+                            pending.get());
+    return std::async(std::launch::deferred, [pending] {
+      void* tag = nullptr;
+      bool ok = false;
+      // Finish's tag always comes back, with ok true (the status says how
+      // the call ended).
+      const bool got = pending->queue.Next(&tag, &ok);
+      pending->completed = got;
+      if (!got) {
+        return absl::InternalError("StepBatch completion queue shut down");
+      }
+      return FromGrpc(pending->status);
+    });
   }
 
  private:
