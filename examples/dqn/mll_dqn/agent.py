@@ -95,6 +95,10 @@ class DQNAgent:
         self.updates += 1
         return float(loss)
 
+    def set_lr(self, lr: float) -> None:
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+
     @torch.no_grad()
     def _soft_update(self, tau: float) -> None:
         # target = tau * online + (1 - tau) * target

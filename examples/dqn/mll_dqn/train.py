@@ -22,19 +22,31 @@ from mll_dqn.replay import ReplayBuffer
 # Window of the running mean score (the paper's: 50 episodes).
 SCORE_WINDOW = 50
 CHECKPOINT = "checkpoint.pt"
+# The network of the best 50-episode mean so far (no replay buffer; loadable
+# by evaluate.load_policy like CHECKPOINT), as the paper's script kept best.pth.
+BEST = "best.pt"
 LOG = "episodes.csv"
 SUMMARY = "summary.json"
 
 
-def use_one_thread() -> None:
-    """One BLAS/torch thread: the fastest for this small network, and fair to
-    the server and other users of the machine's 2 cores."""
-    torch.set_num_threads(1)
+def use_one_thread(threads: int = 1) -> None:
+    """One BLAS/torch thread by default: the fastest for this small network,
+    and fair to the server and other users of the machine's 2 cores."""
+    torch.set_num_threads(threads)
 
 
 def epsilon_after(config: TrainConfig, episodes: int) -> float:
     """Epsilon after `episodes` finished episodes (decayed once per episode)."""
     return max(config.eps_end, config.eps_start * config.eps_decay ** episodes)
+
+
+def lr_after(config: TrainConfig, episodes: int) -> float:
+    """Learning rate after `episodes` finished episodes: `lr` decayed linearly
+    to `lr_end` at the last episode, or `lr` throughout when lr_end is 0."""
+    if config.lr_end == 0:
+        return config.lr
+    fraction = min(1.0, episodes / max(1, config.episodes - 1))
+    return config.lr + (config.lr_end - config.lr) * fraction
 
 
 @dataclasses.dataclass
@@ -48,6 +60,9 @@ class Progress:
     # than wall time to other users of the machine.
     cpu_s: float = 0.0
     scores: List[float] = dataclasses.field(default_factory=list)
+    # Best 50-episode mean over full windows, and the episode it ends at.
+    best_mean50: Optional[float] = None
+    best_episode: int = 0
     timers: Dict[str, float] = dataclasses.field(default_factory=dict)
 
 
@@ -62,7 +77,7 @@ def train(config: TrainConfig, out_dir: str, address: Optional[str] = None,
           resume: bool = False, progress_bar: bool = True) -> Dict:
     """Trains; returns the summary (also written to out_dir/summary.json)."""
     config.validate()
-    use_one_thread()
+    use_one_thread(config.torch_threads)
     os.makedirs(out_dir, exist_ok=True)
     checkpoint_path = os.path.join(out_dir, CHECKPOINT)
     log_path = os.path.join(out_dir, LOG)
@@ -106,6 +121,7 @@ def train(config: TrainConfig, out_dir: str, address: Optional[str] = None,
     try:
         while progress.episodes < config.episodes:
             epsilon = epsilon_after(config, progress.episodes)
+            agent.set_lr(lr_after(config, progress.episodes))
             transitions, episodes = collector.step(epsilon)
             if transitions is not None and len(transitions[1]):
                 start = time.perf_counter()
@@ -140,6 +156,13 @@ def train(config: TrainConfig, out_dir: str, address: Optional[str] = None,
                     epsilon_after(config, progress.episodes - 1),
                     agent.updates))
                 bar.update(1)
+                if (len(window) == SCORE_WINDOW
+                        and (progress.best_mean50 is None
+                             or np.mean(window) > progress.best_mean50)):
+                    progress.best_mean50 = float(np.mean(window))
+                    progress.best_episode = progress.episodes
+                    _save_best(os.path.join(out_dir, BEST), config, agent,
+                               progress)
                 bar.set_postfix(mean50=f"{np.mean(window):.0f}",
                                 eps=f"{epsilon:.3f}")
             if progress.episodes - last_checkpoint >= config.checkpoint_every:
@@ -213,6 +236,16 @@ def _save(path: str, config: TrainConfig, agent: DQNAgent,
     os.replace(path + ".tmp", path)
 
 
+def _save_best(path: str, config: TrainConfig, agent: DQNAgent,
+                progress: Progress) -> None:
+    state = dict(config=config.to_dict(),
+                 agent=dict(online=agent.online.state_dict()),
+                 best_mean50=progress.best_mean50,
+                 episode=progress.best_episode)
+    torch.save(state, path + ".tmp")
+    os.replace(path + ".tmp", path)
+
+
 def _summary(config: TrainConfig, progress: Progress, agent: DQNAgent,
              timers: Timers, stopped_early: bool) -> Dict:
     scores = np.asarray(progress.scores)
@@ -228,6 +261,8 @@ def _summary(config: TrainConfig, progress: Progress, agent: DQNAgent,
         stopped_early=stopped_early,
         final_mean50=float(means[-1]) if len(means) else None,
         mean_last200=float(scores[-200:].mean()) if len(scores) else None,
+        best_mean50=progress.best_mean50,
+        best_mean50_episode=progress.best_episode,
         first_episode_mean50_ge_1400=(int(reached[0]) + 1
                                       if len(reached) else None),
         wall_s=wall,

@@ -8,7 +8,7 @@ import torch
 
 from mll_dqn.agent import DQNAgent
 from mll_dqn.config import TrainConfig, preset
-from mll_dqn.train import epsilon_after
+from mll_dqn.train import epsilon_after, lr_after
 
 
 def _batch(rng, size=64):
@@ -86,6 +86,30 @@ def test_epsilon_schedule_is_the_papers():
     assert epsilon_after(config, 1000) == 0.01
 
 
+def test_learning_rate_decays_linearly_to_lr_end():
+    config = dataclasses.replace(preset("paper"), lr=1e-3, lr_end=1e-4,
+                                 episodes=101)
+    assert lr_after(config, 0) == pytest.approx(1e-3)
+    assert lr_after(config, 50) == pytest.approx(5.5e-4)
+    assert lr_after(config, 100) == pytest.approx(1e-4)
+    assert lr_after(config, 500) == pytest.approx(1e-4)
+    # lr_end 0: the paper's constant rate.
+    paper = preset("paper")
+    assert lr_after(paper, 0) == lr_after(paper, 999) == paper.lr
+    agent = DQNAgent(config)
+    agent.set_lr(lr_after(config, 50))
+    assert agent.optimizer.param_groups[0]["lr"] == pytest.approx(5.5e-4)
+
+
+def test_target_preset_keeps_the_papers_samples_per_transition():
+    paper, target = preset("paper"), preset("target")
+    assert (target.batch_size / target.update_every
+            == paper.batch_size / paper.update_every)
+    assert target.lr_end < target.lr and target.mode == "vector"
+    assert target.env_config == paper.env_config
+    target.validate()
+
+
 def test_paper_preset_is_table_iv():
     config = preset("paper")
     assert (config.lr, config.buffer_size, config.batch_size, config.gamma,
@@ -102,6 +126,8 @@ def test_paper_preset_is_table_iv():
     ("mode", "async", "mode = 'async' is out of range; allowed: parallel or"),
     ("gamma", 1.5, "gamma = 1.5 is out of range; allowed: [0, 1]"),
     ("reward_scale", 0.0, "reward_scale = 0.0 is out of range; allowed: > 0"),
+    ("lr_end", 1.0, "lr_end = 1.0 is out of range; allowed: [0, lr]"),
+    ("torch_threads", 0, "torch_threads = 0 is out of range; allowed: >= 1"),
 ])
 def test_bad_config_names_field_value_and_range(field, value, message):
     config = dataclasses.replace(TrainConfig(), **{field: value})

@@ -9,12 +9,13 @@ import os
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
 from mll_dqn import evaluate
 from mll_dqn.__main__ import main
 from mll_dqn.config import preset
-from mll_dqn.train import CHECKPOINT, LOG, SUMMARY, train
+from mll_dqn.train import BEST, CHECKPOINT, LOG, SCORE_WINDOW, SUMMARY, train
 
 OUTCOME_NAMES = {"landed", "crashed", "out_of_bounds", "truncated", "aborted"}
 
@@ -54,6 +55,29 @@ def test_quick_training_logs_and_checkpoints(tmp_path, mode):
     assert summary["env_steps"] >= int(rows[-1]["env_steps"])
     split = summary["time_split_s"]
     assert {"env", "act", "sample", "learn"} <= set(split)
+
+
+def test_best_network_is_kept_with_its_running_mean(tmp_path):
+    """best.pt holds the network at the episode of the highest full-window
+    running mean, which the log and the summary agree on."""
+    config = dataclasses.replace(
+        preset("quick"), episodes=SCORE_WINDOW + 8, checkpoint_every=100,
+        env_config=dict(preset("quick").env_config, max_cycles=20),
+        lr_end=1e-4)
+    summary = train(config, str(tmp_path), progress_bar=False)
+    rows = _rows(tmp_path)
+    means = [float(r["mean50"]) for r in rows][SCORE_WINDOW - 1:]
+    best = int(np.argmax(means)) + SCORE_WINDOW
+    assert summary["best_mean50_episode"] == best
+    assert summary["best_mean50"] == pytest.approx(max(means), abs=1e-3)
+    saved = torch.load(tmp_path / BEST)
+    assert saved["episode"] == best
+    policy, loaded = evaluate.load_policy(str(tmp_path / BEST))
+    assert loaded == config
+    assert policy(np.zeros((3, 12), np.float32)).shape == (3,)
+    # The learning rate was decayed to lr_end by the last episode.
+    last = torch.load(tmp_path / CHECKPOINT)["agent"]["optimizer"]
+    assert last["param_groups"][0]["lr"] == pytest.approx(1e-4)
 
 
 def test_same_seed_same_scores(tmp_path):
