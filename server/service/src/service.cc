@@ -83,7 +83,7 @@ class SessionReactor final
 
   void OnReadDone(bool ok) override {
     if (!ok) {  // The client half-closed, or the call was cancelled.
-      Finish(grpc::Status::OK);
+      EndStream();
       return;
     }
     timer_.Restart();
@@ -108,21 +108,35 @@ class SessionReactor final
 
   void OnWriteDone(bool ok) override {
     if (!ok) {  // The stream broke; nobody reads any more answers.
-      Finish(grpc::Status::OK);
+      EndStream();
       return;
     }
     StartRead(&request_);
   }
 
+  // Also covers a stream that ended without EndStream (e.g. cancelled while a
+  // write was pending).
   void OnDone() override {
-    for (const std::string& name : bound_envs_) {
-      // Already deleted or reclaimed is fine: the goal is that it is gone.
-      registry_->Delete(name, "name", owner_).IgnoreError();
-    }
+    DeleteBoundEnvs();
     delete this;
   }
 
  private:
+  // The bound envs go before the final status does, so a client that sees
+  // the stream end never finds them still listed.
+  void EndStream() {
+    DeleteBoundEnvs();
+    Finish(grpc::Status::OK);
+  }
+
+  void DeleteBoundEnvs() {
+    for (const std::string& name : bound_envs_) {
+      // Already deleted or reclaimed is fine: the goal is that it is gone.
+      registry_->Delete(name, "name", owner_).IgnoreError();
+    }
+    bound_envs_.clear();
+  }
+
   absl::Status Run() {
     absl::Status status;
     switch (request_.op_case()) {
