@@ -25,6 +25,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--max_cycles", type=int, default=500)
+    parser.add_argument("--terminate_on_damage", choices=("true", "false"), default="true",
+                        help="end every lander's episode when one is damaged (default true)")
     parser.add_argument("--address", default=None, help="host:port of a running mll_server")
     parser.add_argument("--gif", type=pathlib.Path, help="write an animated GIF here instead of opening a window")
     parser.add_argument("--frame_skip", type=int, default=2, help="GIF: keep every k-th frame (default 2)")
@@ -39,6 +41,7 @@ def main(argv: list[str] | None = None) -> int:
         continuous=args.continuous,
         enable_wind=args.enable_wind,
         max_cycles=args.max_cycles,
+        terminate_on_damage=args.terminate_on_damage == "true",
     )
     frames = []
     try:

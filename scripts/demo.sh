@@ -21,12 +21,18 @@ for _ in $(seq 100); do [ -s "$port_file" ] && break; sleep 0.1; done
 address="127.0.0.1:$(cat "$port_file")"
 "$CLI" health --address="$address"
 
-echo "== 3 landers, 3 episodes, heuristic pilot, through the server (mll_cli play)"
-"$CLI" play --address="$address" --n_landers=3 --episodes=3 --seed=0 --policy=heuristic
+echo "== 1 lander (Gymnasium's LunarLander-v3), 5 episodes, heuristic pilot, through the server"
+"$CLI" play --address="$address" --n_landers=1 --episodes=5 --seed=0 --policy=heuristic
 
-echo "== the same through the Python PettingZoo client, rendered to $OUT/landers.gif"
-.venv/bin/python examples/play.py --address="$address" --n_landers=3 --episodes=1 --seed=0 \
-  --gif "$OUT/landers.gif"
+# Gymnasium's pilot steers every lander to the pad's centre and knows nothing of the others,
+# so with several landers they often collide: that is what the agents have to learn.
+echo "== 3 landers, 5 episodes, the same pilot, damage ends only the damaged lander's episode"
+"$CLI" play --address="$address" --n_landers=3 --episodes=5 --seed=5 --policy=heuristic \
+  --terminate_on_damage=false
+
+echo "== 3 landers through the Python PettingZoo client, rendered to $OUT/landers.gif"
+.venv/bin/python examples/play.py --address="$address" --n_landers=3 --episodes=1 --seed=8 \
+  --terminate_on_damage=false --gif "$OUT/landers.gif"
 "$CLI" create --address="$address" --n_landers=3 --render_mode=rgb_array > "$OUT/env.txt"
 name=$(grep -o 'envs/[0-9a-f]*' "$OUT/env.txt" | head -n 1)
 "$CLI" reset "$name" --address="$address" --seed=0 > /dev/null
