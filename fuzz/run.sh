@@ -37,7 +37,7 @@ for target in "${targets[@]}"; do
   # indirection): the machine's cores are shared.
   "$BUILD_DIR/fuzz/${target}_fuzzer" -max_total_time="$seconds" -max_len=4096 -timeout=30 -rss_limit_mb=4096 -print_final_stats=1 \
     -artifact_prefix="$artifacts/" "$corpus" "$ROOT/fuzz/corpus/$target" \
-    2>&1 | tee "$BUILD_DIR/$target.log" | grep -E "^Done|stat::|ERROR|SUMMARY|harness:" || true
+    2>&1 | tee "$BUILD_DIR/$target.log" | grep -E "^Done|stat::|==ERROR|SUMMARY|harness:" || true
   if ls "$artifacts"/crash-* "$artifacts"/timeout-* "$artifacts"/oom-* >/dev/null 2>&1; then
     echo "== $target: findings in $artifacts"; status=1
   fi

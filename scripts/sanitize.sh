@@ -37,9 +37,12 @@ export TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1:history_size=4:supp
 export MLL_SANITIZER="$kind"
 
 status=0
+# client_cpp.consumer_package builds a project outside the tree against the
+# installed library with plain flags: linking sanitized objects without the
+# sanitizer runtime cannot work, so it only runs in the normal build.
 # shellcheck disable=SC2086
 ctest --test-dir "$BUILD_DIR" --output-on-failure -j "${JOBS:-$(nproc)}" \
-  --timeout 1200 ${CTEST_ARGS:-} || status=$?
+  --timeout 1200 -E '^client_cpp\.consumer_package$' ${CTEST_ARGS:-} || status=$?
 end=$(date +%s)
 echo "sanitize.sh $kind: build $((built - start)) s, tests $((end - built)) s," \
   "total $((end - start)) s, ctest exit $status"
