@@ -6,6 +6,7 @@
 #include <utility>
 #include <vector>
 
+#include "absl/container/flat_hash_set.h"
 #include "absl/strings/str_cat.h"
 #include "mll/service/convert.h"
 
@@ -144,7 +145,7 @@ class SessionReactor final
         const bool bound = !request_.create_env().detached();
         status = operations_->CreateEnv(request_.create_env(), bound,
                                         response_.mutable_env(), owner_);
-        if (status.ok() && bound) bound_envs_.push_back(response_.env().name());
+        if (status.ok() && bound) bound_envs_.insert(response_.env().name());
         return status;
       }
       case v1::SessionRequest::kGetEnv:
@@ -177,7 +178,11 @@ class SessionReactor final
                                       response_.mutable_frame(), owner_);
       case v1::SessionRequest::kDeleteEnv:
         response_.mutable_delete_env();
-        return operations_->DeleteEnv(request_.delete_env(), owner_);
+        status = operations_->DeleteEnv(request_.delete_env(), owner_);
+        // Forgotten at once: a long session creating and deleting envs
+        // must not grow (found by bench/load soak, +39 MB per 1M cycles).
+        if (status.ok()) bound_envs_.erase(request_.delete_env().name());
+        return status;
       default:
         return absl::InvalidArgumentError(absl::StrCat(
             "op: not set (sequence ", request_.sequence(),
@@ -203,7 +208,7 @@ class SessionReactor final
   CallTimer timer_;
   v1::SessionRequest request_;
   v1::SessionResponse response_;
-  std::vector<std::string> bound_envs_;
+  absl::flat_hash_set<std::string> bound_envs_;
 };
 
 }  // namespace
