@@ -12,6 +12,7 @@
 #include <fstream>
 #include <thread>
 
+#include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/strip.h"
@@ -70,6 +71,18 @@ std::optional<std::string> Subprocess::ReadLine(absl::Duration timeout) {
     if (n <= 0) return std::nullopt;
     buffered_.append(chunk, n);
   }
+}
+
+int64_t Subprocess::ResidentKib() const {
+  std::ifstream status(absl::StrCat("/proc/", pid_, "/status"));
+  for (std::string line; std::getline(status, line);) {
+    int64_t kib = 0;
+    if (absl::StartsWith(line, "VmRSS:") &&
+        std::sscanf(line.c_str(), "VmRSS: %ld", &kib) == 1) {
+      return kib;
+    }
+  }
+  return -1;
 }
 
 void Subprocess::Signal(int signal_number) {

@@ -6,6 +6,7 @@
 
 #include <sys/types.h>
 
+#include <cstdint>
 #include <memory>
 #include <optional>
 #include <string>
@@ -28,6 +29,8 @@ class Subprocess {
   Subprocess& operator=(const Subprocess&) = delete;
 
   pid_t pid() const { return pid_; }
+  // Resident memory (VmRSS of /proc/<pid>/status) in KiB; -1 if unreadable.
+  int64_t ResidentKib() const;
   // The next line of stdout without its newline, or nullopt at end of file
   // or when `timeout` passes first.
   std::optional<std::string> ReadLine(absl::Duration timeout);
