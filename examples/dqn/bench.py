@@ -87,6 +87,14 @@ def main() -> None:
         big = buffer.sample(size, rng)
         rows.append((f"learning step, batch {size}",
                      per_call_us(lambda: agent.learn(big), args.seconds), None))
+    # The learner on two torch threads (the `torch_threads` option) against
+    # one, batch 512: worth it only if the second core is otherwise idle.
+    one_thread = rows[-1][1]
+    torch.set_num_threads(2)
+    rows.append(("learning step, batch 512, 2 threads (vs 1 thread)",
+                 per_call_us(lambda: agent.learn(big), args.seconds),
+                 one_thread))
+    torch.set_num_threads(1)
 
     # Replay sampling, 128 of 1e5.
     memory = collections.deque(maxlen=n)
@@ -132,7 +140,7 @@ def main() -> None:
 
     parallel_us = per_call_us(parallel_step, args.seconds)
     env.close()
-    for num_envs in (8, 32):
+    for num_envs in (8, 16, 32):
         venv = mll.vector_env(num_envs, address=args.address,
                               **PAPER_ENV_CONFIG)
         venv.reset(seed=0)
