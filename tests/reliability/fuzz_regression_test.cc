@@ -38,24 +38,25 @@ std::vector<uint8_t> ReadBytes(const fs::path& path) {
   return std::vector<uint8_t>(std::istreambuf_iterator<char>(in), {});
 }
 
-TEST(FuzzRegressionTest, CoreInputsRunCleanly) {
-  const std::vector<fs::path> inputs = Inputs("core");
-  ASSERT_GE(inputs.size(), 5u) << "the core seed corpus is missing";
+// Runs every input of `target` through `harness` (which aborts on a crash
+// or a broken contract).
+void ReplayAll(const std::string& target,
+               void (*harness)(const uint8_t*, size_t)) {
+  const std::vector<fs::path> inputs = Inputs(target);
+  ASSERT_GE(inputs.size(), 5u) << "the " << target << " seed corpus is missing";
   for (const fs::path& path : inputs) {
     SCOPED_TRACE(path.string());
     const std::vector<uint8_t> bytes = ReadBytes(path);
-    RunCoreInput(bytes.data(), bytes.size());
+    harness(bytes.data(), bytes.size());
   }
 }
 
+TEST(FuzzRegressionTest, CoreInputsRunCleanly) {
+  ReplayAll("core", RunCoreInput);
+}
+
 TEST(FuzzRegressionTest, ServiceInputsRunCleanly) {
-  const std::vector<fs::path> inputs = Inputs("service");
-  ASSERT_GE(inputs.size(), 5u) << "the service seed corpus is missing";
-  for (const fs::path& path : inputs) {
-    SCOPED_TRACE(path.string());
-    const std::vector<uint8_t> bytes = ReadBytes(path);
-    RunServiceInput(bytes.data(), bytes.size());
-  }
+  ReplayAll("service", RunServiceInput);
 }
 
 // Inputs the fuzzer builds byte by byte: frames are read only as far as the
