@@ -172,23 +172,47 @@ PayloadSizes StepPayloadSizes(Servers& servers, const std::string& name) {
           static_cast<int>(response.ByteSizeLong())};
 }
 
-void BM_StepEnvUnary(benchmark::State& state) {
-  Servers servers(2);
-  const std::string name = NewEnv(*servers.stub, true);
+// Times one call per benchmark iteration: `prepare` runs untimed before each
+// call; a call returning false ends the run with `what` as the error.
+template <typename Prepare, typename Call>
+void TimeCalls(benchmark::State& state, const char* what, Prepare prepare,
+               Call call) {
   Latencies latencies;
-  int64_t step = 0;
   for (auto _ : state) {
-    const v1::StepEnvRequest request = StepRequest(name, step++);
+    prepare();
     const auto start = std::chrono::steady_clock::now();
-    grpc::ClientContext context;
-    v1::StepEnvResponse response;
-    if (!servers.stub->StepEnv(&context, request, &response).ok()) {
-      state.SkipWithError("StepEnv failed");
+    if (!call()) {
+      state.SkipWithError(what);
       break;
     }
     latencies.Add(std::chrono::steady_clock::now() - start);
   }
   latencies.Report(state);
+}
+
+// An echo request carrying a real step's request size and asking for its
+// response size.
+bench::EchoRequest EchoRequestSizedLikeAStep(Servers& servers) {
+  const PayloadSizes sizes =
+      StepPayloadSizes(servers, NewEnv(*servers.stub, true));
+  bench::EchoRequest request;
+  request.mutable_payload()->assign(sizes.request, 'r');
+  request.set_response_size(sizes.response);
+  return request;
+}
+
+void BM_StepEnvUnary(benchmark::State& state) {
+  Servers servers(2);
+  const std::string name = NewEnv(*servers.stub, true);
+  int64_t step = 0;
+  v1::StepEnvRequest request;
+  TimeCalls(
+      state, "StepEnv failed", [&] { request = StepRequest(name, step++); },
+      [&] {
+        grpc::ClientContext context;
+        v1::StepEnvResponse response;
+        return servers.stub->StepEnv(&context, request, &response).ok();
+      });
   const PayloadSizes sizes = StepPayloadSizes(servers, name);
   state.counters["request_B"] = sizes.request;
   state.counters["response_B"] = sizes.response;
@@ -196,23 +220,14 @@ void BM_StepEnvUnary(benchmark::State& state) {
 
 void BM_EchoUnaryFloor(benchmark::State& state) {
   Servers servers(2);
-  const PayloadSizes sizes =
-      StepPayloadSizes(servers, NewEnv(*servers.stub, true));
-  bench::EchoRequest request;
-  request.mutable_payload()->assign(sizes.request, 'r');
-  request.set_response_size(sizes.response);
-  Latencies latencies;
-  for (auto _ : state) {
-    const auto start = std::chrono::steady_clock::now();
-    grpc::ClientContext context;
-    bench::EchoResponse response;
-    if (!servers.echo_stub->Unary(&context, request, &response).ok()) {
-      state.SkipWithError("echo failed");
-      break;
-    }
-    latencies.Add(std::chrono::steady_clock::now() - start);
-  }
-  latencies.Report(state);
+  const bench::EchoRequest request = EchoRequestSizedLikeAStep(servers);
+  TimeCalls(
+      state, "echo failed", [] {},
+      [&] {
+        grpc::ClientContext context;
+        bench::EchoResponse response;
+        return servers.echo_stub->Unary(&context, request, &response).ok();
+      });
 }
 
 void BM_StepEnvSession(benchmark::State& state) {
@@ -220,48 +235,34 @@ void BM_StepEnvSession(benchmark::State& state) {
   const std::string name = NewEnv(*servers.stub, true);
   grpc::ClientContext context;
   auto stream = servers.stub->Session(&context);
-  Latencies latencies;
   int64_t step = 0;
   v1::SessionRequest request;
   v1::SessionResponse response;
-  for (auto _ : state) {
-    request.set_sequence(step);
-    *request.mutable_step_env() = StepRequest(name, step++);
-    const auto start = std::chrono::steady_clock::now();
-    if (!stream->Write(request) || !stream->Read(&response) ||
-        response.has_error()) {
-      state.SkipWithError("session step failed");
-      break;
-    }
-    latencies.Add(std::chrono::steady_clock::now() - start);
-  }
+  TimeCalls(
+      state, "session step failed",
+      [&] {
+        request.set_sequence(step);
+        *request.mutable_step_env() = StepRequest(name, step++);
+      },
+      [&] {
+        return stream->Write(request) && stream->Read(&response) &&
+               !response.has_error();
+      });
   stream->WritesDone();
   stream->Finish().IgnoreError();
-  latencies.Report(state);
 }
 
 void BM_EchoStreamFloor(benchmark::State& state) {
   Servers servers(2);
-  const PayloadSizes sizes =
-      StepPayloadSizes(servers, NewEnv(*servers.stub, true));
-  bench::EchoRequest request;
-  request.mutable_payload()->assign(sizes.request, 'r');
-  request.set_response_size(sizes.response);
+  const bench::EchoRequest request = EchoRequestSizedLikeAStep(servers);
   grpc::ClientContext context;
   auto stream = servers.echo_stub->Stream(&context);
-  Latencies latencies;
   bench::EchoResponse response;
-  for (auto _ : state) {
-    const auto start = std::chrono::steady_clock::now();
-    if (!stream->Write(request) || !stream->Read(&response)) {
-      state.SkipWithError("echo stream failed");
-      break;
-    }
-    latencies.Add(std::chrono::steady_clock::now() - start);
-  }
+  TimeCalls(
+      state, "echo stream failed", [] {},
+      [&] { return stream->Write(request) && stream->Read(&response); });
   stream->WritesDone();
   stream->Finish().IgnoreError();
-  latencies.Report(state);
 }
 
 double ProcessCpuSeconds() {
