@@ -8,7 +8,13 @@
 # Any report fails the run: the sanitizers halt on the first error, and leaks
 # are reported at exit. Suppressions live in scripts/sanitizer/*.supp,
 # each entry with the reason it is there. Environment: JOBS (default nproc),
-# CTEST_ARGS (extra ctest arguments, e.g. "-R reliability").
+# CTEST_ARGS (extra ctest arguments, e.g. "-R reliability"), TSAN_DEPS_DIR
+# (default build-tsan-deps).
+#
+# tsan first builds Debian's abseil and protobuf with -fsanitize=thread
+# (scripts/sanitizer/build_tsan_deps.sh, once) and runs the tests with those
+# libraries first on LD_LIBRARY_PATH: without them TSan cannot see absl::Mutex
+# (ours and gRPC's) and protobuf's map fields change layout under TSan.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
@@ -21,6 +27,10 @@ esac
 SUPP="$ROOT/scripts/sanitizer"
 
 start=$(date +%s)
+if [[ "$kind" == tsan ]]; then
+  deps_lib=$(scripts/sanitizer/build_tsan_deps.sh "${TSAN_DEPS_DIR:-build-tsan-deps}" | tail -n 1)
+fi
+deps_built=$(date +%s)
 cmake -S . -B "$BUILD_DIR" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
   -DMLL_SANITIZE="$sanitize" -DMLL_BUILD_TESTS=ON -DMLL_BUILD_BENCHMARKS=OFF >/dev/null
 cmake --build "$BUILD_DIR" -j "${JOBS:-$(nproc)}"
@@ -32,7 +42,21 @@ built=$(date +%s)
 export ASAN_OPTIONS="halt_on_error=1:abort_on_error=1:detect_leaks=1:detect_stack_use_after_return=1:check_initialization_order=1:strict_init_order=1:suppressions=$SUPP/asan.supp"
 export LSAN_OPTIONS="suppressions=$SUPP/lsan.supp:print_suppressions=0"
 export UBSAN_OPTIONS="halt_on_error=1:print_stacktrace=1:suppressions=$SUPP/ubsan.supp"
-export TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1:history_size=4:suppressions=$SUPP/tsan.supp"
+# ignore_noninstrumented_modules: interceptors (memcpy, ...) called from
+# uninstrumented Debian libraries (gRPC, Cairo) record no accesses; see
+# scripts/sanitizer/tsan.supp for why that is the narrow choice.
+export TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1:history_size=4:ignore_noninstrumented_modules=1:suppressions=$SUPP/tsan.supp"
+if [[ "$kind" == tsan ]]; then
+  export LD_LIBRARY_PATH="$deps_lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+  # The run means nothing if a test still loads Debian's uninstrumented copy.
+  probe="$BUILD_DIR/tests/service/service_service_test"
+  for lib in libabsl_synchronization.so libprotobuf.so.32; do
+    if ! ldd "$probe" | grep -q "$lib.* => $deps_lib/"; then
+      echo "sanitize.sh: $probe does not load $lib from $deps_lib" >&2
+      exit 1
+    fi
+  done
+fi
 # Sanitized code runs several times slower: give timing-bound waits room.
 export MLL_SANITIZER="$kind"
 
@@ -44,6 +68,7 @@ status=0
 ctest --test-dir "$BUILD_DIR" --output-on-failure -j "${JOBS:-$(nproc)}" \
   --timeout 1200 -E '^client_cpp\.consumer_package$' ${CTEST_ARGS:-} || status=$?
 end=$(date +%s)
-echo "sanitize.sh $kind: build $((built - start)) s, tests $((end - built)) s," \
+echo "sanitize.sh $kind: dependencies $((deps_built - start)) s," \
+  "build $((built - deps_built)) s, tests $((end - built)) s," \
   "total $((end - start)) s, ctest exit $status"
 exit $status
