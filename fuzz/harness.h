@@ -15,16 +15,21 @@
 #include <string>
 #include <vector>
 
+#include "mll/service/metrics.h"
+
 namespace mll::fuzz {
 
 // The service's request handlers (mll::Operations over a real Registry and
 // WorkerPool). The input is a sequence of operations, each
 //   [kind: 1 byte][length: 2 bytes little-endian][length bytes of proto]
-// where kind (mod kServiceOpKinds) picks the request message the bytes are
-// parsed as: see ServiceOpKind. Names of the form "@<digit>" are replaced by
-// the name of the env created n-th by this input (mod the count), so that the
-// fuzzer reaches live environments. Every env the input created is deleted
-// at its end, so each input runs from the same empty state.
+// where kind mod kMethodCount is an mll::Method (metrics.h: the RPCs in the
+// proto's order) and picks the request message the bytes are parsed as; for
+// Method::kSession they are a SessionRequest whose operation runs as a Session
+// stream runs it (a created env is session-bound unless detached). Names of
+// the form "@<digit>" are replaced by the name of the env created n-th by
+// this input (mod the count), so that the fuzzer reaches live environments.
+// Every env the input created is deleted at its end, so each input runs from
+// the same empty state.
 void RunServiceInput(const uint8_t* data, size_t size);
 
 // The simulation core (Env, AecEnv, RenderEnv/EncodePng): a config decoded
@@ -33,26 +38,13 @@ void RunServiceInput(const uint8_t* data, size_t size);
 // out-of-range) actions, resets and renders.
 void RunCoreInput(const uint8_t* data, size_t size);
 
-enum ServiceOpKind : uint8_t {
-  kCreateEnv = 0,
-  kGetEnv,
-  kListEnvs,
-  kDeleteEnv,
-  kResetEnv,
-  kStepEnv,
-  kStepAgent,
-  kStepBatch,
-  kRenderEnv,
-  kServiceOpKinds,
-};
-
 // Reports a broken contract and aborts (so libFuzzer and the regression test
 // both see a crash with the reason on stderr).
 [[noreturn]] void HarnessFailure(const std::string& harness,
                                  const std::string& what);
 
 // Appends one framed operation to `input` (for seed corpora and tests).
-void AppendServiceOp(ServiceOpKind kind, const std::string& proto_bytes,
+void AppendServiceOp(Method method, const std::string& proto_bytes,
                      std::vector<uint8_t>* input);
 
 }  // namespace mll::fuzz

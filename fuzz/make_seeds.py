@@ -7,13 +7,22 @@ seeds stay readable here. Core inputs follow RunCoreInput's byte layout.
 Run from anywhere: python3 fuzz/make_seeds.py
 """
 import pathlib
+import re
 import struct
 import subprocess
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 PROTO = "mll/v1/multi_lunar_lander.proto"
-KINDS = ["CreateEnv", "GetEnv", "ListEnvs", "DeleteEnv", "ResetEnv",
-         "StepEnv", "StepAgent", "StepBatch", "RenderEnv"]
+
+
+def methods():
+    """mll::Method's enumerators in order (the harness's operation kinds)."""
+    header = (ROOT / "server/service/include/mll/service/metrics.h").read_text()
+    body = re.search(r"enum class Method \{(.*?)\};", header, re.S).group(1)
+    return re.findall(r"^\s*k(\w+),", body, re.M)
+
+
+KINDS = methods()
 
 
 def encode(kind, text):
@@ -27,9 +36,10 @@ def op(kind, text=""):
     return bytes([KINDS.index(kind)]) + struct.pack("<H", len(body)) + body
 
 
-def int32s(values):
+def int32s(values, shape=None):
     data = "".join(f"\\{b:03o}" for b in struct.pack(f"<{len(values)}i", *values))
-    return f'dtype: DTYPE_INT32 shape: {len(values)} data: "{data}"'
+    dims = " ".join(f"shape: {d}" for d in (shape or [len(values)]))
+    return f'dtype: DTYPE_INT32 {dims} data: "{data}"'
 
 
 def float_pairs(values):
@@ -67,6 +77,21 @@ def service_seeds():
         "GetEnv", 'name: "envs/0123456789abcdef0123456789abcdef"') + op("GetEnv", 'name: "nonsense"') + op(
         "StepBatch", 'steps { name: "@0" } steps { name: "@0" }') + op("ListEnvs", 'page_token: "zz"') + op(
         "RenderEnv", 'name: "@0" format: 9')
+    # Session operations (the first env bound to the session, the second
+    # detached) and packed batches, one of them with a mismatched env.
+    yield "session_and_packed", op(
+        "Session", "sequence: 1 create_env { config { n_landers: 2 } }") + op(
+        "Session", "sequence: 2 create_env { detached: true config { n_landers: 2 } }") + op(
+        "CreateEnv", "config { n_landers: 3 }") + b"".join(
+        op("Session", f'sequence: {3 + i} reset_env {{ name: "@{i}" seed: {i} }}') for i in range(3)) + b"".join(
+        op("Session", f'step_batch {{ packed {{ names: "@0" names: "@1" '
+                      f'actions {{ {int32s([i % 4, 2, 1, (i + 3) % 4], [2, 2])} }} }} }}')
+        for i in range(6)) + op(
+        "StepBatch", f'packed {{ names: "@0" names: "@2" actions {{ {int32s([1, 2, 3, 0], [2, 2])} }} }}') + op(
+        "Session", f'step_env {{ name: "@1" actions {{ {int32s([3, 3])} }} }}') + op(
+        "Session", 'step_agent { name: "@0" action { discrete: 2 } }') + op(
+        "Session", 'render_env { name: "@0" }') + op("Session", 'get_env { name: "@1" }') + op(
+        "Session", 'delete_env { name: "@0" }') + op("Session", "sequence: 99")
 
 
 def core_seeds():

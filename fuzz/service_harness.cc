@@ -12,7 +12,10 @@
 #include "absl/strings/str_cat.h"
 #include "absl/synchronization/notification.h"
 #include "absl/time/time.h"
+#include "google/protobuf/descriptor.h"
+#include "google/protobuf/message.h"
 #include "harness.h"
+#include "mll/service/metrics.h"
 #include "mll/service/operations.h"
 #include "mll/service/registry.h"
 #include "mll/service/worker_pool.h"
@@ -117,16 +120,70 @@ constexpr std::initializer_list<absl::StatusCode> kStepCodes = {
 constexpr std::initializer_list<absl::StatusCode> kLookupCodes = {
     absl::StatusCode::kInvalidArgument, absl::StatusCode::kNotFound};
 
-void RunOp(Service& service, ServiceOpKind kind, const std::string& bytes,
-           std::vector<std::string>* created) {
+// A packed StepBatch's columns have a row per env, finite values whatever
+// the actions were, and its errors name distinct rows in increasing order
+// with a code a single StepEnv could give.
+void CheckPacked(const v1::PackedSteps& request,
+                 const v1::PackedStepData& packed) {
+  const v1::Array& actions = request.actions();
+  // Parse accepted the actions, so their shape is [num_envs, n_landers, ...].
+  const size_t rows = static_cast<size_t>(request.names_size()) *
+                      (actions.shape_size() >= 2 ? actions.shape(1) : 0);
+  CheckFloats(packed.observations(), rows * 12, "packed.observations");
+  CheckFloats(packed.rewards(), rows, "packed.rewards");
+  CheckFloats(packed.episode_returns(), rows, "packed.episode_returns");
+  int previous = -1;
+  for (const v1::IndexedItemError& error : packed.errors()) {
+    if (error.index() <= previous || error.index() >= request.names_size()) {
+      Fail(absl::StrCat("StepBatch packed: error index ", error.index(),
+                        " after ", previous, " of ", request.names_size()));
+    }
+    previous = error.index();
+    CheckCode(absl::Status(static_cast<absl::StatusCode>(error.error().code()),
+                           error.error().message()),
+              kStepCodes, "StepBatch packed item");
+  }
+}
+
+void RunOp(Service& service, Method method, const std::string& bytes,
+           bool in_session, std::vector<std::string>* created);
+
+// A Session request runs its operation as the RPC it stands for: the one
+// whose request message the operation is (found by name, so the harness keeps
+// one list of the RPCs, mll::Method). A request without an operation never
+// reaches Operations (the stream answers it itself).
+void RunSessionOp(Service& service, const std::string& bytes,
+                  std::vector<std::string>* created) {
+  v1::SessionRequest request;
+  if (!request.ParseFromString(bytes)) return;
+  const google::protobuf::Reflection& reflection = *request.GetReflection();
+  const google::protobuf::FieldDescriptor* const field =
+      reflection.GetOneofFieldDescriptor(
+          request, request.GetDescriptor()->FindOneofByName("op"));
+  if (field == nullptr) return;
+  for (int i = 0; i < kMethodCount; ++i) {
+    const auto method = static_cast<Method>(i);
+    if (absl::StrCat(MethodName(method), "Request") ==
+        field->message_type()->name()) {
+      RunOp(service, method,
+            reflection.GetMessage(request, field).SerializeAsString(),
+            /*in_session=*/true, created);
+      return;
+    }
+  }
+  Fail(absl::StrCat("Session: no method takes op ", field->name()));
+}
+
+void RunOp(Service& service, Method method, const std::string& bytes,
+           bool in_session, std::vector<std::string>* created) {
   Operations& ops = service.operations;
-  switch (kind) {
-    case kCreateEnv: {
+  switch (method) {
+    case Method::kCreateEnv: {
       v1::CreateEnvRequest request;
       if (!request.ParseFromString(bytes)) return;
       v1::Env env;
-      absl::Status status =
-          ops.CreateEnv(request, request.detached(), &env);
+      absl::Status status = ops.CreateEnv(
+          request, /*session_bound=*/in_session && !request.detached(), &env);
       CheckCode(status,
                 {absl::StatusCode::kInvalidArgument,
                  absl::StatusCode::kResourceExhausted},
@@ -134,7 +191,7 @@ void RunOp(Service& service, ServiceOpKind kind, const std::string& bytes,
       if (status.ok()) created->push_back(env.name());
       return;
     }
-    case kGetEnv: {
+    case Method::kGetEnv: {
       v1::GetEnvRequest request;
       if (!request.ParseFromString(bytes)) return;
       Resolve(*created, request.mutable_name());
@@ -142,7 +199,7 @@ void RunOp(Service& service, ServiceOpKind kind, const std::string& bytes,
       CheckCode(ops.GetEnv(request, &env), kLookupCodes, "GetEnv");
       return;
     }
-    case kListEnvs: {
+    case Method::kListEnvs: {
       v1::ListEnvsRequest request;
       if (!request.ParseFromString(bytes)) return;
       v1::ListEnvsResponse response;
@@ -153,14 +210,14 @@ void RunOp(Service& service, ServiceOpKind kind, const std::string& bytes,
       }
       return;
     }
-    case kDeleteEnv: {
+    case Method::kDeleteEnv: {
       v1::DeleteEnvRequest request;
       if (!request.ParseFromString(bytes)) return;
       Resolve(*created, request.mutable_name());
       CheckCode(ops.DeleteEnv(request), kLookupCodes, "DeleteEnv");
       return;
     }
-    case kResetEnv: {
+    case Method::kResetEnv: {
       v1::ResetEnvRequest request;
       if (!request.ParseFromString(bytes)) return;
       Resolve(*created, request.mutable_name());
@@ -172,17 +229,18 @@ void RunOp(Service& service, ServiceOpKind kind, const std::string& bytes,
       }
       return;
     }
-    case kStepEnv: {
+    case Method::kStepEnv: {
       v1::StepEnvRequest request;
       if (!request.ParseFromString(bytes)) return;
       Resolve(*created, request.mutable_name());
       v1::StepData data;
-      absl::Status status = ops.StepEnv(request, "", &data);
+      absl::Status status =
+          ops.StepEnv(request, in_session ? "step_env." : "", &data);
       CheckCode(status, kStepCodes, "StepEnv");
       if (status.ok()) CheckStepData(data, LandersOf(service, request.name()));
       return;
     }
-    case kStepAgent: {
+    case Method::kStepAgent: {
       v1::StepAgentRequest request;
       if (!request.ParseFromString(bytes)) return;
       Resolve(*created, request.mutable_name());
@@ -197,11 +255,14 @@ void RunOp(Service& service, ServiceOpKind kind, const std::string& bytes,
       }
       return;
     }
-    case kStepBatch: {
+    case Method::kStepBatch: {
       v1::StepBatchRequest request;
       if (!request.ParseFromString(bytes)) return;
       for (v1::StepEnvRequest& step : *request.mutable_steps()) {
         Resolve(*created, step.mutable_name());
+      }
+      for (std::string& name : *request.mutable_packed()->mutable_names()) {
+        Resolve(*created, &name);
       }
       v1::StepBatchResponse response;
       absl::Notification finished;
@@ -214,6 +275,10 @@ void RunOp(Service& service, ServiceOpKind kind, const std::string& bytes,
       CheckCode(batch_status, {absl::StatusCode::kInvalidArgument},
                 "StepBatch");
       if (!batch_status.ok()) return;
+      if (request.has_packed()) {
+        CheckPacked(request.packed(), response.packed());
+        return;
+      }
       if (response.results_size() != request.steps_size()) {
         Fail("StepBatch: one result per step expected");
       }
@@ -231,7 +296,7 @@ void RunOp(Service& service, ServiceOpKind kind, const std::string& bytes,
       }
       return;
     }
-    case kRenderEnv: {
+    case Method::kRenderEnv: {
       v1::RenderEnvRequest request;
       if (!request.ParseFromString(bytes)) return;
       Resolve(*created, request.mutable_name());
@@ -247,7 +312,9 @@ void RunOp(Service& service, ServiceOpKind kind, const std::string& bytes,
       }
       return;
     }
-    case kServiceOpKinds:
+    case Method::kSession:
+      // RunSessionOp never comes back here: a SessionRequest cannot nest one.
+      RunSessionOp(service, bytes, created);
       return;
   }
 }
@@ -260,9 +327,9 @@ void HarnessFailure(const std::string& harness, const std::string& what) {
   std::abort();
 }
 
-void AppendServiceOp(ServiceOpKind kind, const std::string& proto_bytes,
+void AppendServiceOp(Method method, const std::string& proto_bytes,
                      std::vector<uint8_t>* input) {
-  input->push_back(kind);
+  input->push_back(static_cast<uint8_t>(method));
   input->push_back(proto_bytes.size() & 0xff);
   input->push_back((proto_bytes.size() >> 8) & 0xff);
   input->insert(input->end(), proto_bytes.begin(), proto_bytes.end());
@@ -273,13 +340,13 @@ void RunServiceInput(const uint8_t* data, size_t size) {
   std::vector<std::string> created;
   size_t offset = 0;
   for (int op = 0; op < kMaxOps && offset + 3 <= size; ++op) {
-    const auto kind = static_cast<ServiceOpKind>(data[offset] % kServiceOpKinds);
+    const auto method = static_cast<Method>(data[offset] % kMethodCount);
     size_t length = data[offset + 1] | (size_t{data[offset + 2]} << 8);
     offset += 3;
     if (length > size - offset) length = size - offset;
-    RunOp(service, kind,
+    RunOp(service, method,
           std::string(reinterpret_cast<const char*>(data) + offset, length),
-          &created);
+          /*in_session=*/false, &created);
     offset += length;
   }
   for (const std::string& name : created) {
