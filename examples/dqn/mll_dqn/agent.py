@@ -62,7 +62,7 @@ class DQNAgent:
             actions = np.where(explore, actions, self.greedy(obs))
         return actions
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def greedy(self, obs: np.ndarray) -> np.ndarray:
         q = self.online(torch.from_numpy(np.asarray(obs, np.float32)))
         return q.argmax(dim=1).numpy()

@@ -9,10 +9,17 @@ Both select the actions of all active landers with one batched forward pass of
 the shared network, and feed the per-lander transitions through the n-step
 folder. Time spent in the environment and in action selection is added to
 `timers`.
+
+`step(epsilon, during)` runs `during()` (the trainer's owed gradient steps) on
+the calling thread while the environment call is in flight on a helper thread:
+the gRPC call releases the GIL while it waits, so the server's physics on one
+core overlaps the learner's arithmetic on the other. What runs and in which
+order does not depend on timing, so a seed still gives the same bits.
 """
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import time
 from typing import Dict, List, Optional
@@ -50,7 +57,11 @@ def outcome_name(info: Dict) -> str:
 
 
 class Timers:
-    """Seconds spent per activity (env, act, sample, learn)."""
+    """Seconds spent per activity (env, act, sample, learn, ...).
+
+    With overlap, "env" is only the wait for the environment left after the
+    overlapped work; "env_call" is the whole call as timed on its own thread
+    (not part of the split that sums to wall time)."""
 
     def __init__(self):
         self.seconds: Dict[str, float] = {}
@@ -74,15 +85,38 @@ class _Collector:
                                    num_envs * self._n, OBS_SIZE)
         self.env = None
         self.env_steps = 0
+        # Made on the first overlapped call; one thread, so calls stay ordered.
+        self._worker: Optional[concurrent.futures.ThreadPoolExecutor] = None
 
-    def _timed(self, call, *args):
-        """call(*args), its seconds added to the "env" timer."""
+    def _timed(self, call, *args, during=None):
+        """call(*args), its seconds added to the "env" timer; with `during`,
+        the call runs on the helper thread while `during()` runs here, and
+        "env" gets only the wait left after `during()` returns."""
+        if during is None:
+            start = time.perf_counter()
+            result = call(*args)
+            self._timers.add("env", time.perf_counter() - start)
+            return result
+        if self._worker is None:
+            self._worker = concurrent.futures.ThreadPoolExecutor(
+                max_workers=1, thread_name_prefix="mll-env")
+        future = self._worker.submit(self._call_timed, call, *args)
+        during()
         start = time.perf_counter()
-        result = call(*args)
+        result, seconds = future.result()
         self._timers.add("env", time.perf_counter() - start)
+        self._timers.add("env_call", seconds)
         return result
 
+    @staticmethod
+    def _call_timed(call, *args):
+        start = time.perf_counter()
+        result = call(*args)
+        return result, time.perf_counter() - start
+
     def close(self) -> None:
+        if self._worker is not None:
+            self._worker.shutdown()
         self.env.close()
 
 
@@ -106,7 +140,7 @@ class ParallelCollector(_Collector):
         self._outcomes = [NO_OUTCOME] * self._n
         self._steps = 0
 
-    def step(self, epsilon: float):
+    def step(self, epsilon: float, during=None):
         if not self._obs:
             self._start_episode()
         agents = list(self._obs)
@@ -115,7 +149,8 @@ class ParallelCollector(_Collector):
         actions = self._agent.act(batch, epsilon, self._rng)
         self._timers.add("act", time.perf_counter() - start)
         next_obs, rewards, terms, truncs, infos = self._timed(
-            self.env.step, {a: int(act) for a, act in zip(agents, actions)})
+            self.env.step, {a: int(act) for a, act in zip(agents, actions)},
+            during=during)
         self._steps += 1
         self.env_steps += 1
         # Per-slot arrays for the n-step folder (slot i is lander_i).
@@ -167,14 +202,15 @@ class VectorCollector(_Collector):
         self._outcomes = [[NO_OUTCOME] * self._n for _ in range(self._num_envs)]
         self._steps = np.zeros(self._num_envs, np.int64)
 
-    def step(self, epsilon: float):
+    def step(self, epsilon: float, during=None):
         n_envs, n = self._num_envs, self._n
         start = time.perf_counter()
         actions = np.zeros(n_envs * n, np.int64)
         active = np.flatnonzero(self._active)
         actions[active] = self._agent.act(self._obs[active], epsilon, self._rng)
         self._timers.add("act", time.perf_counter() - start)
-        result = self._timed(self.env.step, actions.reshape(n_envs, n))
+        result = self._timed(self.env.step, actions.reshape(n_envs, n),
+                             during=during)
         next_obs, rewards, terms, truncs, reset_rows = (
             _vector_result(result, n_envs, n))
         next_obs = next_obs.reshape(-1, OBS_SIZE)

@@ -83,6 +83,11 @@ class TrainConfig:
     # late in training keeps a policy that lands from being unlearnt by the
     # last episodes' updates.
     lr_end: float = 0.0
+    # Learn while the environment steps: the gradient steps owed by the
+    # transitions stored so far run during the next environment call (on the
+    # other core), so actions are chosen before the last step's updates (the
+    # paper: after). Off in the paper's algorithm.
+    overlap: bool = False
     # Torch intra-op threads of the learner (the paper's script: torch's
     # default; we default to 1, fastest for this network on a shared machine).
     torch_threads: int = 1
@@ -183,6 +188,14 @@ def _target() -> TrainConfig:
     )
 
 
+def _target10() -> TrainConfig:
+    # `target`'s learning (the same gradient samples per transition) made to
+    # fit 10 minutes of a 2-core machine: gradient steps overlapped with the
+    # environment's StepBatch calls, so the server's physics runs on the
+    # other core while the learner computes.
+    return dataclasses.replace(_target(), overlap=True)
+
+
 def _quick() -> TrainConfig:
     # A few short episodes of a small environment: exercises every part of the
     # trainer in seconds (pytest runs it).
@@ -199,7 +212,7 @@ def _quick() -> TrainConfig:
 
 
 PRESETS = {"paper": _paper, "fast": _fast, "target": _target,
-           "quick": _quick}
+           "target10": _target10, "quick": _quick}
 
 
 def preset(name: str) -> TrainConfig:

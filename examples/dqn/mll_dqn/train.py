@@ -31,8 +31,15 @@ SUMMARY = "summary.json"
 
 def use_one_thread(threads: int = 1) -> None:
     """One BLAS/torch thread by default: the fastest for this small network,
-    and fair to the server and other users of the machine's 2 cores."""
+    and fair to the server and other users of the machine's 2 cores. One
+    inter-op thread too (settable once per process, before any parallel
+    work: later calls keep what the first set)."""
     torch.set_num_threads(threads)
+    if torch.get_num_interop_threads() != 1:
+        try:
+            torch.set_num_interop_threads(1)
+        except RuntimeError:
+            pass
 
 
 def epsilon_after(config: TrainConfig, episodes: int) -> float:
@@ -63,6 +70,9 @@ class Progress:
     # Best 50-episode mean over full windows, and the episode it ends at.
     best_mean50: Optional[float] = None
     best_episode: int = 0
+    # Gradient steps earned by stored transitions but not yet made (with
+    # overlap they are made during the next environment call).
+    owed_updates: int = 0
     timers: Dict[str, float] = dataclasses.field(default_factory=dict)
 
 
@@ -118,11 +128,26 @@ def train(config: TrainConfig, out_dir: str, address: Optional[str] = None,
     last_checkpoint = progress.episodes
     steps_before = progress.env_steps
     stopped_early = False
+
+    def learn_owed() -> None:
+        """The gradient steps owed by the stored transitions."""
+        for _ in range(progress.owed_updates):
+            start = time.perf_counter()
+            batch = buffer.sample(config.batch_size, rng)
+            mid = time.perf_counter()
+            agent.learn(batch)
+            timers.add("sample", mid - start)
+            timers.add("learn", time.perf_counter() - mid)
+        progress.owed_updates = 0
+
     try:
         while progress.episodes < config.episodes:
             epsilon = epsilon_after(config, progress.episodes)
             agent.set_lr(lr_after(config, progress.episodes))
-            transitions, episodes = collector.step(epsilon)
+            # With overlap, the gradient steps owed by the transitions stored
+            # so far run while this step's environment call is in flight.
+            transitions, episodes = collector.step(
+                epsilon, learn_owed if config.overlap else None)
             if transitions is not None and len(transitions[1]):
                 start = time.perf_counter()
                 obs, actions, rewards, next_obs, discounts = transitions
@@ -136,13 +161,10 @@ def train(config: TrainConfig, out_dir: str, address: Optional[str] = None,
                 triggers = (progress.transitions // config.update_every
                             - before // config.update_every)
                 if len(buffer) > learn_start:
-                    for _ in range(triggers * config.updates_per_trigger):
-                        start = time.perf_counter()
-                        batch = buffer.sample(config.batch_size, rng)
-                        mid = time.perf_counter()
-                        agent.learn(batch)
-                        timers.add("sample", mid - start)
-                        timers.add("learn", time.perf_counter() - mid)
+                    progress.owed_updates += (triggers
+                                              * config.updates_per_trigger)
+            if not config.overlap:
+                learn_owed()
             progress.env_steps = steps_before + collector.env_steps
             for record in episodes:
                 if progress.episodes >= config.episodes:
@@ -174,6 +196,8 @@ def train(config: TrainConfig, out_dir: str, address: Optional[str] = None,
                     and time.perf_counter() - run_start > config.time_limit_s):
                 stopped_early = True
                 break
+        # An overlapped run still owes the last step's gradient steps.
+        learn_owed()
     finally:
         bar.close()
         log_file.close()
@@ -254,6 +278,9 @@ def _summary(config: TrainConfig, progress: Progress, agent: DQNAgent,
     reached = np.flatnonzero(means >= 1400)
     wall = max(progress.wall_s, 1e-9)
     seconds = dict(timers.seconds)
+    # The overlapped environment call is timed on its own thread; the parts
+    # of the split below are sequential on the trainer's thread.
+    env_call = seconds.pop("env_call", None)
     seconds["other"] = max(0.0, wall - sum(seconds.values()))
     return dict(
         config=config.to_dict(),
@@ -274,4 +301,5 @@ def _summary(config: TrainConfig, progress: Progress, agent: DQNAgent,
         updates_per_s=agent.updates / wall,
         time_split_s=seconds,
         time_split_fraction={k: v / wall for k, v in seconds.items()},
+        env_call_overlapped_s=env_call,
     )

@@ -134,3 +134,10 @@ def test_bad_config_names_field_value_and_range(field, value, message):
     with pytest.raises(ValueError) as error:
         config.validate()
     assert message in str(error.value)
+
+
+def test_target10_is_target_with_overlap():
+    target, fast = preset("target"), preset("target10")
+    assert fast.overlap and not target.overlap
+    assert dataclasses.replace(fast, overlap=False) == target
+    assert not preset("paper").overlap
