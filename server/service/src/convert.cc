@@ -35,17 +35,64 @@ std::vector<To> PerAgent(int n, From from) {
   return values;
 }
 
-// Each agent's return and length so far in this episode.
+// Sets `out`'s dtype and shape and sizes its data, zero; returns the data's
+// bytes for the caller to fill.
+template <typename T>
+char* SizeArray(absl::Span<const int> shape, v1::Array* out) {
+  size_t count = 1;
+  for (int dim : shape) count *= static_cast<size_t>(dim);
+  out->set_dtype(DTypeOf<T>());
+  out->mutable_shape()->Assign(shape.begin(), shape.end());
+  std::string* data = out->mutable_data();
+  data->assign(count * sizeof(T), '\0');
+  return data->data();
+}
+
+// Stores `value` at element `index` of a little-endian byte column.
+template <typename T>
+void Store(T value, size_t index, char* column) {
+  std::memcpy(column + index * sizeof(T), &value, sizeof(T));
+}
+
+// Copies a whole core column into a row of bytes.
+template <typename T>
+void StoreAll(const std::vector<T>& values, char* column) {
+  std::memcpy(column, values.data(), values.size() * sizeof(T));
+}
+
+// Each agent's return and length so far in this episode, into two rows of n
+// float32 and n int32.
+void WriteEpisodeColumns(const Env& env, char* returns, char* lengths) {
+  for (int i = 0; i < env.n_landers(); ++i) {
+    Store(static_cast<float>(env.episode_return(i)), i, returns);
+    Store(static_cast<int32_t>(env.episode_length(i)), i, lengths);
+  }
+}
+
+// The same as two [n] arrays.
 void FillEpisodeColumns(const Env& env, v1::Array* returns,
                         v1::Array* lengths) {
-  const int n = env.n_landers();
-  const int rows[] = {n};
-  FillArray<float>(
-      PerAgent<float>(n, [&](int i) { return env.episode_return(i); }), rows,
-      returns);
-  FillArray<int32_t>(
-      PerAgent<int32_t>(n, [&](int i) { return env.episode_length(i); }),
-      rows, lengths);
+  const int rows[] = {env.n_landers()};
+  WriteEpisodeColumns(env, SizeArray<float>(rows, returns),
+                      SizeArray<int32_t>(rows, lengths));
+}
+
+absl::Span<const int> ShapeOf(const v1::Array& array) {
+  return absl::MakeConstSpan(array.shape().data(), array.shape().size());
+}
+
+// INVALID_ARGUMENT unless `array`'s data has the byte count of `shape` in
+// `dtype` (whose shape was already checked).
+absl::Status CheckByteSize(const v1::Array& array, v1::DType dtype,
+                           absl::Span<const int> shape,
+                           absl::string_view field) {
+  size_t count = 1;
+  for (int dim : shape) count *= static_cast<size_t>(dim);
+  const size_t want = count * ElementSize(dtype);
+  if (array.data().size() == want) return absl::OkStatus();
+  return absl::InvalidArgumentError(absl::StrCat(
+      field, ": data has ", array.data().size(), " bytes but shape ",
+      ShapeString(shape), " of ", v1::DType_Name(dtype), " needs ", want));
 }
 
 // Every agent's latest observation as one [n, 12] row-major matrix.
@@ -87,30 +134,32 @@ std::string ShapeString(absl::Span<const int> shape) {
   return absl::StrCat("[", absl::StrJoin(shape, ", "), "]");
 }
 
-absl::Status CheckArray(const v1::Array& array, v1::DType dtype,
-                        absl::Span<const int> shape, absl::string_view field,
-                        absl::string_view what) {
-  if (array.dtype() != dtype) {
+absl::Status CheckDTypeAndShape(int got_dtype, absl::Span<const int> got_shape,
+                                v1::DType dtype, absl::Span<const int> shape,
+                                absl::string_view field,
+                                absl::string_view what) {
+  if (got_dtype != dtype) {
     return absl::InvalidArgumentError(
-        absl::StrCat(field, ": dtype ", DTypeName(array.dtype()),
+        absl::StrCat(field, ": dtype ", DTypeName(got_dtype),
                      " does not match ", v1::DType_Name(dtype), " (", what,
                      ")"));
   }
-  const std::vector<int> got(array.shape().begin(), array.shape().end());
-  if (got != std::vector<int>(shape.begin(), shape.end())) {
+  if (got_shape != shape) {
     return absl::InvalidArgumentError(
-        absl::StrCat(field, ": shape ", ShapeString(got), " does not match ",
-                     ShapeString(shape), " (", what, ")"));
-  }
-  size_t count = 1;
-  for (int dim : shape) count *= static_cast<size_t>(dim);
-  const size_t want = count * ElementSize(dtype);
-  if (array.data().size() != want) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        field, ": data has ", array.data().size(), " bytes but shape ",
-        ShapeString(shape), " of ", v1::DType_Name(dtype), " needs ", want));
+        absl::StrCat(field, ": shape ", ShapeString(got_shape),
+                     " does not match ", ShapeString(shape), " (", what, ")"));
   }
   return absl::OkStatus();
+}
+
+absl::Status CheckArray(const v1::Array& array, v1::DType dtype,
+                        absl::Span<const int> shape, absl::string_view field,
+                        absl::string_view what) {
+  absl::Status status =
+      CheckDTypeAndShape(array.dtype(), ShapeOf(array), dtype, shape, field,
+                         what);
+  if (!status.ok()) return status;
+  return CheckByteSize(array, dtype, shape, field);
 }
 
 // The fields that proto and core configs share, listed once: both
@@ -190,33 +239,120 @@ v1::Space ActionSpace(const EnvConfig& config) {
   return space;
 }
 
+absl::Status CheckActionLayout(int dtype, absl::Span<const int> shape,
+                               const EnvConfig& config,
+                               absl::string_view field) {
+  const int n = config.n_landers;
+  const int dims[] = {n, kContinuousActionSize};
+  const absl::Span<const int> want(dims, config.continuous ? 2 : 1);
+  const v1::DType want_dtype =
+      config.continuous ? v1::DTYPE_FLOAT32 : v1::DTYPE_INT32;
+  // Explaining the expected layout costs an allocation: only on failure.
+  if (dtype == want_dtype && shape == want) return absl::OkStatus();
+  return CheckDTypeAndShape(
+      dtype, shape, want_dtype, want, field,
+      config.continuous
+          ? absl::StrCat(
+                "one float32 [main, lateral] pair per agent of n_landers = ",
+                n)
+          : absl::StrCat("one int32 per agent of n_landers = ", n));
+}
+
 absl::Status ParseActions(const v1::Array& array, const EnvConfig& config,
                           absl::string_view field, ActionBuffer* out) {
-  const int n = config.n_landers;
+  absl::Status status =
+      CheckActionLayout(array.dtype(), ShapeOf(array), config, field);
+  if (!status.ok()) return status;
+  const v1::DType dtype =
+      config.continuous ? v1::DTYPE_FLOAT32 : v1::DTYPE_INT32;
+  status = CheckByteSize(array, dtype, ShapeOf(array), field);
+  if (!status.ok()) return status;
   if (config.continuous) {
-    const int shape[] = {n, kContinuousActionSize};
-    absl::Status status = CheckArray(
-        array, v1::DTYPE_FLOAT32, shape, field,
-        absl::StrCat("one float32 [main, lateral] pair per agent of "
-                     "n_landers = ",
-                     n));
-    if (!status.ok()) return status;
     out->discrete.clear();
-    out->continuous.resize(static_cast<size_t>(n) * kContinuousActionSize);
+    out->continuous.resize(array.data().size() / sizeof(float));
     std::memcpy(out->continuous.data(), array.data().data(),
                 array.data().size());
   } else {
-    const int shape[] = {n};
-    absl::Status status = CheckArray(
-        array, v1::DTYPE_INT32, shape, field,
-        absl::StrCat("one int32 per agent of n_landers = ", n));
-    if (!status.ok()) return status;
     out->continuous.clear();
-    out->discrete.resize(n);
+    out->discrete.resize(array.data().size() / sizeof(int32_t));
     std::memcpy(out->discrete.data(), array.data().data(),
                 array.data().size());
   }
   return absl::OkStatus();
+}
+
+absl::StatusOr<PackedActions> PackedActions::Parse(
+    const v1::PackedSteps& packed) {
+  constexpr absl::string_view kField = "packed.actions";
+  const v1::Array& array = packed.actions();
+  const int num_envs = packed.names_size();
+  const auto expected = [num_envs] {
+    return absl::StrCat("expected int32 [", num_envs,
+                        ", n_landers] for discrete actions or float32 [",
+                        num_envs,
+                        ", n_landers, 2] for continuous ones: num_envs = "
+                        "len(packed.names) = ",
+                        num_envs, ", n_landers ", kMinLanders, "..",
+                        kMaxLanders);
+  };
+  PackedActions actions;
+  switch (array.dtype()) {
+    case v1::DTYPE_INT32:
+      actions.continuous_ = false;
+      break;
+    case v1::DTYPE_FLOAT32:
+      actions.continuous_ = true;
+      break;
+    default:
+      return absl::InvalidArgumentError(
+          absl::StrCat(kField, ": dtype ", DTypeName(array.dtype()),
+                       " is not allowed (", expected(), ")"));
+  }
+  const absl::Span<const int> shape = ShapeOf(array);
+  const size_t rank = actions.continuous_ ? 3 : 2;
+  if (shape.size() != rank || shape[0] != num_envs ||
+      (actions.continuous_ && shape[2] != kContinuousActionSize) ||
+      shape[1] < kMinLanders || shape[1] > kMaxLanders) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(kField, ": shape ", ShapeString(shape), " of ",
+                     DTypeName(array.dtype()), " does not fit (", expected(),
+                     ")"));
+  }
+  absl::Status status = CheckByteSize(array, array.dtype(), shape, kField);
+  if (!status.ok()) return status;
+  actions.n_landers_ = shape[1];
+  std::vector<int32_t>& discrete = actions.values_.discrete;
+  std::vector<float>& continuous = actions.values_.continuous;
+  if (actions.continuous_) {
+    continuous.resize(array.data().size() / sizeof(float));
+    std::memcpy(continuous.data(), array.data().data(), array.data().size());
+  } else {
+    discrete.resize(array.data().size() / sizeof(int32_t));
+    std::memcpy(discrete.data(), array.data().data(), array.data().size());
+  }
+  return actions;
+}
+
+absl::Status PackedActions::CheckFits(int e, const EnvConfig& config) const {
+  if (config.n_landers == n_landers_ && config.continuous == continuous_) {
+    return absl::OkStatus();
+  }
+  const int dims[] = {n_landers_, kContinuousActionSize};
+  return CheckActionLayout(
+      continuous_ ? v1::DTYPE_FLOAT32 : v1::DTYPE_INT32,
+      absl::MakeConstSpan(dims, continuous_ ? 2 : 1), config,
+      absl::StrCat("packed.actions[", e, "]"));
+}
+
+ActionsView PackedActions::Row(int e) const {
+  const size_t agents = static_cast<size_t>(n_landers_);
+  if (continuous_) {
+    const size_t size = agents * kContinuousActionSize;
+    return ActionsView{{}, absl::MakeConstSpan(
+                               values_.continuous.data() + e * size, size)};
+  }
+  return ActionsView{
+      absl::MakeConstSpan(values_.discrete.data() + e * agents, agents), {}};
 }
 
 absl::StatusOr<std::optional<AgentAction>> ParseAgentAction(
@@ -257,27 +393,81 @@ absl::StatusOr<std::optional<AgentAction>> ParseAgentAction(
   return std::optional<AgentAction>(action);
 }
 
+void WriteStepRow(const StepResult& result, const Env& env, bool auto_reset,
+                  const StepRow& row) {
+  static_assert(sizeof(Outcome) == 1, "outcomes travel as uint8");
+  StoreAll(result.observations, row.observations);
+  StoreAll(result.rewards, row.rewards);
+  StoreAll(result.terminations, row.terminations);
+  StoreAll(result.truncations, row.truncations);
+  StoreAll(result.stepped, row.stepped);
+  StoreAll(result.outcomes, row.outcomes);
+  WriteEpisodeColumns(env, row.episode_returns, row.episode_lengths);
+  Store(static_cast<uint8_t>(result.episode_over), 0, row.episode_over);
+  Store(static_cast<uint8_t>(auto_reset), 0, row.auto_reset);
+  Store(static_cast<int32_t>(env.cycles()), 0, row.cycles);
+}
+
 void FillStepData(const StepResult& result, const Env& env, bool auto_reset,
                   v1::StepData* out) {
   const int n = env.n_landers();
   const int rows[] = {n};
   const int matrix[] = {n, kObservationSize};
-  static_assert(sizeof(Outcome) == 1, "outcomes travel as uint8");
-  FillArray<float>(result.observations, matrix, out->mutable_observations());
-  FillArray<float>(result.rewards, rows, out->mutable_rewards());
-  FillArray<uint8_t>(result.terminations, rows, out->mutable_terminations());
-  FillArray<uint8_t>(result.truncations, rows, out->mutable_truncations());
-  FillArray<uint8_t>(result.stepped, rows, out->mutable_stepped());
-  FillArray<uint8_t>(
-      absl::MakeConstSpan(
-          reinterpret_cast<const uint8_t*>(result.outcomes.data()),
-          result.outcomes.size()),
-      rows, out->mutable_outcomes());
-  FillEpisodeColumns(env, out->mutable_episode_returns(),
-                     out->mutable_episode_lengths());
-  out->set_episode_over(result.episode_over);
-  out->set_auto_reset(auto_reset);
-  out->set_cycles(env.cycles());
+  // StepData's per-env columns are scalar fields: written here, then set.
+  uint8_t episode_over = 0;
+  uint8_t was_reset = 0;
+  int32_t cycles = 0;
+  WriteStepRow(
+      result, env, auto_reset,
+      StepRow{SizeArray<float>(matrix, out->mutable_observations()),
+              SizeArray<float>(rows, out->mutable_rewards()),
+              SizeArray<uint8_t>(rows, out->mutable_terminations()),
+              SizeArray<uint8_t>(rows, out->mutable_truncations()),
+              SizeArray<uint8_t>(rows, out->mutable_stepped()),
+              SizeArray<uint8_t>(rows, out->mutable_outcomes()),
+              SizeArray<float>(rows, out->mutable_episode_returns()),
+              SizeArray<int32_t>(rows, out->mutable_episode_lengths()),
+              reinterpret_cast<char*>(&episode_over),
+              reinterpret_cast<char*>(&was_reset),
+              reinterpret_cast<char*>(&cycles)});
+  out->set_episode_over(episode_over != 0);
+  out->set_auto_reset(was_reset != 0);
+  out->set_cycles(cycles);
+}
+
+PackedColumns::PackedColumns(int num_envs, int n_landers,
+                             v1::PackedStepData* out)
+    : n_landers_(n_landers) {
+  const int envs[] = {num_envs};
+  const int agents[] = {num_envs, n_landers};
+  const int matrix[] = {num_envs, n_landers, kObservationSize};
+  base_ = StepRow{SizeArray<float>(matrix, out->mutable_observations()),
+                  SizeArray<float>(agents, out->mutable_rewards()),
+                  SizeArray<uint8_t>(agents, out->mutable_terminations()),
+                  SizeArray<uint8_t>(agents, out->mutable_truncations()),
+                  SizeArray<uint8_t>(agents, out->mutable_stepped()),
+                  SizeArray<uint8_t>(agents, out->mutable_outcomes()),
+                  SizeArray<float>(agents, out->mutable_episode_returns()),
+                  SizeArray<int32_t>(agents, out->mutable_episode_lengths()),
+                  SizeArray<uint8_t>(envs, out->mutable_episode_over()),
+                  SizeArray<uint8_t>(envs, out->mutable_auto_reset()),
+                  SizeArray<int32_t>(envs, out->mutable_cycles())};
+}
+
+StepRow PackedColumns::Row(int e) const {
+  const size_t env = static_cast<size_t>(e);
+  const size_t agents = env * static_cast<size_t>(n_landers_);
+  return StepRow{base_.observations + agents * kObservationSize * sizeof(float),
+                 base_.rewards + agents * sizeof(float),
+                 base_.terminations + agents,
+                 base_.truncations + agents,
+                 base_.stepped + agents,
+                 base_.outcomes + agents,
+                 base_.episode_returns + agents * sizeof(float),
+                 base_.episode_lengths + agents * sizeof(int32_t),
+                 base_.episode_over + env,
+                 base_.auto_reset + env,
+                 base_.cycles + env * sizeof(int32_t)};
 }
 
 void FillAecState(const AecEnv& aec, bool world_stepped, v1::AecState* out) {

@@ -65,12 +65,12 @@ void Metrics::RecordCall(Method method, absl::StatusCode code,
   }
 }
 
-void Metrics::RecordStepData(Method method, const v1::StepData& data) {
-  if (data.auto_reset()) {
+void Metrics::RecordEnvStep(Method method, bool auto_reset,
+                            absl::string_view stepped) {
+  if (auto_reset) {
     episodes_.fetch_add(1, kRelaxed);
     return;
   }
-  const std::string& stepped = data.stepped().data();
   const uint64_t acted = static_cast<uint64_t>(
       stepped.size() - std::count(stepped.begin(), stepped.end(), '\0'));
   PerMethod& m = of(method);
@@ -78,10 +78,29 @@ void Metrics::RecordStepData(Method method, const v1::StepData& data) {
   m.agent_steps.fetch_add(acted, kRelaxed);
 }
 
+void Metrics::RecordStepData(Method method, const v1::StepData& data) {
+  RecordEnvStep(method, data.auto_reset(), data.stepped().data());
+}
+
 void Metrics::RecordStepBatch(Method method,
                               const v1::StepBatchResponse& response) {
   for (const v1::StepBatchResult& result : response.results()) {
     if (result.has_data()) RecordStepData(method, result.data());
+  }
+  if (!response.has_packed()) return;
+  const v1::PackedStepData& packed = response.packed();
+  const int num_envs = packed.auto_reset().data().size();
+  if (num_envs == 0) return;
+  const absl::string_view stepped = packed.stepped().data();
+  const size_t n_landers = stepped.size() / num_envs;
+  auto error = packed.errors().begin();  // In increasing index order.
+  for (int e = 0; e < num_envs; ++e) {
+    if (error != packed.errors().end() && error->index() == e) {
+      ++error;
+      continue;
+    }
+    RecordEnvStep(method, packed.auto_reset().data()[e] != 0,
+                  stepped.substr(e * n_landers, n_landers));
   }
 }
 

@@ -1,11 +1,15 @@
 #include "mll/service/operations.h"
 
+#include <algorithm>
+#include <cstdio>
 #include <memory>
 #include <optional>
 #include <string>
 #include <utility>
+#include <vector>
 
 #include "absl/container/flat_hash_map.h"
+#include "absl/functional/function_ref.h"
 #include "absl/strings/str_cat.h"
 #include "mll/core/renderer.h"
 #include "mll/service/convert.h"
@@ -42,6 +46,71 @@ absl::Status CheckMode(const EnvSlot& slot, StepMode mode)
       slot.mode == StepMode::kAec ? "StepAgent" : "StepEnv/StepBatch",
       " in this episode; the other step API needs a new episode (call "
       "ResetEnv)"));
+}
+
+// Steps `slot` with `actions`, already checked against its config (dtype and
+// shape; values are the core's to check), and hands the result to
+// emit(result, env, auto_reset) while the env is still locked. The one step
+// of StepEnv and of both StepBatch forms.
+absl::Status StepSlot(
+    EnvSlot& slot, const ActionsView& actions,
+    absl::FunctionRef<void(const StepResult&, const Env&, bool)> emit) {
+  absl::MutexLock lock(&slot.mu);
+  absl::Status status = CheckStarted(slot);
+  if (!status.ok()) return status;
+  if (slot.env->episode_over()) {
+    if (!slot.auto_reset) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("name: ", slot.name,
+                       " episode is over; call ResetEnv (or create the env "
+                       "with config.auto_reset)"));
+    }
+    ResetLocked(slot, std::nullopt);  // Continues the generator's stream.
+    emit(slot.scratch, *slot.env, /*auto_reset=*/true);
+    return absl::OkStatus();
+  }
+  status = CheckMode(slot, StepMode::kParallel);
+  if (!status.ok()) return status;
+  status = slot.env->Step(actions, &slot.scratch);
+  if (!status.ok()) return status;
+  slot.mode = StepMode::kParallel;
+  emit(slot.scratch, *slot.env, /*auto_reset=*/false);
+  return absl::OkStatus();
+}
+
+// "<prefix><index><suffix>", e.g. "steps[3].", without touching the heap:
+// every item of a batch carries its field name, and few ever fail.
+class ItemField {
+ public:
+  ItemField(const char* prefix, int index, const char* suffix) {
+    const int written = std::snprintf(buffer_, sizeof(buffer_), "%s%d%s",
+                                      prefix, index, suffix);
+    size_ = std::clamp<int>(written, 0, sizeof(buffer_) - 1);
+  }
+  absl::string_view view() const { return absl::string_view(buffer_, size_); }
+
+ private:
+  char buffer_[48];
+  size_t size_;
+};
+
+// INVALID_ARGUMENT naming the first repeated name of a batch's `count`
+// names; item_of(i) is how the error calls item i.
+template <typename NameOf, typename ItemOf>
+absl::Status CheckDistinctNames(int count, NameOf name_of, ItemOf item_of,
+                                absl::string_view name_suffix) {
+  absl::flat_hash_map<absl::string_view, int> first_index;
+  first_index.reserve(count);
+  for (int i = 0; i < count; ++i) {
+    auto [it, inserted] = first_index.emplace(name_of(i), i);
+    if (!inserted) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          item_of(i).view(), name_suffix, ": ", name_of(i),
+          " also appears at ", item_of(it->second).view(),
+          "; the envs of one batch must be distinct"));
+    }
+  }
+  return absl::OkStatus();
 }
 
 void FillEnvLocked(const EnvSlot& slot, v1::Env* out)
@@ -146,28 +215,11 @@ absl::Status Operations::StepEnv(const v1::StepEnvRequest& request,
   absl::Status status = ParseActions(request.actions(), slot.config,
                                      absl::StrCat(field, "actions"), &actions);
   if (!status.ok()) return status;
-
-  absl::MutexLock lock(&slot.mu);
-  status = CheckStarted(slot);
-  if (!status.ok()) return status;
-  if (slot.env->episode_over()) {
-    if (!slot.auto_reset) {
-      return absl::FailedPreconditionError(
-          absl::StrCat("name: ", slot.name,
-                       " episode is over; call ResetEnv (or create the env "
-                       "with config.auto_reset)"));
-    }
-    ResetLocked(slot, std::nullopt);  // Continues the generator's stream.
-    FillStepData(slot.scratch, *slot.env, /*auto_reset=*/true, out);
-    return absl::OkStatus();
-  }
-  status = CheckMode(slot, StepMode::kParallel);
-  if (!status.ok()) return status;
-  status = slot.env->Step(actions.view(), &slot.scratch);
-  if (!status.ok()) return status;
-  slot.mode = StepMode::kParallel;
-  FillStepData(slot.scratch, *slot.env, /*auto_reset=*/false, out);
-  return absl::OkStatus();
+  return StepSlot(slot, actions.view(),
+                  [out](const StepResult& result, const Env& env,
+                        bool auto_reset) {
+                    FillStepData(result, env, auto_reset, out);
+                  });
 }
 
 absl::Status Operations::StepAgent(const v1::StepAgentRequest& request,
@@ -238,28 +290,100 @@ void Operations::StepBatch(const v1::StepBatchRequest& request,
                            v1::StepBatchResponse* out,
                            std::function<void(absl::Status)> done,
                            absl::string_view owner) {
-  absl::flat_hash_map<absl::string_view, int> first_index;
-  for (int i = 0; i < request.steps_size(); ++i) {
-    auto [it, inserted] = first_index.emplace(request.steps(i).name(), i);
-    if (!inserted) {
+  if (request.has_packed()) {
+    if (request.steps_size() > 0) {
       done(absl::InvalidArgumentError(absl::StrCat(
-          "steps[", i, "].name: ", request.steps(i).name(),
-          " also appears at steps[", it->second,
-          "]; the envs of one batch must be distinct")));
+          "steps, packed: both set (", request.steps_size(),
+          " steps and a packed batch of ", request.packed().names_size(),
+          " envs); a StepBatchRequest carries exactly one of the two forms")));
       return;
     }
+    StepPacked(request.packed(), out->mutable_packed(), std::move(done),
+               owner);
+    return;
+  }
+  absl::Status status = CheckDistinctNames(
+      request.steps_size(),
+      [&request](int i) -> absl::string_view {
+        return request.steps(i).name();
+      },
+      [](int i) { return ItemField("steps[", i, "]"); }, ".name");
+  if (!status.ok()) {
+    done(status);
+    return;
   }
   for (int i = 0; i < request.steps_size(); ++i) out->add_results();
   pool_->ParallelFor(
       request.steps_size(),
       [this, &request, out, owner](int i) {
         v1::StepBatchResult* result = out->mutable_results(i);
-        absl::Status status = StepEnv(request.steps(i),
-                                      absl::StrCat("steps[", i, "]."),
-                                      result->mutable_data(), owner);
+        absl::Status status =
+            StepEnv(request.steps(i), ItemField("steps[", i, "].").view(),
+                    result->mutable_data(), owner);
         if (!status.ok()) FillItemError(status, result->mutable_error());
       },
       [done = std::move(done)] { done(absl::OkStatus()); });
+}
+
+void Operations::StepPacked(const v1::PackedSteps& request,
+                            v1::PackedStepData* out,
+                            std::function<void(absl::Status)> done,
+                            absl::string_view owner) {
+  absl::StatusOr<PackedActions> actions = PackedActions::Parse(request);
+  if (!actions.ok()) {
+    done(actions.status());
+    return;
+  }
+  absl::Status status = CheckDistinctNames(
+      request.names_size(),
+      [&request](int e) -> absl::string_view { return request.names(e); },
+      [](int e) { return ItemField("packed.names[", e, "]"); }, "");
+  if (!status.ok()) {
+    done(status);
+    return;
+  }
+  const int num_envs = request.names_size();
+  // Lives until the last item is done; workers write disjoint rows of the
+  // columns (sized here, once) and their own entry of `statuses`.
+  struct Batch {
+    Batch(PackedActions actions, int num_envs, v1::PackedStepData* out)
+        : actions(std::move(actions)),
+          columns(num_envs, this->actions.n_landers(), out),
+          statuses(num_envs) {}
+    const PackedActions actions;
+    const PackedColumns columns;
+    std::vector<absl::Status> statuses;
+  };
+  auto batch = std::make_shared<Batch>(*std::move(actions), num_envs, out);
+  pool_->ParallelFor(
+      num_envs,
+      [this, &request, batch, owner](int e) {
+        batch->statuses[e] = [&]() -> absl::Status {
+          absl::StatusOr<std::shared_ptr<EnvSlot>> found = registry_->Find(
+              request.names(e), ItemField("packed.names[", e, "]").view(),
+              owner);
+          if (!found.ok()) return found.status();
+          EnvSlot& slot = **found;
+          absl::Status status = batch->actions.CheckFits(e, slot.config);
+          if (!status.ok()) return status;
+          return StepSlot(slot, batch->actions.Row(e),
+                          [&](const StepResult& result, const Env& env,
+                              bool auto_reset) {
+                            WriteStepRow(result, env, auto_reset,
+                                         batch->columns.Row(e));
+                          });
+        }();
+      },
+      [batch, out, done = std::move(done)] {
+        // Appended here, in index order: workers never touch `errors`.
+        for (int e = 0; e < static_cast<int>(batch->statuses.size()); ++e) {
+          if (batch->statuses[e].ok()) continue;
+          v1::IndexedItemError* error = out->add_errors();
+          error->set_index(e);
+          FillItemError(batch->statuses[e], error->mutable_error());
+        }
+        done(absl::OkStatus());
+      });
 }
 
 }  // namespace mll

@@ -66,6 +66,13 @@ absl::Status CheckArray(const v1::Array& array, v1::DType dtype,
                         absl::Span<const int> shape, absl::string_view field,
                         absl::string_view what);
 
+// The first two checks of CheckArray, on a dtype and shape that need not
+// belong to one Array message (e.g. one row of a packed batch's actions).
+absl::Status CheckDTypeAndShape(int got_dtype, absl::Span<const int> got_shape,
+                                v1::DType dtype, absl::Span<const int> shape,
+                                absl::string_view field,
+                                absl::string_view what);
+
 // The elements of `array` if it is a T array of `shape` (see CheckArray).
 template <typename T>
 absl::StatusOr<std::vector<T>> DecodeArray(const v1::Array& array,
@@ -103,14 +110,84 @@ struct ActionBuffer {
 absl::Status ParseActions(const v1::Array& array, const EnvConfig& config,
                           absl::string_view field, ActionBuffer* out);
 
+// The dtype/shape check of ParseActions alone, with its messages: whether
+// one env's actions of `dtype` and `shape` fit `config`.
+absl::Status CheckActionLayout(int dtype, absl::Span<const int> shape,
+                               const EnvConfig& config,
+                               absl::string_view field);
+
+// The actions of a packed StepBatch (`PackedSteps.actions`), decoded once for
+// the whole batch: int32 [num_envs, n_landers] or float32 [num_envs,
+// n_landers, 2].
+class PackedActions {
+ public:
+  // INVALID_ARGUMENT naming `packed.actions` and the expected shape unless
+  // the array is one of the two forms above with num_envs =
+  // len(packed.names), n_landers in 1..32 and the matching byte count.
+  static absl::StatusOr<PackedActions> Parse(const v1::PackedSteps& packed);
+
+  int n_landers() const { return n_landers_; }
+  bool continuous() const { return continuous_; }
+  // OK, or the error a StepEnv with env e's row would give (under the field
+  // name `packed.actions[e]`) when the env's config does not match.
+  absl::Status CheckFits(int e, const EnvConfig& config) const;
+  // Env e's actions.
+  ActionsView Row(int e) const;
+
+ private:
+  int n_landers_ = 0;
+  bool continuous_ = false;
+  ActionBuffer values_;
+};
+
 // The AEC action of a StepAgentRequest: nullopt when absent (a dead step).
 absl::StatusOr<std::optional<AgentAction>> ParseAgentAction(
     const v1::StepAgentRequest& request, const EnvConfig& config);
 
-// Step (or reset) results as proto columns; the episode bookkeeping
-// (returns, lengths, cycles) comes from `env`.
+// Where one env's step result goes: the arrays of a StepData, or row e of a
+// packed batch's columns (PackedColumns). Each pointer addresses the row's
+// little-endian bytes: n_landers elements per per-agent column (n_landers *
+// 12 for observations), one element for the three per-env columns. Bytes,
+// not typed pointers, because the storage is a proto `bytes` field.
+struct StepRow {
+  char* observations;     // float32
+  char* rewards;          // float32
+  char* terminations;     // uint8
+  char* truncations;      // uint8
+  char* stepped;          // uint8
+  char* outcomes;         // uint8
+  char* episode_returns;  // float32
+  char* episode_lengths;  // int32
+  char* episode_over;     // uint8
+  char* auto_reset;       // uint8
+  char* cycles;           // int32
+};
+
+// THE conversion of a step (or reset) result to the wire's columns, for both
+// StepData and packed batches: writes `result` into `row`; the episode
+// bookkeeping (returns, lengths, cycles) comes from `env`.
+void WriteStepRow(const StepResult& result, const Env& env, bool auto_reset,
+                  const StepRow& row);
+
+// Step (or reset) results as a StepData: sizes its arrays, then
+// WriteStepRow.
 void FillStepData(const StepResult& result, const Env& env, bool auto_reset,
                   v1::StepData* out);
+
+// The result columns of a packed batch of `num_envs` envs with `n_landers`
+// landers each, every column sized once (one allocation per column) and
+// zero; Row(e) is where env e's result goes. Rows are disjoint, so threads
+// may write different rows at once. `out` must outlive this object and not
+// be modified while rows are written.
+class PackedColumns {
+ public:
+  PackedColumns(int num_envs, int n_landers, v1::PackedStepData* out);
+  StepRow Row(int e) const;
+
+ private:
+  int n_landers_;
+  StepRow base_;  // Row 0.
+};
 
 // The state of a PettingZoo AECEnv, as `aec` holds it.
 void FillAecState(const AecEnv& aec, bool world_stepped, v1::AecState* out);

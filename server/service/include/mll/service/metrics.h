@@ -53,7 +53,8 @@ class Metrics {
   // A successful parallel step's result: one env step and an agent-step per
   // agent that acted, or, for an auto-reset instead of a step, an episode.
   void RecordStepData(Method method, const v1::StepData& data);
-  // Every stepped item of a StepBatch response, as RecordStepData.
+  // Every stepped item of a StepBatch response (either form), as
+  // RecordStepData.
   void RecordStepBatch(Method method, const v1::StepBatchResponse& response);
   // A successful StepAgent: one step; an agent-step unless it was a dead
   // step (no action).
@@ -68,6 +69,11 @@ class Metrics {
  private:
   static constexpr int kBuckets = kBucketBoundsNs.size() + 1;  // With +Inf.
   static constexpr int kCodes = 17;  // Canonical codes 0..16.
+
+  // One env's successful step (or auto-reset), whatever form carried it;
+  // `stepped` is its StepData.stepped bytes.
+  void RecordEnvStep(Method method, bool auto_reset,
+                     absl::string_view stepped);
 
   struct alignas(64) PerMethod {
     std::atomic<uint64_t> buckets[kBuckets] = {};

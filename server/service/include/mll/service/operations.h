@@ -50,8 +50,10 @@ class Operations {
                          absl::string_view owner = kAnonymousOwner);
 
   // Steps the batch's envs on the worker pool and calls done() with the
-  // call's status once every item has its result or error in `out`. Returns
-  // at once. A request-level error (duplicate names) calls done() before
+  // call's status once every item has its result or error in `out`: the
+  // `steps` form answers in out->results, the `packed` form in out->packed.
+  // Returns at once. A request-level error (both forms set, duplicate names,
+  // a packed actions array of the wrong dtype or shape) calls done() before
   // returning, with no env stepped. `request` and `out` must live until
   // done() runs, and `owner`'s characters too.
   void StepBatch(const v1::StepBatchRequest& request,
@@ -60,6 +62,11 @@ class Operations {
                  absl::string_view owner = kAnonymousOwner);
 
  private:
+  // StepBatch's `packed` form.
+  void StepPacked(const v1::PackedSteps& request, v1::PackedStepData* out,
+                  std::function<void(absl::Status)> done,
+                  absl::string_view owner);
+
   Registry* registry_;
   WorkerPool* pool_;
 };

@@ -1,0 +1,539 @@
+// The packed (columnar) form of StepBatch: bit-identical to the `steps` form
+// and to the in-process core (discrete and continuous, across auto-resets),
+// the same on 1 and 2 threads, every request-level error and every per-env
+// error with the code and message a StepEnv would give, failing envs leaving
+// the other rows intact, and the form carried by a Session stream.
+#include <cstring>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "mll/core/env.h"
+#include "mll/service/convert.h"
+#include "test_util.h"
+
+namespace mll::testing {
+namespace {
+
+using ::testing::HasSubstr;
+
+constexpr int kLanders = 3;
+
+// Env e's row of a packed response as the StepData a StepEnv would return,
+// cut out of the columns byte for byte, so results of the two forms compare
+// as serialized messages.
+v1::StepData RowAsStepData(const v1::PackedStepData& packed, int e, int n) {
+  auto cut = [](const v1::Array& column, size_t row_bytes, int e,
+                std::vector<int> shape, v1::Array* out) {
+    out->set_dtype(column.dtype());
+    out->mutable_shape()->Assign(shape.begin(), shape.end());
+    out->set_data(column.data().substr(e * row_bytes, row_bytes));
+  };
+  v1::StepData data;
+  const size_t agents = static_cast<size_t>(n);
+  cut(packed.observations(), agents * kObservationSize * 4, e,
+      {n, kObservationSize}, data.mutable_observations());
+  cut(packed.rewards(), agents * 4, e, {n}, data.mutable_rewards());
+  cut(packed.terminations(), agents, e, {n}, data.mutable_terminations());
+  cut(packed.truncations(), agents, e, {n}, data.mutable_truncations());
+  cut(packed.stepped(), agents, e, {n}, data.mutable_stepped());
+  cut(packed.outcomes(), agents, e, {n}, data.mutable_outcomes());
+  cut(packed.episode_returns(), agents * 4, e, {n},
+      data.mutable_episode_returns());
+  cut(packed.episode_lengths(), agents * 4, e, {n},
+      data.mutable_episode_lengths());
+  data.set_episode_over(packed.episode_over().data().at(e) != 0);
+  data.set_auto_reset(packed.auto_reset().data().at(e) != 0);
+  int32_t cycles = 0;
+  std::memcpy(&cycles, packed.cycles().data().data() + 4 * e, 4);
+  data.set_cycles(cycles);
+  return data;
+}
+
+// Every byte of env e's rows in every column is zero.
+bool RowIsZero(const v1::PackedStepData& packed, int e, int n) {
+  const std::string bits = RowAsStepData(packed, e, n).SerializeAsString();
+  v1::StepData zero = RowAsStepData(packed, e, n);
+  for (v1::Array* column :
+       {zero.mutable_observations(), zero.mutable_rewards(),
+        zero.mutable_terminations(), zero.mutable_truncations(),
+        zero.mutable_stepped(), zero.mutable_outcomes(),
+        zero.mutable_episode_returns(), zero.mutable_episode_lengths()}) {
+    column->set_data(std::string(column->data().size(), '\0'));
+  }
+  zero.set_episode_over(false);
+  zero.set_auto_reset(false);
+  zero.set_cycles(0);
+  return bits == zero.SerializeAsString();
+}
+
+v1::CreateEnvRequest Config(bool continuous, int n_landers = kLanders) {
+  v1::CreateEnvRequest request = CreateRequest(n_landers);
+  request.mutable_config()->set_continuous(continuous);
+  request.mutable_config()->set_auto_reset(true);
+  // Short episodes: the run crosses several auto-resets.
+  request.mutable_config()->set_max_cycles(40);
+  request.mutable_config()->set_terminate_on_damage(false);
+  request.mutable_config()->set_shared_reward(false);
+  return request;
+}
+
+grpc::Status Reset(v1::MultiLunarLander::Stub& stub, const std::string& name,
+                   uint64_t seed) {
+  grpc::ClientContext context;
+  v1::ResetEnvRequest request;
+  request.set_name(name);
+  request.set_seed(seed);
+  v1::ResetEnvResponse response;
+  return stub.ResetEnv(&context, request, &response);
+}
+
+// Actions of env e at a cycle: int32 [n] or float32 [n, 2] values, drawn
+// from a fixed generator (continuous values partly outside [-1, 1], which
+// the core clips).
+class ActionSource {
+ public:
+  ActionSource(bool continuous, int n) : continuous_(continuous), n_(n) {}
+  std::vector<int32_t> Discrete() {
+    std::vector<int32_t> row(n_);
+    for (int32_t& a : row) a = std::uniform_int_distribution<int>(0, 3)(rng_);
+    return row;
+  }
+  std::vector<float> Continuous() {
+    std::vector<float> row(2 * n_);
+    for (float& a : row) {
+      a = std::uniform_real_distribution<float>(-1.2f, 1.2f)(rng_);
+    }
+    return row;
+  }
+  bool continuous() const { return continuous_; }
+
+ private:
+  bool continuous_;
+  int n_;
+  std::mt19937 rng_{42};
+};
+
+// One cycle's actions for `num_envs` envs, in both forms.
+struct CycleActions {
+  std::vector<std::vector<int32_t>> discrete;
+  std::vector<std::vector<float>> continuous;
+
+  v1::Array Row(int e) const {
+    return continuous.empty() ? DiscreteActions(discrete[e])
+                              : ContinuousActions(continuous[e]);
+  }
+  ActionsView View(int e) const {
+    return continuous.empty() ? ActionsView{discrete[e], {}}
+                              : ActionsView{{}, continuous[e]};
+  }
+  v1::Array Packed(int n) const {
+    v1::Array array;
+    const int num_envs = static_cast<int>(
+        continuous.empty() ? discrete.size() : continuous.size());
+    if (continuous.empty()) {
+      std::vector<int32_t> all;
+      for (const auto& row : discrete) all.insert(all.end(), row.begin(), row.end());
+      const int shape[] = {num_envs, n};
+      FillArray<int32_t>(all, shape, &array);
+    } else {
+      std::vector<float> all;
+      for (const auto& row : continuous) {
+        all.insert(all.end(), row.begin(), row.end());
+      }
+      const int shape[] = {num_envs, n, 2};
+      FillArray<float>(all, shape, &array);
+    }
+    return array;
+  }
+};
+
+CycleActions Draw(ActionSource& source, int num_envs) {
+  CycleActions actions;
+  for (int e = 0; e < num_envs; ++e) {
+    if (source.continuous()) {
+      actions.continuous.push_back(source.Continuous());
+    } else {
+      actions.discrete.push_back(source.Discrete());
+    }
+  }
+  return actions;
+}
+
+v1::StepBatchRequest PackedRequest(const std::vector<std::string>& names,
+                                   const v1::Array& actions) {
+  v1::StepBatchRequest request;
+  request.mutable_packed()->mutable_names()->Assign(names.begin(),
+                                                    names.end());
+  *request.mutable_packed()->mutable_actions() = actions;
+  return request;
+}
+
+class PackedEquivalenceTest : public ::testing::TestWithParam<bool> {};
+
+// Per cycle: the core (with the service's auto-reset rule), the `steps` form
+// and the packed form, each on its own envs with the same seeds; every row
+// must serialize to the same bytes. The packed responses of the 1- and
+// 2-thread servers must be equal too.
+TEST_P(PackedEquivalenceTest, MatchesStepsFormAndCoreOnOneAndTwoThreads) {
+  const bool continuous = GetParam();
+  const std::vector<uint64_t> seeds = {0, 3, 7, 11, 19, 12345};
+  const int num_envs = static_cast<int>(seeds.size());
+  constexpr int kCycles = 130;
+
+  absl::StatusOr<EnvConfig> config =
+      EnvConfigFromProto(Config(continuous).config());
+  ASSERT_TRUE(config.ok());
+  std::vector<std::unique_ptr<Env>> core;
+  StepResult result;
+  for (uint64_t seed : seeds) {
+    core.push_back(*Env::Create(*config));
+    core.back()->Reset(seed, &result);
+  }
+
+  ActionSource source(continuous, kLanders);
+  std::vector<CycleActions> cycles;
+  for (int c = 0; c < kCycles; ++c) cycles.push_back(Draw(source, num_envs));
+
+  // reference[c][e]: the serialized StepData of env e at cycle c.
+  std::vector<std::vector<std::string>> reference(kCycles);
+  int auto_resets = 0;
+  for (int c = 0; c < kCycles; ++c) {
+    for (int e = 0; e < num_envs; ++e) {
+      v1::StepData data;
+      if (core[e]->episode_over()) {
+        core[e]->Reset(std::nullopt, &result);
+        FillStepData(result, *core[e], /*auto_reset=*/true, &data);
+        ++auto_resets;
+      } else {
+        ASSERT_TRUE(core[e]->Step(cycles[c].View(e), &result).ok());
+        FillStepData(result, *core[e], /*auto_reset=*/false, &data);
+      }
+      reference[c].push_back(data.SerializeAsString());
+    }
+  }
+  EXPECT_GE(auto_resets, num_envs) << "the run must cross auto-resets";
+
+  std::vector<std::string> packed_bits[2];
+  for (int threads : {1, 2}) {
+    SCOPED_TRACE(threads);
+    ServiceOptions options;
+    options.threads = threads;
+    InProcess s(options);
+    std::vector<std::string> steps_envs, packed_envs;
+    for (int e = 0; e < num_envs; ++e) {
+      steps_envs.push_back(CreateEnv(*s.stub, Config(continuous)));
+      packed_envs.push_back(CreateEnv(*s.stub, Config(continuous)));
+      ASSERT_TRUE(Reset(*s.stub, steps_envs[e], seeds[e]).ok());
+      ASSERT_TRUE(Reset(*s.stub, packed_envs[e], seeds[e]).ok());
+    }
+    for (int c = 0; c < kCycles; ++c) {
+      SCOPED_TRACE(c);
+      v1::StepBatchRequest steps;
+      for (int e = 0; e < num_envs; ++e) {
+        v1::StepEnvRequest* step = steps.add_steps();
+        step->set_name(steps_envs[e]);
+        *step->mutable_actions() = cycles[c].Row(e);
+      }
+      grpc::ClientContext steps_context;
+      v1::StepBatchResponse steps_response;
+      ASSERT_TRUE(
+          s.stub->StepBatch(&steps_context, steps, &steps_response).ok());
+      EXPECT_FALSE(steps_response.has_packed());
+
+      grpc::ClientContext packed_context;
+      v1::StepBatchResponse packed_response;
+      ASSERT_TRUE(s.stub
+                      ->StepBatch(&packed_context,
+                                  PackedRequest(packed_envs,
+                                                cycles[c].Packed(kLanders)),
+                                  &packed_response)
+                      .ok());
+      ASSERT_EQ(packed_response.results_size(), 0);
+      const v1::PackedStepData& packed = packed_response.packed();
+      ASSERT_EQ(packed.errors_size(), 0) << packed.errors(0).error().message();
+      EXPECT_THAT(packed.observations().shape(),
+                  ::testing::ElementsAre(num_envs, kLanders, kObservationSize));
+      EXPECT_THAT(packed.cycles().shape(), ::testing::ElementsAre(num_envs));
+      for (int e = 0; e < num_envs; ++e) {
+        ASSERT_TRUE(steps_response.results(e).has_data());
+        EXPECT_EQ(steps_response.results(e).data().SerializeAsString(),
+                  reference[c][e])
+            << "steps form, env " << e;
+        EXPECT_EQ(RowAsStepData(packed, e, kLanders).SerializeAsString(),
+                  reference[c][e])
+            << "packed form, env " << e;
+      }
+      packed_bits[threads - 1].push_back(packed.SerializeAsString());
+    }
+  }
+  EXPECT_EQ(packed_bits[0], packed_bits[1]);
+}
+
+INSTANTIATE_TEST_SUITE_P(DiscreteAndContinuous, PackedEquivalenceTest,
+                         ::testing::Bool(),
+                         [](const ::testing::TestParamInfo<bool>& info) {
+                           return info.param ? "Continuous" : "Discrete";
+                         });
+
+class PackedErrorsTest : public ::testing::Test {
+ protected:
+  grpc::Status Batch(const v1::StepBatchRequest& request,
+                     v1::StepBatchResponse* response) {
+    grpc::ClientContext context;
+    return s_.stub->StepBatch(&context, request, response);
+  }
+  // StepEnv's error for `name` with `actions`, as (code, message).
+  grpc::Status StepEnvError(const std::string& name, const v1::Array& actions) {
+    grpc::ClientContext context;
+    v1::StepEnvRequest request;
+    request.set_name(name);
+    *request.mutable_actions() = actions;
+    v1::StepEnvResponse response;
+    return s_.stub->StepEnv(&context, request, &response);
+  }
+  void ExpectRejected(const v1::StepBatchRequest& request,
+                      const std::string& message) {
+    v1::StepBatchResponse response;
+    const grpc::Status status = Batch(request, &response);
+    EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT)
+        << status.error_message();
+    EXPECT_THAT(status.error_message(), HasSubstr(message));
+  }
+
+  InProcess s_;
+};
+
+v1::Array Int32Array(std::vector<int> shape, size_t count) {
+  v1::Array array;
+  FillArray<int32_t>(std::vector<int32_t>(count, 0), shape, &array);
+  return array;
+}
+
+TEST_F(PackedErrorsTest, RequestLevelErrorsStepNothing) {
+  const std::string a = CreateEnv(*s_.stub, Config(false));
+  const std::string b = CreateEnv(*s_.stub, Config(false));
+  ASSERT_TRUE(Reset(*s_.stub, a, 1).ok());
+  ASSERT_TRUE(Reset(*s_.stub, b, 2).ok());
+  const std::vector<std::string> names = {a, b};
+
+  v1::StepBatchRequest both = PackedRequest(names, Int32Array({2, 3}, 6));
+  v1::StepEnvRequest* step = both.add_steps();
+  step->set_name(a);
+  *step->mutable_actions() = DiscreteActions({0, 0, 0});
+  ExpectRejected(both, "steps, packed: both set (1 steps and a packed batch "
+                       "of 2 envs)");
+
+  v1::Array bytes;
+  const int byte_shape[] = {2, 3};
+  FillArray<uint8_t>(std::vector<uint8_t>(6, 0), byte_shape, &bytes);
+  ExpectRejected(PackedRequest(names, bytes),
+                 "packed.actions: dtype DTYPE_UINT8 is not allowed (expected "
+                 "int32 [2, n_landers] for discrete actions or float32 [2, "
+                 "n_landers, 2] for continuous ones");
+  ExpectRejected(PackedRequest(names, v1::Array()),
+                 "packed.actions: dtype DTYPE_UNSPECIFIED is not allowed");
+  ExpectRejected(PackedRequest(names, Int32Array({3, 3}, 9)),
+                 "packed.actions: shape [3, 3] of DTYPE_INT32 does not fit "
+                 "(expected int32 [2, n_landers]");
+  ExpectRejected(PackedRequest(names, Int32Array({6}, 6)),
+                 "packed.actions: shape [6] of DTYPE_INT32 does not fit");
+  ExpectRejected(PackedRequest(names, Int32Array({2, 33}, 66)),
+                 "n_landers 1..32");
+  ExpectRejected(PackedRequest(names, Int32Array({2, 0}, 0)),
+                 "packed.actions: shape [2, 0] of DTYPE_INT32 does not fit");
+  v1::Array floats;
+  const int float_shape[] = {2, 3, 3};
+  FillArray<float>(std::vector<float>(18, 0.0f), float_shape, &floats);
+  ExpectRejected(PackedRequest(names, floats),
+                 "packed.actions: shape [2, 3, 3] of DTYPE_FLOAT32 does not "
+                 "fit");
+  v1::Array short_data = Int32Array({2, 3}, 6);
+  short_data.mutable_data()->resize(20);
+  ExpectRejected(PackedRequest(names, short_data),
+                 "packed.actions: data has 20 bytes but shape [2, 3] of "
+                 "DTYPE_INT32 needs 24");
+  ExpectRejected(PackedRequest({a, b, a}, Int32Array({3, 3}, 9)),
+                 "packed.names[2]: " + a +
+                     " also appears at packed.names[0]; the envs of one batch "
+                     "must be distinct");
+
+  // Nothing was stepped by any of the above.
+  v1::Env env;
+  grpc::ClientContext context;
+  v1::GetEnvRequest get;
+  get.set_name(a);
+  ASSERT_TRUE(s_.stub->GetEnv(&context, get, &env).ok());
+  EXPECT_EQ(env.cycles(), 0);
+
+  // An empty packed batch is a valid batch of nothing.
+  v1::StepBatchResponse response;
+  ASSERT_TRUE(Batch(PackedRequest({}, Int32Array({0, 3}, 0)), &response).ok());
+  EXPECT_TRUE(response.has_packed());
+  EXPECT_THAT(response.packed().observations().shape(),
+              ::testing::ElementsAre(0, 3, kObservationSize));
+}
+
+// Each failing env gets StepEnv's code and message (its field names moved
+// under `packed.`), its rows stay zero, and the other envs step as if alone.
+TEST_F(PackedErrorsTest, FailingEnvsGetStepEnvsErrorAndLeaveOthersIntact) {
+  const std::string good0 = CreateEnv(*s_.stub, Config(false));
+  const std::string other_n = CreateEnv(*s_.stub, Config(false, 2));
+  const std::string other_type = CreateEnv(*s_.stub, Config(true));
+  const std::string unreset = CreateEnv(*s_.stub, Config(false));
+  v1::CreateEnvRequest short_config = CreateRequest(kLanders);
+  short_config.mutable_config()->set_max_cycles(1);
+  const std::string over = CreateEnv(*s_.stub, short_config);
+  const std::string bad_value = CreateEnv(*s_.stub, Config(false));
+  const std::string good1 = CreateEnv(*s_.stub, Config(false));
+  // Twins of the good envs, stepped by StepEnv for the expected rows.
+  const std::string twin0 = CreateEnv(*s_.stub, Config(false));
+  const std::string twin1 = CreateEnv(*s_.stub, Config(false));
+  for (const auto& [name, seed] :
+       std::vector<std::pair<std::string, uint64_t>>{{good0, 5},
+                                                     {twin0, 5},
+                                                     {good1, 6},
+                                                     {twin1, 6},
+                                                     {other_n, 1},
+                                                     {other_type, 1},
+                                                     {over, 1},
+                                                     {bad_value, 1}}) {
+    ASSERT_TRUE(Reset(*s_.stub, name, seed).ok());
+  }
+  ASSERT_TRUE(
+      StepEnvError(over, DiscreteActions({0, 0, 0})).ok());  // Now over.
+
+  const std::vector<std::string> names = {
+      good0, other_n, other_type, "envs/missing", "bogus",
+      unreset, over, bad_value, good1};
+  std::vector<std::vector<int32_t>> rows = {
+      {2, 1, 3}, {0, 0, 0}, {0, 0, 0}, {0, 0, 0}, {0, 0, 0},
+      {0, 0, 0}, {0, 0, 0}, {0, 7, 0}, {3, 2, 2}};
+  CycleActions actions;
+  actions.discrete = rows;
+
+  v1::StepBatchResponse response;
+  ASSERT_TRUE(
+      Batch(PackedRequest(names, actions.Packed(kLanders)), &response).ok());
+  const v1::PackedStepData& packed = response.packed();
+
+  // What StepEnv says for each failing env with its row of actions.
+  struct Expected {
+    int index;
+    grpc::StatusCode code;
+    std::string message;
+  };
+  auto step_env = [&](int e) { return StepEnvError(names[e], actions.Row(e)); };
+  auto renamed = [](const std::string& message, const std::string& from,
+                    const std::string& to) {
+    EXPECT_EQ(message.rfind(from, 0), 0u) << message;
+    return to + message.substr(from.size());
+  };
+  std::vector<Expected> expected;
+  for (int e : {1, 2}) {  // Layout mismatch: StepEnv's `actions` check.
+    const grpc::Status status = step_env(e);
+    expected.push_back({e, status.error_code(),
+                        renamed(status.error_message(), "actions",
+                                "packed.actions[" + std::to_string(e) + "]")});
+  }
+  for (int e : {3, 4}) {  // Unknown, malformed name: StepEnv's `name` check.
+    const grpc::Status status = step_env(e);
+    expected.push_back({e, status.error_code(),
+                        renamed(status.error_message(), "name",
+                                "packed.names[" + std::to_string(e) + "]")});
+  }
+  for (int e : {5, 6, 7}) {  // Not reset, over, bad value: the env's word.
+    const grpc::Status status = step_env(e);
+    expected.push_back({e, status.error_code(), status.error_message()});
+  }
+  ASSERT_EQ(packed.errors_size(), static_cast<int>(expected.size()));
+  const grpc::StatusCode codes[] = {
+      grpc::StatusCode::INVALID_ARGUMENT, grpc::StatusCode::INVALID_ARGUMENT,
+      grpc::StatusCode::NOT_FOUND, grpc::StatusCode::INVALID_ARGUMENT,
+      grpc::StatusCode::FAILED_PRECONDITION,
+      grpc::StatusCode::FAILED_PRECONDITION,
+      grpc::StatusCode::INVALID_ARGUMENT};
+  for (size_t i = 0; i < expected.size(); ++i) {
+    SCOPED_TRACE(names[expected[i].index]);
+    EXPECT_EQ(expected[i].code, codes[i]);
+    EXPECT_EQ(packed.errors(i).index(), expected[i].index);
+    EXPECT_EQ(packed.errors(i).error().code(), expected[i].code);
+    EXPECT_EQ(packed.errors(i).error().message(), expected[i].message);
+    EXPECT_TRUE(RowIsZero(packed, expected[i].index, kLanders));
+  }
+  EXPECT_THAT(packed.errors(0).error().message(),
+              HasSubstr("packed.actions[1]: shape [3] does not match [2]"));
+  EXPECT_THAT(packed.errors(1).error().message(),
+              HasSubstr("packed.actions[2]: dtype DTYPE_INT32 does not match "
+                        "DTYPE_FLOAT32"));
+
+  for (const auto& [e, twin] :
+       std::vector<std::pair<int, std::string>>{{0, twin0}, {8, twin1}}) {
+    grpc::ClientContext context;
+    v1::StepEnvRequest request;
+    request.set_name(twin);
+    *request.mutable_actions() = actions.Row(e);
+    v1::StepEnvResponse alone;
+    ASSERT_TRUE(s_.stub->StepEnv(&context, request, &alone).ok());
+    EXPECT_EQ(RowAsStepData(packed, e, kLanders).SerializeAsString(),
+              alone.data().SerializeAsString());
+    EXPECT_FALSE(RowIsZero(packed, e, kLanders));
+  }
+}
+
+TEST(PackedSessionTest, SessionCarriesAPackedBatch) {
+  InProcess s;
+  const std::string twin = CreateEnv(*s.stub, Config(true));
+  ASSERT_TRUE(Reset(*s.stub, twin, 9).ok());
+
+  grpc::ClientContext context;
+  auto stream = s.stub->Session(&context);
+  v1::SessionRequest create;
+  create.set_sequence(1);
+  *create.mutable_create_env() = Config(true);
+  v1::SessionResponse response;
+  ASSERT_TRUE(stream->Write(create) && stream->Read(&response));
+  const std::string name = response.env().name();
+  v1::SessionRequest reset;
+  reset.set_sequence(2);
+  reset.mutable_reset_env()->set_name(name);
+  reset.mutable_reset_env()->set_seed(9);
+  ASSERT_TRUE(stream->Write(reset) && stream->Read(&response));
+
+  CycleActions actions;
+  actions.continuous = {{0.9f, -0.7f, 0.3f, 1.0f, -1.0f, 0.6f}};
+  v1::SessionRequest step;
+  step.set_sequence(3);
+  *step.mutable_step_batch() = PackedRequest({name}, actions.Packed(kLanders));
+  ASSERT_TRUE(stream->Write(step) && stream->Read(&response));
+  EXPECT_EQ(response.sequence(), 3u);
+  ASSERT_FALSE(response.has_error()) << response.error().message();
+  ASSERT_TRUE(response.step_batch().has_packed());
+  EXPECT_EQ(response.step_batch().packed().errors_size(), 0);
+
+  grpc::ClientContext twin_context;
+  v1::StepEnvRequest request;
+  request.set_name(twin);
+  *request.mutable_actions() = actions.Row(0);
+  v1::StepEnvResponse alone;
+  ASSERT_TRUE(s.stub->StepEnv(&twin_context, request, &alone).ok());
+  EXPECT_EQ(RowAsStepData(response.step_batch().packed(), 0, kLanders)
+                .SerializeAsString(),
+            alone.data().SerializeAsString());
+
+  // A request-level error comes back as the response's error; the stream
+  // goes on.
+  v1::SessionRequest bad = step;
+  bad.set_sequence(4);
+  bad.mutable_step_batch()->mutable_packed()->clear_actions();
+  ASSERT_TRUE(stream->Write(bad) && stream->Read(&response));
+  EXPECT_EQ(response.error().code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_THAT(response.error().message(), HasSubstr("packed.actions: dtype"));
+  stream->WritesDone();
+  EXPECT_TRUE(stream->Finish().ok());
+}
+
+}  // namespace
+}  // namespace mll::testing
