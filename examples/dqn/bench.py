@@ -21,6 +21,7 @@ from torch.nn import functional as F
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from mll_dqn.agent import DQNAgent  # noqa: E402
+from mll_dqn.collect import Timers, VectorCollector  # noqa: E402
 from mll_dqn.config import PAPER_ENV_CONFIG, preset  # noqa: E402
 from mll_dqn.replay import ReplayBuffer  # noqa: E402
 
@@ -149,6 +150,30 @@ def main() -> None:
         venv.close()
         rows.append((f"env step via vector_env({num_envs}), per env step", us,
                      parallel_us))
+
+    # One step of the target10 loop: a StepBatch of 16 environments and the 3
+    # gradient steps (batch 512) its 48 transitions earn, the gradient steps
+    # run during the call (overlap) against after it.
+    target = preset("target10")
+    learner = DQNAgent(target)
+    collector = VectorCollector(learner, target, args.address, rng, Timers(),
+                                seed=0)
+    owed = target.num_envs * 3 // target.update_every
+
+    def learn_owed():
+        for _ in range(owed):
+            learner.learn(buffer.sample(target.batch_size, rng))
+
+    def sequential():
+        collector.step(0.1)
+        learn_owed()
+
+    sequential_us = per_call_us(sequential, args.seconds)
+    rows.append(("target10 loop step: StepBatch(16) + 3 learning steps of "
+                 "512, overlapped (vs sequential)",
+                 per_call_us(lambda: collector.step(0.1, learn_owed),
+                             args.seconds), sequential_us))
+    collector.close()
 
     print(f"load average at end: {os.getloadavg()}")
     print("| what | ours (us) | paper's way (us) | ratio |")

@@ -30,3 +30,5 @@ $py -m mll_dqn gif --checkpoint "$out/checkpoint.pt" --out "$out/greedy.gif" "${
 if [ -f "$out/best.pt" ]; then
   $py -m mll_dqn gif --checkpoint "$out/best.pt" --out "$out/greedy_best.gif" "${address[@]}"
 fi
+# The training run's figures again, last, so they are the output's last lines.
+$py -m mll_dqn summary "$out"

@@ -6,6 +6,7 @@
   python -m mll_dqn evaluate --policy heuristic
   python -m mll_dqn plot runs/fast/episodes.csv --out fig.png
   python -m mll_dqn gif --checkpoint runs/fast/checkpoint.pt --out fast.gif
+  python -m mll_dqn summary runs/fast
 
 Every command takes --address host:port; without it the client starts an
 embedded server for the run.
@@ -16,6 +17,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 
 from mll_dqn.config import PAPER_ENV_CONFIG, PRESETS, TrainConfig, preset
@@ -69,6 +71,36 @@ def _policy(args):
     raise SystemExit("give --checkpoint PATH or --policy heuristic|random")
 
 
+# Names of the time split's parts in the headline, in order.
+_SPLIT_NAMES = (("env", "environment"), ("act", "action selection"),
+                ("sample", "replay sampling"), ("learn", "gradient steps"),
+                ("store", "replay store"), ("other", "other"))
+
+
+def headline(summary) -> str:
+    """The run's figures in two lines: wall and CPU time, counts, time split
+    (fractions of wall time) and the score criteria."""
+    split = summary["time_split_fraction"]
+    parts = ", ".join(f"{label} {100 * split[key]:.0f}%"
+                      for key, label in _SPLIT_NAMES if key in split)
+    overlapped = summary.get("env_call_overlapped_s")
+    if overlapped:
+        parts += (f" (environment calls overlapped with the above: "
+                  f"{overlapped:.0f} s)")
+
+    def number(value):
+        return "-" if value is None else f"{value:,.0f}"
+
+    return (f"wall {summary['wall_s']:.0f} s, trainer CPU "
+            f"{summary['trainer_cpu_s']:.0f} s, {summary['episodes']} episodes, "
+            f"{summary['env_steps']:,} env steps, {summary['updates']:,} "
+            f"updates; time split: {parts}\n"
+            f"50-episode mean at the end {number(summary['final_mean50'])}, "
+            f"last-200 mean {number(summary['mean_last200'])}, first 50-episode "
+            f"mean >= 1,400 at episode "
+            f"{number(summary['first_episode_mean50_ge_1400'])}")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m mll_dqn",
                                      description=__doc__.split("\n")[0])
@@ -97,6 +129,10 @@ def main(argv=None) -> int:
                                               help="also write results here")
     commands.choices["gif"].add_argument("--out", required=True)
 
+    summary_cmd = commands.add_parser(
+        "summary", help="a finished run's figures in two lines")
+    summary_cmd.add_argument("run", help="run directory (holding summary.json)")
+
     plot_cmd = commands.add_parser("plot", help="score per episode (figure 2)")
     plot_cmd.add_argument("logs", nargs="+", help="episodes.csv files")
     plot_cmd.add_argument("--labels", nargs="*")
@@ -114,6 +150,11 @@ def main(argv=None) -> int:
                         resume=args.resume, progress_bar=not args.no_progress)
         summary.pop("config")
         print(json.dumps(summary, indent=2))
+        print(headline(summary))
+    elif args.command == "summary":
+        from mll_dqn.train import SUMMARY
+        with open(os.path.join(args.run, SUMMARY)) as f:
+            print(headline(json.load(f)))
     elif args.command in ("evaluate", "gif"):
         from mll_dqn import evaluate
         from mll_dqn.train import use_one_thread

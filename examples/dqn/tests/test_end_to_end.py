@@ -135,6 +135,15 @@ def test_command_line_evaluate_gif_and_plot(tmp_path, capsys):
     run = tmp_path / "run"
     assert main(["train", "--preset", "quick", "--episodes", "2", "--out",
                  str(run), "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    summary = json.loads((run / SUMMARY).read_text())
+    assert (f"{summary['env_steps']:,} env steps, {summary['updates']:,} "
+            "updates; time split: environment") in printed
+    assert "gradient steps" in printed and "replay sampling" in printed
+    assert main(["summary", str(run)]) == 0
+    # The same two lines that ended the training command's output.
+    again = capsys.readouterr().out.strip()
+    assert again.count("\n") == 1 and printed.rstrip().endswith(again)
     policy, config = evaluate.load_policy(str(run / CHECKPOINT))
     result = evaluate.evaluate(policy, config.env_config, episodes=2)
     assert result["episodes"] == 2
