@@ -11,9 +11,10 @@ from __future__ import annotations
 import math
 from typing import Sequence
 
+import grpc
 import numpy as np
 
-from ._errors import invalid_argument
+from ._errors import MLLError, invalid_argument
 from ._stubs import pb
 
 # Wire dtype -> little-endian numpy dtype.
@@ -36,8 +37,9 @@ def wire_dtype_to_numpy(dtype: int) -> np.dtype:
         ) from None
 
 
-def from_bytes(data: bytes, dtype: int, shape: Sequence[int]) -> np.ndarray:
-    """Decodes little-endian bytes of a wire dtype into a native, writable array of `shape`."""
+def from_bytes(data: bytes, dtype: int, shape: Sequence[int], as_dtype=None) -> np.ndarray:
+    """Decodes little-endian bytes of a wire dtype into a writable array of `shape`, of the native
+    dtype (or `as_dtype`, e.g. bool for 0/1 flags: one conversion, not two)."""
     little = _WIRE_TO_NUMPY.get(dtype)
     if little is None:
         wire_dtype_to_numpy(dtype)  # Raises the error naming the dtype.
@@ -47,7 +49,7 @@ def from_bytes(data: bytes, dtype: int, shape: Sequence[int]) -> np.ndarray:
             f"Array.data has {len(data)} bytes; shape {list(shape)} of "
             f"{pb.DType.Name(dtype)} needs {math.prod(shape) * little.itemsize}"
         )
-    return np.frombuffer(data, dtype=little).astype(_WIRE_TO_NATIVE[dtype]).reshape(shape)
+    return np.frombuffer(data, dtype=little).astype(as_dtype or _WIRE_TO_NATIVE[dtype]).reshape(shape)
 
 
 def to_list(array: "pb.Array") -> list:
@@ -61,6 +63,33 @@ def to_list(array: "pb.Array") -> list:
 def to_numpy(array: "pb.Array") -> np.ndarray:
     """Decodes one `Array` message."""
     return from_bytes(array.data, array.dtype, array.shape)
+
+
+class Column:
+    """A result column whose wire dtype and shape the caller knows (e.g. one field of a packed
+    StepBatch): `decode` checks that the message says the same and decodes it with one
+    frombuffer and one conversion, to `as_dtype` (default: the native dtype; bool for 0/1
+    flags). Everything that does not change between calls is worked out once, here."""
+
+    __slots__ = ("name", "dtype", "shape", "as_dtype", "_little", "_shape_list", "_nbytes")
+
+    def __init__(self, name: str, dtype: int, shape: Sequence[int], as_dtype=None):
+        self.name, self.dtype, self.shape = name, dtype, tuple(shape)
+        self._little = _WIRE_TO_NUMPY.get(dtype) or wire_dtype_to_numpy(dtype)
+        self.as_dtype = np.dtype(as_dtype or _WIRE_TO_NATIVE[dtype])
+        self._shape_list = list(self.shape)
+        self._nbytes = math.prod(self.shape) * self._little.itemsize
+
+    def decode(self, array: "pb.Array") -> np.ndarray:
+        data = array.data
+        if array.dtype != self.dtype or len(data) != self._nbytes or array.shape != self._shape_list:
+            dtype = pb.DType.Name(array.dtype) if array.dtype in pb.DType.values() else array.dtype
+            raise MLLError(
+                grpc.StatusCode.INTERNAL,
+                f"{self.name} arrived as {dtype} {list(array.shape)} in {len(data)} bytes; expected "
+                f"{pb.DType.Name(self.dtype)} {self._shape_list} in {self._nbytes} bytes",
+            )
+        return np.frombuffer(data, self._little).astype(self.as_dtype).reshape(self.shape)
 
 
 def to_proto(values, dtype: int, out: "pb.Array | None" = None) -> "pb.Array":
@@ -91,16 +120,13 @@ def to_proto(values, dtype: int, out: "pb.Array | None" = None) -> "pb.Array":
     return out
 
 
-def stack_bytes(chunks: Sequence[bytes], dtype: int, shape: Sequence[int]) -> np.ndarray:
+def stack_bytes(chunks: Sequence[bytes], dtype: int, shape: Sequence[int], as_dtype=None) -> np.ndarray:
     """Decodes many same-shaped arrays' bytes (e.g. one field of every env of a batch) with one
     join and one frombuffer; `shape` is the shape of the stacked result."""
-    return from_bytes(b"".join(chunks), dtype, shape)
+    return from_bytes(b"".join(chunks), dtype, shape, as_dtype)
 
 
-def row_bytes(values: np.ndarray, dtype: int) -> list[bytes]:
-    """The little-endian bytes of each row (first index) of `values` as the wire dtype `dtype`,
-    e.g. each env's actions of a batch, to go into the `data` of per-row Arrays."""
-    block = np.ascontiguousarray(values, dtype=_WIRE_TO_NUMPY[dtype])
-    raw = block.tobytes()
-    size = len(raw) // max(len(block), 1)
-    return [raw[i * size : (i + 1) * size] for i in range(len(block))]
+def to_bytes(values: np.ndarray, dtype: int) -> bytes:
+    """The little-endian, row-major bytes of `values` as the wire dtype `dtype`: the `data` of an
+    Array whose dtype and shape are already set (e.g. a reused request's actions)."""
+    return np.ascontiguousarray(values, dtype=_WIRE_TO_NUMPY[dtype]).tobytes()

@@ -1,5 +1,6 @@
 """Many environments stepped together: one StepBatch call per server per step, arrays in and
-out.
+out, in StepBatch's packed form (one actions array in, one array per result column out; no
+per-environment messages to build or parse, no per-environment Python loop).
 
 Several servers (address= a list or "host:port,host:port"): env i lives on server i mod S for
 its whole life (creation, reset, steps, deletion). Each step sends one StepBatch to every server
@@ -28,26 +29,36 @@ from ._errors import MLLError, from_item_error, invalid_argument
 from ._remote import Connection, action_array, config_dict, make_config, seed_value, space_from_proto
 from ._stubs import pb
 
-# (StepData field, wire dtype, per-env trailing shape given n_landers).
-_COLUMNS = (
-    ("observations", pb.DTYPE_FLOAT32, lambda n: (n, 12)),
-    ("rewards", pb.DTYPE_FLOAT32, lambda n: (n,)),
-    ("terminations", pb.DTYPE_UINT8, lambda n: (n,)),
-    ("truncations", pb.DTYPE_UINT8, lambda n: (n,)),
-    ("stepped", pb.DTYPE_UINT8, lambda n: (n,)),
-    ("outcomes", pb.DTYPE_UINT8, lambda n: (n,)),
-    ("episode_returns", pb.DTYPE_FLOAT32, lambda n: (n,)),
-    ("episode_lengths", pb.DTYPE_INT32, lambda n: (n,)),
+# Result columns: (field of StepData / PackedStepData, wire dtype, numpy dtype of the result,
+# trailing shape per env given n_landers). The per-agent ones are Arrays in both messages.
+_AGENT_COLUMNS = (
+    ("observations", pb.DTYPE_FLOAT32, np.float32, lambda n: (n, 12)),
+    ("rewards", pb.DTYPE_FLOAT32, np.float32, lambda n: (n,)),
+    ("terminations", pb.DTYPE_UINT8, bool, lambda n: (n,)),
+    ("truncations", pb.DTYPE_UINT8, bool, lambda n: (n,)),
+    ("stepped", pb.DTYPE_UINT8, bool, lambda n: (n,)),
+    ("outcomes", pb.DTYPE_UINT8, np.uint8, lambda n: (n,)),
+    ("episode_returns", pb.DTYPE_FLOAT32, np.float32, lambda n: (n,)),
+    ("episode_lengths", pb.DTYPE_INT32, np.int32, lambda n: (n,)),
+)
+# The per-env ones, scalars in StepData, Arrays in PackedStepData (cycles is not returned).
+_ENV_COLUMNS = (
+    ("episode_over", pb.DTYPE_UINT8, bool, lambda n: ()),
+    ("auto_reset", pb.DTYPE_UINT8, bool, lambda n: ()),
 )
 
 
-class _Batch(NamedTuple):
-    """One server's share of a vector env: its connection, its StepBatch request, and the env
-    indices of the request's entries, in order."""
+class _Server(NamedTuple):
+    """One server's share of a vector env: env indices `rows` (a slice: env i is on server
+    i mod S), and its packed StepBatch request, built once, of which each step replaces only
+    the action bytes (`actions`)."""
 
     connection: Connection
+    rows: slice
+    count: int  # How many envs: rows of every array of the request and the response.
     request: "pb.StepBatchRequest"
-    envs: list
+    actions: "pb.Array"
+    columns: tuple  # _arrays.Column of every result column, shaped for this server's envs.
 
 
 class VectorEnv:
@@ -114,19 +125,23 @@ class VectorEnv:
         self.possible_agents = list(spec.possible_agents)
         self.single_observation_space = space_from_proto(spec.observation_space)
         self.single_action_space = space_from_proto(spec.action_space)
-        # One batch request per server, built once; each step only replaces the action bytes.
-        # self._steps[i] is env i's entry in its server's request.
-        self._action_dtype = action_dtype = pb.DTYPE_FLOAT32 if self.continuous else pb.DTYPE_INT32
+        self._action_dtype = pb.DTYPE_FLOAT32 if self.continuous else pb.DTYPE_INT32
         action_shape = (self.n_landers, 2) if self.continuous else (self.n_landers,)
-        self._batches = [_Batch(connection, pb.StepBatchRequest(), []) for connection in self._connections]
-        self._steps = []
-        for index, name in enumerate(self._names):
-            batch = self._batches[index % len(self._batches)]
-            step = batch.request.steps.add(name=name)
-            step.actions.dtype = action_dtype
-            step.actions.shape.extend(action_shape)
-            batch.envs.append(index)
-            self._steps.append(step)
+        stride = len(self._connections)
+        self._servers = []
+        for first, connection in enumerate(self._connections):
+            rows = slice(first, self.num_envs, stride)
+            names = self._names[rows]
+            request = pb.StepBatchRequest()
+            request.packed.names.extend(names)
+            actions = request.packed.actions
+            actions.dtype = self._action_dtype
+            actions.shape.extend((len(names),) + action_shape)
+            columns = tuple(
+                _arrays.Column(field, wire, (len(names),) + shape(self.n_landers), result)
+                for field, wire, result, shape in _AGENT_COLUMNS + _ENV_COLUMNS
+            )
+            self._servers.append(_Server(connection, rows, len(names), request, actions, columns))
 
     def _connection_of(self, index: int) -> Connection:
         return self._connections[index % len(self._connections)]
@@ -151,30 +166,18 @@ class VectorEnv:
         """The address of the server of each environment, in env order (env i: server i mod S)."""
         return [self._connection_of(index).address for index in range(self.num_envs)]
 
-    def _stack(self, datas: list, auto_reset: np.ndarray, episode_over: np.ndarray):
-        columns = {
-            field: _arrays.stack_bytes(
-                [getattr(data, field).data for data in datas], dtype, (self.num_envs,) + shape(self.n_landers)
-            )
-            for field, dtype, shape in _COLUMNS
-        }
-        active = columns["stepped"].astype(bool)
-        active[auto_reset] = False
+    def _result(self, columns: dict):
+        """step()'s return value from the decoded columns (num_envs leading)."""
+        active = columns["stepped"]
+        active[columns["auto_reset"]] = False  # An auto-reset row is not a transition.
         infos = {
-            "auto_reset": auto_reset,
-            "episode_over": episode_over,
+            "auto_reset": columns["auto_reset"],
+            "episode_over": columns["episode_over"],
             "outcome": columns["outcomes"],
             "episode_return": columns["episode_returns"],
             "episode_length": columns["episode_lengths"],
         }
-        return (
-            columns["observations"],
-            columns["rewards"],
-            columns["terminations"].astype(bool),
-            columns["truncations"].astype(bool),
-            active,
-            infos,
-        )
+        return columns["observations"], columns["rewards"], columns["terminations"], columns["truncations"], active, infos
 
     def reset(self, seed: int | None = None, options: dict | None = None):
         seed = seed_value(seed)
@@ -185,36 +188,59 @@ class VectorEnv:
                 request.seed = (seed + index) % 2**64
             waits.append(self._connection_of(index).future("ResetEnv", request))
         datas = [wait().data for wait in waits]
-        no = np.zeros(self.num_envs, dtype=bool)
-        observations, _, _, _, _, infos = self._stack(datas, no, no.copy())
-        return observations, infos
+        columns = {
+            field: _arrays.stack_bytes(
+                [getattr(data, field).data for data in datas], wire, (self.num_envs,) + shape(self.n_landers), result
+            )
+            for field, wire, result, shape in _AGENT_COLUMNS
+        }
+        for field, _, result, _ in _ENV_COLUMNS:
+            columns[field] = np.fromiter((getattr(data, field) for data in datas), dtype=result, count=self.num_envs)
+        return columns["observations"], self._result(columns)[-1]
 
     def step(self, actions):
         block = action_array(actions, self.continuous, (self.num_envs, self.n_landers), "actions")
-        for step, data in zip(self._steps, _arrays.row_bytes(block, self._action_dtype)):
-            step.actions.data = data
+        servers = self._servers
+        for server in servers:
+            server.actions.data = _arrays.to_bytes(block[server.rows], self._action_dtype)
         # One StepBatch per server, all in flight at once: the first server's call runs on this
         # thread while the others' futures proceed.
-        waits = [batch.connection.future("StepBatch", batch.request) for batch in self._batches[1:]]
-        replies = [self._batches[0].connection.call("StepBatch", self._batches[0].request)]
+        waits = [server.connection.future("StepBatch", server.request) for server in servers[1:]]
+        replies = [servers[0].connection.call("StepBatch", servers[0].request)]
         replies.extend(wait() for wait in waits)
-        results = [None] * self.num_envs
-        for batch, reply in zip(self._batches, replies):
-            if len(reply.results) != len(batch.envs):
+        packs = []
+        failed = []  # (env index, ItemError) of every env whose step failed.
+        for server, reply in zip(servers, replies):
+            if not reply.HasField("packed"):
                 raise MLLError(
-                    grpc.StatusCode.INTERNAL,
-                    f"{batch.connection.address} answered StepBatch of {len(batch.envs)} envs with "
-                    f"{len(reply.results)} results",
+                    grpc.StatusCode.UNIMPLEMENTED,
+                    f"{server.connection.address} answered a packed StepBatch without packed results; "
+                    "its mll_server predates StepBatchRequest.packed: upgrade it",
                 )
-            for index, result in zip(batch.envs, reply.results):
-                results[index] = result
-        for index, result in enumerate(results):  # The first failed env in env order, as on one server.
-            if result.HasField("error"):
-                raise from_item_error(result.error.code, result.error.message, f"env {index} ({self._names[index]}): ")
-        datas = [result.data for result in results]
-        auto_reset = np.fromiter((data.auto_reset for data in datas), dtype=bool, count=self.num_envs)
-        episode_over = np.fromiter((data.episode_over for data in datas), dtype=bool, count=self.num_envs)
-        return self._stack(datas, auto_reset, episode_over)
+            pack = reply.packed
+            packs.append(pack)
+            for item in pack.errors:
+                if not 0 <= item.index < server.count:
+                    raise MLLError(
+                        grpc.StatusCode.INTERNAL,
+                        f"{server.connection.address} reported an error for row {item.index} of a packed "
+                        f"StepBatch of {server.count} envs",
+                    )
+                failed.append((server.rows.start + server.rows.step * item.index, item.error))
+        if failed:  # The first failed env in env order, as on one server.
+            index, error = min(failed, key=lambda pair: pair[0])
+            raise from_item_error(error.code, error.message, f"env {index} ({self._names[index]}): ")
+        if len(servers) == 1:
+            columns = servers[0].columns
+            return self._result({column.name: column.decode(getattr(packs[0], column.name)) for column in columns})
+        columns = {  # Each server's rows scattered back to env order.
+            column.name: np.empty((self.num_envs,) + column.shape[1:], dtype=column.as_dtype)
+            for column in servers[0].columns
+        }
+        for server, pack in zip(servers, packs):
+            for column in server.columns:
+                columns[column.name][server.rows] = column.decode(getattr(pack, column.name))
+        return self._result(columns)
 
     def close(self) -> None:
         """Deletes the environments on their servers and closes the connections. Idempotent."""

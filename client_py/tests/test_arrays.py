@@ -60,7 +60,18 @@ def test_stack_bytes_joins_many_messages_in_order():
     np.testing.assert_array_equal(stacked, np.stack(parts))
 
 
-def test_row_bytes_splits_a_block_into_little_endian_rows():
+def test_to_bytes_is_little_endian_row_major_in_the_wire_dtype():
     block = np.arange(12, dtype=">i8").reshape(3, 4)
-    rows = _arrays.row_bytes(block, pb.DTYPE_INT32)
-    assert rows == [np.arange(4 * i, 4 * i + 4, dtype="<i4").tobytes() for i in range(3)]
+    assert _arrays.to_bytes(block[::2], pb.DTYPE_INT32) == np.array([[0, 1, 2, 3], [8, 9, 10, 11]], "<i4").tobytes()
+
+
+def test_column_checks_dtype_and_shape_and_converts_once():
+    flags = _arrays.to_proto(np.array([[0, 1], [1, 0]], np.uint8), pb.DTYPE_UINT8)
+    decoded = _arrays.Column("terminations", pb.DTYPE_UINT8, (2, 2), bool).decode(flags)
+    assert decoded.dtype == bool and decoded.tolist() == [[False, True], [True, False]]
+    assert decoded.flags.writeable
+    for dtype, shape in ((pb.DTYPE_INT32, (2, 2)), (pb.DTYPE_UINT8, (4,)), (pb.DTYPE_UINT8, (2, 3))):
+        with pytest.raises(MLLError) as caught:
+            _arrays.Column("terminations", dtype, shape).decode(flags)
+        assert caught.value.code == grpc.StatusCode.INTERNAL
+        assert "terminations arrived as DTYPE_UINT8 [2, 2] in 4 bytes; expected" in caught.value.message
