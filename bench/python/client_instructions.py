@@ -12,8 +12,10 @@ no calls gives the set-up's count, so (run - set-up) / steps is the cost of one 
   raw      the floor: the packed request's bytes sent as bytes and the response's bytes
            returned unparsed, through the same gRPC Python channel (no protobuf, no numpy)
 
-Counts are of every thread of the client process (gRPC's threads included). Loopback only;
-bounded by --steps and a timeout per run.
+Counts are given for the calling thread (Python, protobuf, numpy and gRPC's synchronous part
+of the call) and for all threads of the client process: gRPC's background threads wake on
+timers, so their share grows with the run's wall time under valgrind, not only with the work.
+Loopback only; bounded by --steps and a timeout per run.
 
     .venv/bin/python bench/python/client_instructions.py --server build/server/service/mll_server
 """
@@ -69,6 +71,15 @@ def client(kind: str, steps: int, address: str, envs: int, n_landers: int) -> No
     env.close()
 
 
+def thread_counts(folder: pathlib.Path, kind: str) -> dict[str, int]:
+    """Instructions of the calling (main) thread and of all threads, from callgrind's per-thread
+    files `<kind>-01` (the main thread), `<kind>-02`, ..."""
+    counts = {}
+    for path in sorted(folder.glob(f"{kind}-*")):
+        counts[path.name.rsplit("-", 1)[1]] = int(re.search(r"^totals: (\d+)", path.read_text(), re.M).group(1))
+    return {"main": counts["01"], "all": sum(counts.values())}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--server", default=os.environ.get("MLL_SERVER_BIN", str(REPO / "build/server/service/mll_server")))
@@ -87,21 +98,27 @@ def main() -> int:
     counts = {}
     with mll.ServerProcess(args.server, threads=2) as server, tempfile.TemporaryDirectory() as tmp:
         for kind in KINDS:
-            output = subprocess.run(
-                ["valgrind", "--tool=callgrind", f"--callgrind-out-file={tmp}/{kind}.out", sys.executable, __file__,
-                 f"--client={kind}", f"--steps={args.steps}", f"--address={server.address}", f"--envs={args.envs}",
-                 f"--n_landers={args.n_landers}"],
+            subprocess.run(
+                ["valgrind", "--tool=callgrind", "--separate-threads=yes", f"--callgrind-out-file={tmp}/{kind}",
+                 sys.executable, __file__, f"--client={kind}", f"--steps={args.steps}", f"--address={server.address}",
+                 f"--envs={args.envs}", f"--n_landers={args.n_landers}"],
                 capture_output=True, text=True, timeout=900, check=True,
-            ).stderr
-            counts[kind] = int(re.search(r"Collected : (\d+)", output).group(1))
-    per_step = {kind: (counts[kind] - counts["none"]) / args.steps for kind in KINDS[1:]}
+            )
+            counts[kind] = thread_counts(pathlib.Path(tmp), kind)
+    agent_steps = args.envs * args.n_landers
     print(f"client instructions per step, {args.envs} envs x {args.n_landers} landers, {args.steps} steps each:")
-    print("| form | instructions per step | per agent-step | vs raw bytes floor |")
-    print("|---|---|---|---|")
+    print("| form | calling thread per step | per agent-step | vs floor | all client threads per step | vs floor |")
+    print("|---|---|---|---|---|---|")
+    per_step = {
+        kind: {thread: (counts[kind][thread] - counts["none"][thread]) / args.steps for thread in ("main", "all")}
+        for kind in KINDS[1:]
+    }
+    floor = per_step["raw"]
     for kind, what in (("raw", "raw bytes StepBatch (floor)"), ("packed", "vector_env.step, packed"),
                        ("per_env", "same step, per-env form")):
-        print(f"| {what} | {per_step[kind]:,.0f} | {per_step[kind] / (args.envs * args.n_landers):,.0f} "
-              f"| {per_step[kind] / per_step['raw']:.2f} |")
+        main, every = per_step[kind]["main"], per_step[kind]["all"]
+        print(f"| {what} | {main:,.0f} | {main / agent_steps:,.0f} | {main / floor['main']:.2f} "
+              f"| {every:,.0f} | {every / floor['all']:.2f} |")
     return 0
 
 
