@@ -77,6 +77,10 @@ class VectorEnv:
     infos: "auto_reset" bool (num_envs,), "episode_over" bool (num_envs,), "outcome" uint8
       (num_envs, n_landers) with codes indexing OUTCOMES, "episode_return" float32 and
       "episode_length" int32 (num_envs, n_landers) (so far in the episode, final once done).
+      Every array is the caller's own (writable, not reused by the next step).
+    Errors: when the step of some envs fails on the server (e.g. an env deleted behind this
+      object's back: NOT_FOUND), step raises MLLError with the server's code and message for
+      the first of them in env order, prefixed "env {i} ({name}): "; the other envs did step.
     """
 
     def __init__(
