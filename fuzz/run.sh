@@ -4,6 +4,9 @@
 #
 #   fuzz/run.sh [seconds per target, default 600] [targets..., default: core service]
 #
+# The targets run one after the other, or all at once with PARALLEL=1 (one
+# process each: on a 2-core machine two targets finish in one target's time).
+#
 # The committed seeds (fuzz/corpus/<target>/) are read; new inputs go to
 # build-fuzz/corpus/<target>/ and crashes to build-fuzz/artifacts/<target>/.
 # A crash input belongs in fuzz/regressions/<target>/, where
@@ -27,19 +30,29 @@ cmake --build "$BUILD_DIR" -j "${JOBS:-2}" --target "${targets[@]/%/_fuzzer}"
 # here a leak report would only stop the run without an input to blame.
 export ASAN_OPTIONS="detect_leaks=0:abort_on_error=1"
 export UBSAN_OPTIONS="halt_on_error=1:print_stacktrace=1"
-status=0
-for target in "${targets[@]}"; do
-  corpus="$BUILD_DIR/corpus/$target"
-  artifacts="$BUILD_DIR/artifacts/$target"
+fuzz_one() {
+  local target=$1
+  local corpus="$BUILD_DIR/corpus/$target"
+  local artifacts="$BUILD_DIR/artifacts/$target"
   mkdir -p "$corpus" "$artifacts"
   echo "== $target: $seconds s"
-  # One process (libFuzzer's default, like -jobs=1 without the log
+  # One process per target (libFuzzer's default, like -jobs=1 without the log
   # indirection): the machine's cores are shared.
   "$BUILD_DIR/fuzz/${target}_fuzzer" -max_total_time="$seconds" -max_len=4096 -timeout=30 -rss_limit_mb=4096 -print_final_stats=1 \
     -artifact_prefix="$artifacts/" "$corpus" "$ROOT/fuzz/corpus/$target" \
-    2>&1 | tee "$BUILD_DIR/$target.log" | grep -E "^Done|stat::|==ERROR|SUMMARY|harness:" || true
+    >"$BUILD_DIR/$target.log" 2>&1 || true
+  grep -E "^Done|stat::|==ERROR|SUMMARY|harness:" "$BUILD_DIR/$target.log" | sed "s/^/$target: /" || true
   if ls "$artifacts"/crash-* "$artifacts"/timeout-* "$artifacts"/oom-* >/dev/null 2>&1; then
-    echo "== $target: findings in $artifacts"; status=1
+    echo "== $target: findings in $artifacts"; return 1
   fi
-done
+}
+
+status=0
+if [ "${PARALLEL:-0}" = 1 ]; then
+  pids=()
+  for target in "${targets[@]}"; do fuzz_one "$target" & pids+=($!); done
+  for pid in "${pids[@]}"; do wait "$pid" || status=1; done
+else
+  for target in "${targets[@]}"; do fuzz_one "$target" || status=1; done
+fi
 exit $status

@@ -31,6 +31,8 @@ ABSL_FLAG(int32_t, clients, 4, "concurrent clients (threads)");
 ABSL_FLAG(double, time_limit_s, 3600, "the run stops after this long");
 ABSL_FLAG(double, sample_ms, 200, "period of the RSS / fd samples");
 ABSL_FLAG(double, max_drift_percent, 2, "allowed RSS drift, first to last tenth");
+ABSL_FLAG(double, progress_s, 60,
+          "period of the progress line on stderr (0: none)");
 
 namespace mll::load {
 namespace {
@@ -62,10 +64,27 @@ int Main() {
   absl::Notification stop;
   std::thread sampler([&] {
     const absl::Duration period = absl::Milliseconds(absl::GetFlag(FLAGS_sample_ms));
+    // A run takes up to an hour: say where it is, so a slow machine shows
+    // before the time limit does.
+    const absl::Duration progress = absl::Seconds(absl::GetFlag(FLAGS_progress_s));
+    absl::Time next_progress = start + progress;
     do {
-      samples.push_back({done.load(), ResidentKib(pid), OpenFds(pid)});
+      samples.push_back({std::min(done.load(), cycles), ResidentKib(pid),
+                         OpenFds(pid)});
+      if (progress > absl::ZeroDuration() && absl::Now() >= next_progress) {
+        next_progress += progress;
+        const Sample& s = samples.back();
+        std::fprintf(stderr,
+                     "mll_soak: %.0f s, %lld cycles, RSS %lld KiB, %d fds, "
+                     "%lld errors\n",
+                     absl::ToDoubleSeconds(absl::Now() - start),
+                     static_cast<long long>(s.cycles),
+                     static_cast<long long>(s.rss_kib), s.fds,
+                     static_cast<long long>(errors.load()));
+      }
     } while (!stop.WaitForNotificationWithTimeout(period));
-    samples.push_back({done.load(), ResidentKib(pid), OpenFds(pid)});
+    samples.push_back({std::min(done.load(), cycles), ResidentKib(pid),
+                       OpenFds(pid)});
   });
 
   std::vector<std::thread> threads;
