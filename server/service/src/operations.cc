@@ -1,7 +1,7 @@
 #include "mll/service/operations.h"
 
 #include <algorithm>
-#include <cstdio>
+#include <charconv>
 #include <memory>
 #include <optional>
 #include <string>
@@ -82,15 +82,22 @@ absl::Status StepSlot(
 // every item of a batch carries its field name, and few ever fail.
 class ItemField {
  public:
-  ItemField(const char* prefix, int index, const char* suffix) {
-    const int written = std::snprintf(buffer_, sizeof(buffer_), "%s%d%s",
-                                      prefix, index, suffix);
-    size_ = std::clamp<int>(written, 0, sizeof(buffer_) - 1);
+  // `prefix` and `suffix` are short literals; beyond kAffixChars characters
+  // each they would be cut.
+  ItemField(absl::string_view prefix, int index, absl::string_view suffix) {
+    prefix = prefix.substr(0, kAffixChars);
+    suffix = suffix.substr(0, kAffixChars);
+    char* end = std::copy(prefix.begin(), prefix.end(), buffer_);
+    end = std::to_chars(end, end + kIntChars, index).ptr;
+    end = std::copy(suffix.begin(), suffix.end(), end);
+    size_ = static_cast<size_t>(end - buffer_);
   }
   absl::string_view view() const { return absl::string_view(buffer_, size_); }
 
  private:
-  char buffer_[48];
+  static constexpr size_t kAffixChars = 15;
+  static constexpr size_t kIntChars = 11;  // "-2147483648".
+  char buffer_[kAffixChars + kIntChars + kAffixChars];
   size_t size_;
 };
 

@@ -211,13 +211,47 @@ class SessionReactor final
   absl::flat_hash_set<std::string> bound_envs_;
 };
 
+// One call's request and response and the arena they live on, freed
+// together when gRPC releases the call.
+class StepBatchMessages final
+    : public grpc::MessageHolder<v1::StepBatchRequest, v1::StepBatchResponse> {
+ public:
+  StepBatchMessages() : arena_(Options()) {
+    set_request(google::protobuf::Arena::CreateMessage<v1::StepBatchRequest>(
+        &arena_));
+    set_response(
+        google::protobuf::Arena::CreateMessage<v1::StepBatchResponse>(
+            &arena_));
+  }
+  void Release() override { delete this; }
+
+ private:
+  // A first block that holds a 64-env `steps` batch's request and response,
+  // so that such a call takes one allocation.
+  static google::protobuf::ArenaOptions Options() {
+    google::protobuf::ArenaOptions options;
+    options.start_block_size = 128 << 10;
+    options.max_block_size = 1 << 20;
+    return options;
+  }
+
+  google::protobuf::Arena arena_;
+};
+
 }  // namespace
+
+grpc::MessageHolder<v1::StepBatchRequest, v1::StepBatchResponse>*
+MultiLunarLanderService::StepBatchArenas::AllocateMessages() {
+  return new StepBatchMessages();
+}
 
 MultiLunarLanderService::MultiLunarLanderService(const ServiceOptions& options)
     : authenticator_(options.auth_tokens),
       registry_(options.max_envs, options.idle_timeout),
       operations_(&registry_, &pool_),
-      pool_(options.threads) {}
+      pool_(options.threads) {
+  SetMessageAllocatorFor_StepBatch(&step_batch_arenas_);
+}
 
 MultiLunarLanderService::~MultiLunarLanderService() = default;
 

@@ -84,7 +84,19 @@ class MultiLunarLanderService final
   absl::StatusOr<absl::string_view> Admit(
       const grpc::CallbackServerContext& context) const;
 
+  // Puts each StepBatch call's request and response on one protobuf arena:
+  // a `steps` batch of 64 envs is ~2,000 sub-messages and strings, which
+  // would otherwise be as many mallocs and frees per call.
+  class StepBatchArenas final
+      : public grpc::MessageAllocator<v1::StepBatchRequest,
+                                      v1::StepBatchResponse> {
+   public:
+    grpc::MessageHolder<v1::StepBatchRequest, v1::StepBatchResponse>*
+    AllocateMessages() override;
+  };
+
   std::atomic<bool> refusing_{false};
+  StepBatchArenas step_batch_arenas_;
   // Declared in this order so that destruction first stops the workers
   // (finishing queued steps), which use the operations, the envs, the
   // owners' names and the metrics.
