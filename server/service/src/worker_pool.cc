@@ -67,15 +67,15 @@ void WorkerPool::ParallelFor(int count, std::function<void(int)> body,
   shared->count = count;
   const int runners = std::min(count, threads());
   shared->running = runners;
-  auto run = [shared] {
-    for (int i = shared->next.fetch_add(1); i < shared->count;
-         i = shared->next.fetch_add(1)) {
-      shared->body(i);
-    }
-    if (shared->running.fetch_sub(1) == 1) shared->done();
-  };
-  for (int r = 1; r < runners; ++r) Post(run);
-  run();  // The caller is runner 0.
+  for (int r = 0; r < runners; ++r) {
+    Post([shared] {
+      for (int i = shared->next.fetch_add(1); i < shared->count;
+           i = shared->next.fetch_add(1)) {
+        shared->body(i);
+      }
+      if (shared->running.fetch_sub(1) == 1) shared->done();
+    });
+  }
 }
 
 }  // namespace mll

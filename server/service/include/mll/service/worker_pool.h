@@ -1,8 +1,6 @@
 // A fixed pool of worker threads (sized by --threads) that runs the
 // environment steps of StepBatch, so that a batch uses every core without the
-// gRPC threads ever waiting for it. The thread that starts a batch steps a
-// share of it too (ParallelFor), so one batch runs on exactly --threads
-// threads: the caller and --threads - 1 workers.
+// gRPC threads ever waiting for it.
 #ifndef MLL_SERVICE_WORKER_POOL_H_
 #define MLL_SERVICE_WORKER_POOL_H_
 
@@ -30,13 +28,9 @@ class WorkerPool {
   // Queues `task` to run on a worker.
   void Post(std::function<void()> task);
 
-  // Calls body(i) for i in [0, count) spread over the calling thread and up
-  // to threads() - 1 workers, then calls done() on the thread that finished
-  // last, which may be the caller, before ParallelFor returns. The caller
-  // (often a gRPC reaction) takes items until none is left to start, then
-  // returns: it never waits for a worker's item. Taking part saves a
-  // wake-up and a sleeping thread per batch (see docs/benchmarks.md,
-  // "Service"). count == 0 calls done() at once.
+  // Calls body(i) for i in [0, count) spread over the workers, then calls
+  // done() on the worker that finished last. Returns at once: the caller
+  // (often a gRPC reaction) never waits. count == 0 calls done() at once.
   void ParallelFor(int count, std::function<void(int)> body,
                    std::function<void()> done);
 
