@@ -408,28 +408,47 @@ void WriteStepRow(const StepResult& result, const Env& env, bool auto_reset,
   Store(static_cast<int32_t>(env.cycles()), 0, row.cycles);
 }
 
+namespace {
+
+// Sizes the eight per-agent columns that StepData and PackedStepData share
+// (same field names), each with `lead` (none, or num_envs) before its
+// per-agent dimensions; the per-env columns of the returned row are unset.
+template <typename Columns>
+StepRow SizeAgentColumns(absl::Span<const int> lead, int n_landers,
+                         Columns* out) {
+  int rows_dims[2] = {0, n_landers};
+  int matrix_dims[3] = {0, n_landers, kObservationSize};
+  std::copy(lead.begin(), lead.end(), rows_dims);
+  std::copy(lead.begin(), lead.end(), matrix_dims);
+  const int skip = 1 - static_cast<int>(lead.size());  // 0 or 1.
+  const absl::Span<const int> rows(rows_dims + skip, lead.size() + 1);
+  const absl::Span<const int> matrix(matrix_dims + skip, lead.size() + 2);
+  return StepRow{SizeArray<float>(matrix, out->mutable_observations()),
+                 SizeArray<float>(rows, out->mutable_rewards()),
+                 SizeArray<uint8_t>(rows, out->mutable_terminations()),
+                 SizeArray<uint8_t>(rows, out->mutable_truncations()),
+                 SizeArray<uint8_t>(rows, out->mutable_stepped()),
+                 SizeArray<uint8_t>(rows, out->mutable_outcomes()),
+                 SizeArray<float>(rows, out->mutable_episode_returns()),
+                 SizeArray<int32_t>(rows, out->mutable_episode_lengths()),
+                 nullptr,
+                 nullptr,
+                 nullptr};
+}
+
+}  // namespace
+
 void FillStepData(const StepResult& result, const Env& env, bool auto_reset,
                   v1::StepData* out) {
-  const int n = env.n_landers();
-  const int rows[] = {n};
-  const int matrix[] = {n, kObservationSize};
+  StepRow row = SizeAgentColumns({}, env.n_landers(), out);
   // StepData's per-env columns are scalar fields: written here, then set.
   uint8_t episode_over = 0;
   uint8_t was_reset = 0;
   int32_t cycles = 0;
-  WriteStepRow(
-      result, env, auto_reset,
-      StepRow{SizeArray<float>(matrix, out->mutable_observations()),
-              SizeArray<float>(rows, out->mutable_rewards()),
-              SizeArray<uint8_t>(rows, out->mutable_terminations()),
-              SizeArray<uint8_t>(rows, out->mutable_truncations()),
-              SizeArray<uint8_t>(rows, out->mutable_stepped()),
-              SizeArray<uint8_t>(rows, out->mutable_outcomes()),
-              SizeArray<float>(rows, out->mutable_episode_returns()),
-              SizeArray<int32_t>(rows, out->mutable_episode_lengths()),
-              reinterpret_cast<char*>(&episode_over),
-              reinterpret_cast<char*>(&was_reset),
-              reinterpret_cast<char*>(&cycles)});
+  row.episode_over = reinterpret_cast<char*>(&episode_over);
+  row.auto_reset = reinterpret_cast<char*>(&was_reset);
+  row.cycles = reinterpret_cast<char*>(&cycles);
+  WriteStepRow(result, env, auto_reset, row);
   out->set_episode_over(episode_over != 0);
   out->set_auto_reset(was_reset != 0);
   out->set_cycles(cycles);
@@ -439,19 +458,10 @@ PackedColumns::PackedColumns(int num_envs, int n_landers,
                              v1::PackedStepData* out)
     : n_landers_(n_landers) {
   const int envs[] = {num_envs};
-  const int agents[] = {num_envs, n_landers};
-  const int matrix[] = {num_envs, n_landers, kObservationSize};
-  base_ = StepRow{SizeArray<float>(matrix, out->mutable_observations()),
-                  SizeArray<float>(agents, out->mutable_rewards()),
-                  SizeArray<uint8_t>(agents, out->mutable_terminations()),
-                  SizeArray<uint8_t>(agents, out->mutable_truncations()),
-                  SizeArray<uint8_t>(agents, out->mutable_stepped()),
-                  SizeArray<uint8_t>(agents, out->mutable_outcomes()),
-                  SizeArray<float>(agents, out->mutable_episode_returns()),
-                  SizeArray<int32_t>(agents, out->mutable_episode_lengths()),
-                  SizeArray<uint8_t>(envs, out->mutable_episode_over()),
-                  SizeArray<uint8_t>(envs, out->mutable_auto_reset()),
-                  SizeArray<int32_t>(envs, out->mutable_cycles())};
+  base_ = SizeAgentColumns(envs, n_landers, out);
+  base_.episode_over = SizeArray<uint8_t>(envs, out->mutable_episode_over());
+  base_.auto_reset = SizeArray<uint8_t>(envs, out->mutable_auto_reset());
+  base_.cycles = SizeArray<int32_t>(envs, out->mutable_cycles());
 }
 
 StepRow PackedColumns::Row(int e) const {
