@@ -121,6 +121,26 @@ TEST(MetricsTest, RecordsLandInTheirSeries) {
   EXPECT_GT(s["process_resident_memory_bytes"], 1 << 20);
 }
 
+// A packed StepBatch counts each env row as a StepData would, except rows of
+// failed envs (zero, listed in `errors`).
+TEST(MetricsTest, PackedBatchRowsCountAsSteps) {
+  Metrics metrics;
+  v1::StepBatchResponse response;
+  v1::PackedStepData* packed = response.mutable_packed();
+  // 4 envs x 2 landers: env 0 stepped both, env 1 failed, env 2 auto-reset,
+  // env 3 stepped one.
+  packed->mutable_stepped()->set_data(
+      std::string("\x01\x01\x00\x00\x01\x01\x01\x00", 8));
+  packed->mutable_auto_reset()->set_data(
+      std::string("\x00\x00\x01\x00", 4));
+  packed->add_errors()->set_index(1);
+  metrics.RecordStepBatch(Method::kStepBatch, response);
+  std::map<std::string, double> s = Parse(metrics.Render(0));
+  EXPECT_EQ(s[Series("mll_steps_total", "StepBatch")], 2);
+  EXPECT_EQ(s[Series("mll_agent_steps_total", "StepBatch")], 3);
+  EXPECT_EQ(s["mll_episodes_started_total"], 1);
+}
+
 // A server with a metrics endpoint on a free loopback port; calls go
 // through an in-process channel.
 class MetricsServerTest : public ::testing::Test {

@@ -135,7 +135,9 @@ struct CycleActions {
         continuous.empty() ? discrete.size() : continuous.size());
     if (continuous.empty()) {
       std::vector<int32_t> all;
-      for (const auto& row : discrete) all.insert(all.end(), row.begin(), row.end());
+      for (const auto& row : discrete) {
+        all.insert(all.end(), row.begin(), row.end());
+      }
       const int shape[] = {num_envs, n};
       FillArray<int32_t>(all, shape, &array);
     } else {
