@@ -8,7 +8,8 @@
 # process each: on a 2-core machine two targets finish in one target's time).
 #
 # The committed seeds (fuzz/corpus/<target>/) are read; new inputs go to
-# build-fuzz/corpus/<target>/ and crashes to build-fuzz/artifacts/<target>/.
+# $BUILD_DIR/corpus/<target>/ and crashes to $BUILD_DIR/artifacts/<target>/
+# (BUILD_DIR defaults to build-fuzz).
 # A crash input belongs in fuzz/regressions/<target>/, where
 # tests/reliability/fuzz_regression_test.cc replays it in every test run.
 set -euo pipefail
