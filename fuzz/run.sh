@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Builds the libFuzzer targets with clang, ASan and UBSan into build-fuzz/ and
+# Builds the libFuzzer targets with clang, ASan and UBSan into $BUILD_DIR and
 # runs each for a bounded time on one core.
 #
 #   fuzz/run.sh [seconds per target, default 600] [targets..., default: core service]
