@@ -2,11 +2,12 @@
 //   - one env's step latency (p50, p99), unary StepEnv and on a Session
 //     stream, vs an echo RPC / echo stream carrying the same payload sizes
 //     (bench/service/echo.proto, same process, same loopback transport);
-//   - StepBatch of 64 envs x 3 landers on --threads=2 vs the in-process core
-//     stepping the same 64 envs on 2 threads (agent-steps/s);
+//   - StepBatch of 64 envs x 3 landers on --threads=2, in the `steps` form
+//     and in the packed form, vs the in-process core stepping the same 64
+//     envs on 2 threads (agent-steps/s, and the ratios to it);
 //   - 10,000 live envs: resident memory per env, idle CPU, create and delete
 //     rates.
-// Run: build-service/bench/service/service_bench (see docs/benchmarks.md).
+// Run: build/bench/service/service_bench (see docs/benchmarks.md, "Service").
 #include <sys/resource.h>
 #include <unistd.h>
 
@@ -323,18 +324,9 @@ Throughput RunCoreFloor() {
           1e6 * (ProcessCpuSeconds() - cpu_before) / agent_steps.load()};
 }
 
-// The floor of this run, measured by BM_CoreFloor64x3TwoThreads (or here, the
-// first time a batch benchmark needs it when that one was filtered out).
-Throughput& CoreFloor() {
-  static Throughput floor;
-  if (floor.agent_steps_per_s == 0) floor = RunCoreFloor();
-  return floor;
-}
-
 void BM_CoreFloor64x3TwoThreads(benchmark::State& state) {
   Throughput floor;
   for (auto _ : state) floor = RunCoreFloor();
-  CoreFloor() = floor;
   state.counters["agent_steps_per_s"] = floor.agent_steps_per_s;
   state.counters["process_cpu_us_per_agent_step"] =
       floor.cpu_us_per_agent_step;
@@ -343,11 +335,12 @@ void BM_CoreFloor64x3TwoThreads(benchmark::State& state) {
 // Times kBatchRounds StepBatch calls over 64 envs on a --threads=2 server,
 // building each request (request_for(names, step)) and reading each
 // response (agent_steps_of(response)) inside the timed loop, as a trainer
-// would; reports agent-steps/s and both ratios to the core floor.
+// would; reports agent-steps/s and both ratios to the core floor, measured
+// right before (so that both sides see the same machine load).
 template <typename RequestFor, typename AgentStepsOf>
 void TimeBatches(benchmark::State& state, RequestFor request_for,
                  AgentStepsOf agent_steps_of) {
-  const Throughput floor = CoreFloor();
+  const Throughput floor = RunCoreFloor();
   Servers servers(2);
   std::vector<std::string> names;
   for (int e = 0; e < kBatchEnvs; ++e) {
