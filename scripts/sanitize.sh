@@ -11,10 +11,12 @@
 # CTEST_ARGS (extra ctest arguments, e.g. "-R reliability"), TSAN_DEPS_DIR
 # (default build-tsan-deps).
 #
-# tsan first builds Debian's abseil and protobuf with -fsanitize=thread
+# tsan first builds Debian's abseil, protobuf and gRPC with -fsanitize=thread
 # (scripts/sanitizer/build_tsan_deps.sh, once) and runs the tests with those
 # libraries first on LD_LIBRARY_PATH: without them TSan cannot see absl::Mutex
-# (ours and gRPC's) and protobuf's map fields change layout under TSan.
+# (ours and gRPC's), protobuf's map fields change layout under TSan, and
+# gRPC hands its call objects between threads through synchronization TSan
+# cannot see.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
@@ -50,7 +52,8 @@ if [[ "$kind" == tsan ]]; then
   export LD_LIBRARY_PATH="$deps_lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
   # The run means nothing if a test still loads Debian's uninstrumented copy.
   probe="$BUILD_DIR/tests/service/service_service_test"
-  for lib in libabsl_synchronization.so libprotobuf.so.32; do
+  for lib in libabsl_synchronization.so libprotobuf.so.32 libgpr.so.29 \
+      libgrpc.so.29 libgrpc++.so.1.51; do
     if ! ldd "$probe" | grep -q "$lib.* => $deps_lib/"; then
       echo "sanitize.sh: $probe does not load $lib from $deps_lib" >&2
       exit 1

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Builds Debian 12's own abseil and protobuf (their source packages, the
+# Builds Debian 12's own abseil, protobuf and gRPC (their source packages, the
 # versions that are installed, Debian's patches applied) with
 # -fsanitize=thread into a private library directory, as shared libraries
 # with Debian's SONAMEs, for scripts/sanitize.sh tsan, which puts that
@@ -117,5 +117,44 @@ if [[ ! -e "$LIBDIR/.protobuf-$version" ]]; then
   cp -P "$src"/src/.libs/libprotobuf.so.32* "$LIBDIR/"
   check_twins 'libprotobuf.so.32'
   touch "$LIBDIR/.protobuf-$version"
+fi
+# gRPC: Debian's build (debian/rules: CMake, shared, every dependency from
+# its Debian package), only the libraries our programs load (ldd of the
+# tests: gpr, grpc, grpc++, grpc++_reflection and what libgrpc links of its
+# own, upb and address_sorting). Built against Debian's abseil and protobuf
+# headers and libraries (the same headers and SONAMEs as the instrumented
+# twins above, which replace them at run time through LD_LIBRARY_PATH).
+# CMAKE_SYSTEM_NAME makes CMake treat the build as a cross build, the one
+# way gRPC's CMakeLists takes Debian's installed protoc and grpc_cpp_plugin
+# (same 1.51.1) for its generated reflection and health code instead of
+# building its own plugin, which needs libprotoc's headers (libprotoc-dev).
+# The plugin targets are never built; Protobuf_PROTOC_LIBRARY only satisfies
+# their declaration.
+version=$(dpkg-query -W -f='${source:Version}' libgrpc29)
+grpc_libs=(libgpr.so.29 libgrpc.so.29 libgrpc++.so.1.51
+  libgrpc++_reflection.so.1.51 libupb.so.29 libaddress_sorting.so.29)
+if [[ ! -e "$LIBDIR/.grpc-$version" ]]; then
+  src=$(fetch_source grpc "$version")
+  cmake -S "$src" -B "$OUT/build-grpc" -G Ninja -DCMAKE_BUILD_TYPE=None \
+    -DCMAKE_SYSTEM_NAME=Linux -DBUILD_SHARED_LIBS=ON -DgRPC_BUILD_TESTS=OFF \
+    -DgRPC_ABSL_PROVIDER=package -DgRPC_CARES_PROVIDER=package \
+    -DgRPC_PROTOBUF_PROVIDER=package -DgRPC_RE2_PROVIDER=package \
+    -DgRPC_SSL_PROVIDER=package -DgRPC_ZLIB_PROVIDER=package \
+    -DgRPC_BENCHMARK_PROVIDER=none -DgRPC_BACKWARDS_COMPATIBILITY_MODE=OFF \
+    -DgRPC_BUILD_GRPC_CPP_PLUGIN=OFF -DgRPC_BUILD_GRPC_CSHARP_PLUGIN=OFF \
+    -DgRPC_BUILD_GRPC_NODE_PLUGIN=OFF -DgRPC_BUILD_GRPC_OBJECTIVE_C_PLUGIN=OFF \
+    -DgRPC_BUILD_GRPC_PHP_PLUGIN=OFF -DgRPC_BUILD_GRPC_PYTHON_PLUGIN=OFF \
+    -DgRPC_BUILD_GRPC_RUBY_PLUGIN=OFF \
+    -DProtobuf_PROTOC_LIBRARY="$SYSLIB/libprotoc.so.32" \
+    -DCMAKE_C_FLAGS="$(dpkg-buildflags --get CFLAGS) -fsanitize=thread" \
+    -DCMAKE_CXX_FLAGS="$CXXFLAGS_TSAN" \
+    -DCMAKE_SHARED_LINKER_FLAGS="$LDFLAGS_TSAN" >&2
+  # grpc++_reflection depends on all the others.
+  cmake --build "$OUT/build-grpc" -j "$JOBS" --target grpc++_reflection >&2
+  for lib in "${grpc_libs[@]}"; do
+    cp -P "$OUT/build-grpc/${lib%%.so.*}".so.* "$LIBDIR/"
+    check_twins "$lib"
+  done
+  touch "$LIBDIR/.grpc-$version"
 fi
 echo "$LIBDIR"
