@@ -8,9 +8,14 @@
 namespace mll {
 
 WorkerPool::WorkerPool(int threads) {
-  workers_.reserve(std::max(threads, 1));
-  for (int i = 0; i < std::max(threads, 1); ++i) {
-    workers_.emplace_back([this] { Run(); });
+  const int count = std::max(threads, 1);
+  {
+    absl::MutexLock lock(&mu_);
+    own_tasks_.resize(count);
+  }
+  workers_.reserve(count);
+  for (int w = 0; w < count; ++w) {
+    workers_.emplace_back([this, w] { Run(w); });
   }
 }
 
@@ -27,20 +32,28 @@ void WorkerPool::Post(std::function<void()> task) {
   tasks_.push_back(std::move(task));
 }
 
-void WorkerPool::Run() {
+void WorkerPool::PostTo(int worker, std::function<void()> task) {
+  absl::MutexLock lock(&mu_);
+  own_tasks_[worker].push_back(std::move(task));
+}
+
+void WorkerPool::Run(int worker) {
+  const auto has_work_or_stopping = [this, worker]()
+                                        ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_) {
+                                          return stopping_ || !tasks_.empty() ||
+                                                 !own_tasks_[worker].empty();
+                                        };
   for (;;) {
     std::function<void()> task;
     {
       absl::MutexLock lock(&mu_);
       // Sleeps (no CPU) until there is work or the pool stops.
-      mu_.Await(absl::Condition(
-          +[](WorkerPool* pool) ABSL_EXCLUSIVE_LOCKS_REQUIRED(pool->mu_) {
-            return pool->stopping_ || !pool->tasks_.empty();
-          },
-          this));
-      if (tasks_.empty()) return;  // Stopping, and the queue is drained.
-      task = std::move(tasks_.front());
-      tasks_.pop_front();
+      mu_.Await(absl::Condition(&has_work_or_stopping));
+      std::deque<std::function<void()>>& own = own_tasks_[worker];
+      std::deque<std::function<void()>>& queue = own.empty() ? tasks_ : own;
+      if (queue.empty()) return;  // Stopping, and the queues are drained.
+      task = std::move(queue.front());
+      queue.pop_front();
     }
     task();
   }
@@ -52,26 +65,37 @@ void WorkerPool::ParallelFor(int count, std::function<void(int)> body,
     done();
     return;
   }
-  // Each runner pulls the next index, so a slow item does not hold back the
-  // items behind it on the same runner.
+  // Runner r owns share r = [r * count / runners, (r + 1) * count / runners)
+  // and pulls its next index from that share's counter; when its share is
+  // used up it pulls from the other shares' counters, so a slow item or a
+  // preempted worker does not hold back the batch.
+  const int runners = std::min(count, threads());
   struct Shared {
     std::function<void(int)> body;
     std::function<void()> done;
-    int count;
-    std::atomic<int> next{0};
+    std::vector<int> share_end;
+    std::unique_ptr<std::atomic<int>[]> share_next;
     std::atomic<int> running{0};
   };
   auto shared = std::make_shared<Shared>();
   shared->body = std::move(body);
   shared->done = std::move(done);
-  shared->count = count;
-  const int runners = std::min(count, threads());
+  shared->share_next = std::make_unique<std::atomic<int>[]>(runners);
+  for (int r = 0; r < runners; ++r) {
+    shared->share_next[r] = static_cast<int>(int64_t{r} * count / runners);
+    shared->share_end.push_back(
+        static_cast<int>(int64_t{r + 1} * count / runners));
+  }
   shared->running = runners;
   for (int r = 0; r < runners; ++r) {
-    Post([shared] {
-      for (int i = shared->next.fetch_add(1); i < shared->count;
-           i = shared->next.fetch_add(1)) {
-        shared->body(i);
+    PostTo(r, [shared, r, runners] {
+      for (int k = 0; k < runners; ++k) {
+        const int share = (r + k) % runners;
+        std::atomic<int>& next = shared->share_next[share];
+        for (int i = next.fetch_add(1); i < shared->share_end[share];
+             i = next.fetch_add(1)) {
+          shared->body(i);
+        }
       }
       if (shared->running.fetch_sub(1) == 1) shared->done();
     });

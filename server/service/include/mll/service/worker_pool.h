@@ -31,14 +31,24 @@ class WorkerPool {
   // Calls body(i) for i in [0, count) spread over the workers, then calls
   // done() on the worker that finished last. Returns at once: the caller
   // (often a gRPC reaction) never waits. count == 0 calls done() at once.
+  // Worker w starts on the w-th contiguous share of [0, count), so with the
+  // same count an index goes to the same worker batch after batch (its
+  // environment stays warm in that core's cache); a worker that finishes its
+  // share early takes the remaining indices of the others' shares.
   void ParallelFor(int count, std::function<void(int)> body,
                    std::function<void()> done);
 
  private:
-  void Run();
+  void Run(int worker);
+  // Queues `task` for worker `worker` only.
+  void PostTo(int worker, std::function<void()> task);
 
   absl::Mutex mu_;
+  // Tasks for any worker.
   std::deque<std::function<void()>> tasks_ ABSL_GUARDED_BY(mu_);
+  // Tasks for worker w only, at own_tasks_[w].
+  std::vector<std::deque<std::function<void()>>> own_tasks_
+      ABSL_GUARDED_BY(mu_);
   bool stopping_ ABSL_GUARDED_BY(mu_) = false;
   std::vector<std::thread> workers_;
 };

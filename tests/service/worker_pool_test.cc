@@ -1,0 +1,112 @@
+// WorkerPool::ParallelFor: every index runs exactly once, done() runs once
+// after all of them, shares are contiguous per worker, and concurrent batches
+// do not mix.
+#include "mll/service/worker_pool.h"
+
+#include <atomic>
+#include <chrono>
+#include <functional>
+#include <thread>
+#include <vector>
+
+#include "absl/synchronization/notification.h"
+#include "gtest/gtest.h"
+
+namespace mll {
+namespace {
+
+// Runs one ParallelFor and waits for its done().
+void RunAndWait(WorkerPool& pool, int count,
+                const std::function<void(int)>& body) {
+  absl::Notification finished;
+  std::atomic<int> done_calls{0};
+  pool.ParallelFor(count, body, [&] {
+    ++done_calls;
+    finished.Notify();
+  });
+  finished.WaitForNotification();
+  EXPECT_EQ(done_calls.load(), 1);
+}
+
+TEST(WorkerPoolTest, EveryIndexRunsExactlyOnceBeforeDone) {
+  for (int threads : {1, 2, 3, 5}) {
+    WorkerPool pool(threads);
+    for (int count : {0, 1, 2, 3, 7, 64, 1000}) {
+      std::vector<std::atomic<int>> runs(count);
+      RunAndWait(pool, count, [&](int i) { ++runs[i]; });
+      for (int i = 0; i < count; ++i) {
+        EXPECT_EQ(runs[i].load(), 1)
+            << "index " << i << " of " << count << " on " << threads;
+      }
+    }
+  }
+}
+
+TEST(WorkerPoolTest, AWorkerStartsOnItsOwnContiguousShare) {
+  WorkerPool pool(2);
+  // Every index of share 0 = [0, 32) waits until share 1 = [32, 64) has
+  // begun. With contiguous shares the second worker begins at index 32 at
+  // once; were both workers to start from the front, they would both wait
+  // inside share 0 and time out.
+  std::atomic<bool> share_one_begun{false};
+  std::atomic<int> timed_out{0};
+  RunAndWait(pool, 64, [&](int i) {
+    if (i >= 32) {
+      share_one_begun = true;
+      return;
+    }
+    const auto give_up =
+        std::chrono::steady_clock::now() + std::chrono::seconds(5);
+    while (!share_one_begun && std::chrono::steady_clock::now() < give_up) {
+      std::this_thread::yield();
+    }
+    if (!share_one_begun) ++timed_out;
+  });
+  EXPECT_EQ(timed_out.load(), 0);
+}
+
+TEST(WorkerPoolTest, ASlowShareIsFinishedByTheOtherWorker) {
+  WorkerPool pool(2);
+  std::vector<std::atomic<int>> runs(64);
+  std::atomic<int> run_while_blocked{0};
+  std::atomic<bool> blocked{false};
+  RunAndWait(pool, 64, [&](int i) {
+    if (i == 0) {  // Share 0's first item holds its worker until the rest ran.
+      blocked = true;
+      const auto give_up =
+          std::chrono::steady_clock::now() + std::chrono::seconds(10);
+      while (run_while_blocked < 63 &&
+             std::chrono::steady_clock::now() < give_up) {
+        std::this_thread::yield();
+      }
+    } else if (blocked) {
+      ++run_while_blocked;
+    }
+    ++runs[i];
+  });
+  EXPECT_EQ(run_while_blocked.load(), 63);
+  for (int i = 0; i < 64; ++i) EXPECT_EQ(runs[i].load(), 1) << i;
+}
+
+TEST(WorkerPoolTest, ConcurrentBatchesEachRunTheirOwnIndices) {
+  WorkerPool pool(2);
+  constexpr int kCallers = 4;
+  constexpr int kCount = 100;
+  std::vector<std::vector<std::atomic<int>>> runs(kCallers);
+  for (auto& r : runs) r = std::vector<std::atomic<int>>(kCount);
+  std::vector<std::thread> callers;
+  for (int c = 0; c < kCallers; ++c) {
+    callers.emplace_back([&, c] {
+      for (int round = 0; round < 50; ++round) {
+        RunAndWait(pool, kCount, [&](int i) { ++runs[c][i]; });
+      }
+    });
+  }
+  for (std::thread& caller : callers) caller.join();
+  for (int c = 0; c < kCallers; ++c) {
+    for (int i = 0; i < kCount; ++i) EXPECT_EQ(runs[c][i].load(), 50);
+  }
+}
+
+}  // namespace
+}  // namespace mll
