@@ -6,7 +6,9 @@
    stepping the same number of envs in-process on `--threads` threads (mll_core_batch_timing,
    built from bench/python/core_batch_timing.cc). Target: >= 70 %. Beside it, the same loop over
    the same envs with StepBatch's per-env form (what vector_env sent before the packed form), to
-   show what the packed form saves on the client.
+   show what the packed form saves on the client; and the same envs as two vector envs of half
+   the size stepped alternately with step_async/step_wait (the server steps one half while the
+   client handles the other), the pattern a trainer can use to hide the round trip.
 2. parallel_env step latency: p50 of one `step()` of a `--n_landers` env (actions dict in,
    five dicts out), against a bare Python gRPC echo (a Python grpc server in another process
    returning a real StepEnvResponse's bytes for a real StepEnvRequest's bytes, no protobuf
@@ -227,6 +229,56 @@ class EchoRunner:
         os.unlink(self._path)
 
 
+class HalvesRunner:
+    """The same 64 envs as two vector envs of 32 stepped alternately with step_async/step_wait:
+    half A's actions go out before half B's results are awaited, so the server steps one half
+    while the client handles the other (EnvPool's async pattern). Same action table as
+    VectorRunner; a round of `steps` steps moves every env `steps` times."""
+
+    def __init__(self, mll, address: str, envs: int, n_landers: int):
+        split = envs // 2
+        self.halves = [mll.vector_env(split, address=address, n_landers=n_landers),
+                       mll.vector_env(envs - split, address=address, n_landers=n_landers)]
+        self.rows = [slice(0, split), slice(split, envs)]
+        self.table = np.random.default_rng(0).integers(0, 4, size=(256, envs, n_landers), dtype=np.int32)
+        for half in self.halves:
+            half.reset(seed=0)
+        self.done = 0
+        self.run(20, 10.0)  # Warm-up.
+
+    def _send(self, half: int) -> None:
+        self.halves[half].step_async(self.table[(self.done + half) % 256][self.rows[half]])
+
+    def run(self, steps: int, seconds: float, server_pid: int | None = None) -> dict:
+        agent_steps, half_steps = 0, 0
+        server_before = _process_cpu_s(server_pid) if server_pid else 0.0
+        client_before = time.process_time()
+        start = time.perf_counter()
+        deadline = start + seconds
+        self._send(0)
+        # Invariant: half `half_steps % 2` is in flight, the other is not.
+        while True:
+            half = half_steps % 2
+            last = half_steps + 1 >= 2 * steps or time.perf_counter() >= deadline
+            if not last:
+                self._send(1 - half)
+            agent_steps += int(self.halves[half].step_wait()[4].sum())
+            half_steps += 1
+            if half == 1:
+                self.done += 1
+            if last:
+                break
+        elapsed = time.perf_counter() - start
+        client = time.process_time() - client_before
+        server = (_process_cpu_s(server_pid) if server_pid else 0.0) - server_before
+        return {"steps": half_steps / 2, "agent_steps": agent_steps, "seconds": elapsed, "cpu_s": client + server,
+                "client_cpu_s": client, "agent_steps_per_s": agent_steps / elapsed}
+
+    def close(self) -> None:
+        for half in self.halves:
+            half.close()
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--server", default=os.environ.get("MLL_SERVER_BIN", str(REPO / "build/server/service/mll_server")))
@@ -251,14 +303,18 @@ def main() -> int:
     rounds = []
     with mll.ServerProcess(args.server, threads=args.threads) as server:
         vector_runner = VectorRunner(mll, server.address, args.envs, args.n_landers)
+        halves_runner = HalvesRunner(mll, server.address, args.envs, args.n_landers)
         latency_runner = LatencyRunner(mll, server.address, args.n_landers)
         echo_runner = EchoRunner(latency_runner.payload)
         latency_samples, echo_samples = [], []
         for _ in range(args.rounds):
             core = bench_core(args.core_timing, args.envs, args.n_landers, args.threads, args.steps, args.seconds)
             one = {"core": core}
-            for form, per_env in (("packed", False), ("per_env", True)):
-                vector = one[form] = vector_runner.run(args.steps, args.seconds, server.pid, per_env)
+            for form in ("packed", "per_env", "halves"):
+                if form == "halves":
+                    vector = one[form] = halves_runner.run(args.steps, args.seconds, server.pid)
+                else:
+                    vector = one[form] = vector_runner.run(args.steps, args.seconds, server.pid, form == "per_env")
                 one[f"{form}_ratio"] = vector["agent_steps_per_s"] / core["agent_steps_per_s"]
                 # CPU seconds per agent-step, core / (server + Python client): robust to machine load.
                 one[f"{form}_cpu_ratio"] = (core["cpu_s"] / core["agent_steps"]) / (vector["cpu_s"] / vector["agent_steps"])
@@ -268,6 +324,7 @@ def main() -> int:
             echo_samples += echo_runner.run(args.latency_steps, args.seconds)
         echo_runner.close()
         vector_runner.env.close()
+        halves_runner.close()
         latency_runner.env.close()
     load_after = os.getloadavg()
     payload = latency_runner.payload
@@ -285,7 +342,8 @@ def main() -> int:
     print(f"load average {load_before[0]:.1f} at start, {load_after[0]:.1f} at the end (1-minute)")
     print("| measurement | ours | floor (same run) | ratio (median of per-round ratios) | target |")
     print("|---|---|---|---|---|")
-    for form, what in (("packed", "vector_env (packed StepBatch)"), ("per_env", "same loop, per-env StepBatch form")):
+    for form, what in (("packed", "vector_env (packed StepBatch)"), ("per_env", "same loop, per-env StepBatch form"),
+                       ("halves", "two vector_env halves alternating step_async/step_wait,")):
         print(
             f"| {what} {args.envs} envs x {args.n_landers} landers, agent-steps/s (wall clock) "
             f"| {median(form, 'agent_steps_per_s'):,.0f} | core in-process, {args.threads} threads: {core_rate:,.0f} "

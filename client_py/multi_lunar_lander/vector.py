@@ -74,6 +74,9 @@ class VectorEnv:
       agents are ignored. rewards float32 (num_envs, n_landers); terminations, truncations and
       active bool (num_envs, n_landers): `active` marks the rows that carry a transition (the
       agent was active at the start of the step and this is not an auto-reset).
+    step_async(actions), then step_wait() -> step()'s results: the same step split in two, so
+      the caller can work (or step another vector env) while the servers step; one step at a
+      time: step, reset or step_async while one is in flight raise FAILED_PRECONDITION.
     infos: "auto_reset" bool (num_envs,), "episode_over" bool (num_envs,), "outcome" uint8
       (num_envs, n_landers) with codes indexing OUTCOMES, "episode_return" float32 and
       "episode_length" int32 (num_envs, n_landers) (so far in the episode, final once done).
@@ -101,6 +104,7 @@ class VectorEnv:
         addresses = parse_addresses(address)
         servers = addresses or (None,)  # None: the embedded server.
         self._names: list[str | None] = [None] * self.num_envs  # None: not created.
+        self._pending = None  # step_async's calls until step_wait collects them.
         # Env i lives on server i mod S; servers beyond num_envs get no connection.
         self._connections: list[Connection] = []
         try:
@@ -184,6 +188,7 @@ class VectorEnv:
         return columns["observations"], columns["rewards"], columns["terminations"], columns["truncations"], active, infos
 
     def reset(self, seed: int | None = None, options: dict | None = None):
+        self._check_no_step_in_flight()
         seed = seed_value(seed)
         waits = []
         for index, name in enumerate(self._names):
@@ -202,16 +207,47 @@ class VectorEnv:
             columns[field] = np.fromiter((getattr(data, field) for data in datas), dtype=result, count=self.num_envs)
         return columns["observations"], self._result(columns)[-1]
 
-    def step(self, actions):
+    def _check_no_step_in_flight(self) -> None:
+        if self._pending is not None:
+            raise MLLError(
+                grpc.StatusCode.FAILED_PRECONDITION,
+                "a step_async is in flight; call step_wait for its results first",
+            )
+
+    def _set_actions(self, actions) -> None:
+        """Checks `actions` and puts each server's rows into its reused StepBatch request."""
+        self._check_no_step_in_flight()
         block = action_array(actions, self.continuous, (self.num_envs, self.n_landers), "actions")
-        servers = self._servers
-        for server in servers:
+        for server in self._servers:
             server.actions.data = _arrays.to_bytes(block[server.rows], self._action_dtype)
+
+    def step(self, actions):
+        self._set_actions(actions)
+        servers = self._servers
         # One StepBatch per server, all in flight at once: the first server's call runs on this
         # thread while the others' futures proceed.
         waits = [server.connection.future("StepBatch", server.request) for server in servers[1:]]
         replies = [servers[0].connection.call("StepBatch", servers[0].request)]
         replies.extend(wait() for wait in waits)
+        return self._collect(replies)
+
+    def step_async(self, actions) -> None:
+        """Sends step(actions) and returns at once; step_wait() returns its results. Between the
+        two the caller is free (e.g. to pick the actions of another vector env, or to learn)
+        while the servers step: two vector envs stepped alternately keep the server busy."""
+        self._set_actions(actions)
+        self._pending = [server.connection.future("StepBatch", server.request) for server in self._servers]
+
+    def step_wait(self):
+        """The results of the step sent by step_async, as step() returns them."""
+        if self._pending is None:
+            raise MLLError(grpc.StatusCode.FAILED_PRECONDITION, "step_wait without a step_async in flight")
+        waits, self._pending = self._pending, None
+        return self._collect([wait() for wait in waits])
+
+    def _collect(self, replies):
+        """step()'s return value from each server's StepBatch reply."""
+        servers = self._servers
         packs = []
         failed = []  # (env index, ItemError) of every env whose step failed.
         for server, reply in zip(servers, replies):
