@@ -68,23 +68,24 @@ TEST(WorkerPoolTest, AWorkerStartsOnItsOwnContiguousShare) {
 TEST(WorkerPoolTest, ASlowShareIsFinishedByTheOtherWorker) {
   WorkerPool pool(2);
   std::vector<std::atomic<int>> runs(64);
-  std::atomic<int> run_while_blocked{0};
-  std::atomic<bool> blocked{false};
+  std::atomic<int> others_done{0};
+  std::atomic<bool> index_zero_saw_all_others{false};
   RunAndWait(pool, 64, [&](int i) {
-    if (i == 0) {  // Share 0's first item holds its worker until the rest ran.
-      blocked = true;
+    if (i == 0) {
+      // Share 0's first item holds its worker until the 63 other items ran,
+      // which needs the second worker to take share 0's items 1..31 too.
       const auto give_up =
           std::chrono::steady_clock::now() + std::chrono::seconds(10);
-      while (run_while_blocked < 63 &&
-             std::chrono::steady_clock::now() < give_up) {
+      while (others_done < 63 && std::chrono::steady_clock::now() < give_up) {
         std::this_thread::yield();
       }
-    } else if (blocked) {
-      ++run_while_blocked;
+      index_zero_saw_all_others = others_done == 63;
+    } else {
+      ++others_done;
     }
     ++runs[i];
   });
-  EXPECT_EQ(run_while_blocked.load(), 63);
+  EXPECT_TRUE(index_zero_saw_all_others);
   for (int i = 0; i < 64; ++i) EXPECT_EQ(runs[i].load(), 1) << i;
 }
 

@@ -57,7 +57,18 @@ void Store(T value, size_t index, char* column) {
 // Copies a whole core column into a row of bytes.
 template <typename T>
 void StoreAll(const std::vector<T>& values, char* column) {
+  // memcpy with a null pointer is undefined even for 0 bytes (empty batch).
+  if (values.empty()) return;
   std::memcpy(column, values.data(), values.size() * sizeof(T));
+}
+
+// Replaces `out` with the little-endian elements of `bytes` (whose size the
+// caller has checked to be a multiple of sizeof(T)).
+template <typename T>
+void LoadAll(const std::string& bytes, std::vector<T>* out) {
+  out->resize(bytes.size() / sizeof(T));
+  if (bytes.empty()) return;  // out->data() may be null.
+  std::memcpy(out->data(), bytes.data(), bytes.size());
 }
 
 // Each agent's return and length so far in this episode, into two rows of n
@@ -269,14 +280,10 @@ absl::Status ParseActions(const v1::Array& array, const EnvConfig& config,
   if (!status.ok()) return status;
   if (config.continuous) {
     out->discrete.clear();
-    out->continuous.resize(array.data().size() / sizeof(float));
-    std::memcpy(out->continuous.data(), array.data().data(),
-                array.data().size());
+    LoadAll(array.data(), &out->continuous);
   } else {
     out->continuous.clear();
-    out->discrete.resize(array.data().size() / sizeof(int32_t));
-    std::memcpy(out->discrete.data(), array.data().data(),
-                array.data().size());
+    LoadAll(array.data(), &out->discrete);
   }
   return absl::OkStatus();
 }
@@ -324,11 +331,9 @@ absl::StatusOr<PackedActions> PackedActions::Parse(
   std::vector<int32_t>& discrete = actions.values_.discrete;
   std::vector<float>& continuous = actions.values_.continuous;
   if (actions.continuous_) {
-    continuous.resize(array.data().size() / sizeof(float));
-    std::memcpy(continuous.data(), array.data().data(), array.data().size());
+    LoadAll(array.data(), &continuous);
   } else {
-    discrete.resize(array.data().size() / sizeof(int32_t));
-    std::memcpy(discrete.data(), array.data().data(), array.data().size());
+    LoadAll(array.data(), &discrete);
   }
   return actions;
 }
