@@ -52,9 +52,12 @@ if [[ "$kind" == tsan ]]; then
   export LD_LIBRARY_PATH="$deps_lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
   # The run means nothing if a test still loads Debian's uninstrumented copy.
   probe="$BUILD_DIR/tests/service/service_service_test"
+  # ldd's output is taken whole first: with pipefail, grep -q quitting at
+  # its first match can fail the pipe through ldd's SIGPIPE.
+  loaded=$(ldd "$probe")
   for lib in libabsl_synchronization.so libprotobuf.so.32 libgpr.so.29 \
       libgrpc.so.29 libgrpc++.so.1.51; do
-    if ! ldd "$probe" | grep -q "$lib.* => $deps_lib/"; then
+    if ! grep -q "$lib.* => $deps_lib/" <<<"$loaded"; then
       echo "sanitize.sh: $probe does not load $lib from $deps_lib" >&2
       exit 1
     fi
