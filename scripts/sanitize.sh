@@ -45,7 +45,8 @@ export ASAN_OPTIONS="halt_on_error=1:abort_on_error=1:detect_leaks=1:detect_stac
 export LSAN_OPTIONS="suppressions=$SUPP/lsan.supp:print_suppressions=0"
 export UBSAN_OPTIONS="halt_on_error=1:print_stacktrace=1:suppressions=$SUPP/ubsan.supp"
 # ignore_noninstrumented_modules: interceptors (memcpy, ...) called from
-# uninstrumented Debian libraries (gRPC, Cairo) record no accesses; see
+# uninstrumented Debian libraries (Cairo, c-ares, OpenSSL) record no
+# accesses; see
 # scripts/sanitizer/tsan.supp for why that is the narrow choice.
 export TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1:history_size=4:ignore_noninstrumented_modules=1:suppressions=$SUPP/tsan.supp"
 if [[ "$kind" == tsan ]]; then
