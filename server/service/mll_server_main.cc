@@ -34,6 +34,9 @@ ABSL_FLAG(int32_t, threads,
 ABSL_FLAG(int32_t, max_envs, 10000, "most environments hosted at once");
 ABSL_FLAG(double, idle_timeout_s, 300,
           "an environment untouched this many seconds is destroyed");
+ABSL_FLAG(double, shutdown_grace_s, 5,
+          "after SIGTERM, in-flight calls get this many seconds to finish "
+          "before they are cancelled (0 < S <= 3600)");
 ABSL_FLAG(int32_t, max_message_mb, 64,
           "largest message received or sent, in MiB");
 ABSL_FLAG(std::string, tls_cert, "",
@@ -50,8 +53,8 @@ ABSL_FLAG(std::string, metrics_address, "",
 
 namespace {
 
-// In-flight calls get this long to finish after SIGTERM.
-constexpr absl::Duration kShutdownGrace = absl::Seconds(5);
+// Bounds of --shutdown_grace_s: a positive time, at most an hour.
+constexpr double kMaxShutdownGraceS = 3600;
 
 // Writes through a temporary file and a rename, so that a reader polling
 // for the file never sees it half written.
@@ -77,7 +80,8 @@ int main(int argc, char** argv) {
       "Hosts Multi Lunar Lander environments over gRPC (mll.v1).\n"
       "Usage: mll_server [--address=127.0.0.1:50051] [--port_file=F] "
       "[--threads=N] [--max_envs=N] [--idle_timeout_s=S] "
-      "[--max_message_mb=M] [--tls_cert=PEM --tls_key=PEM] "
+      "[--max_message_mb=M] [--shutdown_grace_s=S] "
+      "[--tls_cert=PEM --tls_key=PEM] "
       "[--auth_token_file=F] [--metrics_address=HOST:PORT]");
   absl::ParseCommandLine(argc, argv);
   // Debian's abseil is built with Mutex deadlock detection on, which puts a
@@ -93,6 +97,15 @@ int main(int argc, char** argv) {
   sigaddset(&signals, SIGTERM);
   sigaddset(&signals, SIGINT);
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+
+  const double shutdown_grace_s = absl::GetFlag(FLAGS_shutdown_grace_s);
+  if (!(shutdown_grace_s > 0 && shutdown_grace_s <= kMaxShutdownGraceS)) {
+    std::fprintf(stderr,
+                 "mll_server: --shutdown_grace_s: %g is out of range: "
+                 "allowed 0 < S <= %g seconds\n",
+                 shutdown_grace_s, kMaxShutdownGraceS);
+    return 1;
+  }
 
   mll::ServerOptions options;
   options.address = absl::GetFlag(FLAGS_address);
@@ -132,12 +145,12 @@ int main(int argc, char** argv) {
   std::fprintf(stderr,
                "mll_server: listening on %s:%d (--address=%s --port_file=%s "
                "--threads=%d --max_envs=%d --idle_timeout_s=%g "
-               "--max_message_mb=%d)\n",
+               "--max_message_mb=%d --shutdown_grace_s=%g)\n",
                host.c_str(), (*server)->port(), options.address.c_str(),
                port_file.c_str(), options.service.threads,
                options.service.max_envs,
                absl::ToDoubleSeconds(options.service.idle_timeout),
-               options.max_message_mb);
+               options.max_message_mb, shutdown_grace_s);
   // What protects the server, in one line; never the tokens themselves.
   const int n_tokens = static_cast<int>(options.service.auth_tokens.size());
   std::fprintf(
@@ -156,7 +169,7 @@ int main(int argc, char** argv) {
 
   int signal_number = 0;
   sigwait(&signals, &signal_number);
-  (*server)->Shutdown(kShutdownGrace);
+  (*server)->Shutdown(absl::Seconds(shutdown_grace_s));
   std::fprintf(stderr, "mll_server: stopped on signal %d after shutdown\n",
                signal_number);
   return 0;

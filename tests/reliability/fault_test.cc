@@ -236,7 +236,12 @@ class HeavyBatchTest : public ::testing::Test {
  protected:
   void SetUp() override {
     absl::StatusOr<ServerUnderTest> started =
-        StartServer({"--threads=1", "--max_envs=1000"});
+        StartServer({"--threads=1", "--max_envs=1000",
+                     // In-flight calls must finish within the grace period,
+                     // which sanitizers slow down like everything else.
+                     absl::StrCat("--shutdown_grace_s=",
+                                  absl::ToDoubleSeconds(
+                                      Scaled(absl::Seconds(5))))});
     ASSERT_TRUE(started.ok()) << started.status();
     server = *std::move(started);
     stub = NewStub(server.address);

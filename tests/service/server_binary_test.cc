@@ -74,6 +74,10 @@ TEST(ServerBinaryTest, RejectsBadFlagsNamingThem) {
   std::tie(code, output) = RunServer("--address=127.0.0.1:0 --max_envs=-5");
   EXPECT_EQ(code, 1);
   EXPECT_THAT(output, HasSubstr("--max_envs: -5"));
+  std::tie(code, output) =
+      RunServer("--address=127.0.0.1:0 --shutdown_grace_s=0");
+  EXPECT_EQ(code, 1);
+  EXPECT_THAT(output, HasSubstr("--shutdown_grace_s: 0 is out of range"));
   std::tie(code, output) = RunServer("--address=not-an-address");
   EXPECT_EQ(code, 1);
   EXPECT_THAT(output, HasSubstr("--address: cannot listen on not-an-address"));
@@ -84,7 +88,8 @@ TEST(ServerBinaryTest, HelpListsEveryFlag) {
   for (const char* flag : {"--address", "--port_file", "--threads",
                            "--max_envs", "--idle_timeout_s",
                            "--max_message_mb", "--tls_cert", "--tls_key",
-                           "--auth_token_file", "--metrics_address"}) {
+                           "--auth_token_file", "--metrics_address",
+                           "--shutdown_grace_s"}) {
     EXPECT_THAT(output, HasSubstr(flag));
   }
 }
