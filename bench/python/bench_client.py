@@ -108,6 +108,24 @@ class PerEnvForm:
         return columns["observations"], columns["rewards"], columns["terminations"], columns["truncations"], active, infos
 
 
+class _RoundClock:
+    """Wall time, the Python client's CPU and (given its pid) mll_server's CPU of one round,
+    from construction to result()."""
+
+    def __init__(self, server_pid: int | None):
+        self.server_pid = server_pid
+        self.server_before = _process_cpu_s(server_pid) if server_pid else 0.0
+        self.client_before = time.process_time()
+        self.start = time.perf_counter()
+
+    def result(self, steps: float, agent_steps: int) -> dict:
+        elapsed = time.perf_counter() - self.start
+        client = time.process_time() - self.client_before
+        server = (_process_cpu_s(self.server_pid) if self.server_pid else 0.0) - self.server_before
+        return {"steps": steps, "agent_steps": agent_steps, "seconds": elapsed, "cpu_s": client + server,
+                "client_cpu_s": client, "agent_steps_per_s": agent_steps / elapsed}
+
+
 class VectorRunner:
     """Steps one vector_env with random discrete actions (a fixed table, so each round does the
     same kind of work); each call to run() is one bounded round, through vector_env.step or
@@ -125,19 +143,13 @@ class VectorRunner:
     def run(self, steps: int, seconds: float, server_pid: int | None = None, per_env: bool = False) -> dict:
         step = self.per_env.step if per_env else self.env.step
         agent_steps, count = 0, 0
-        server_before = _process_cpu_s(server_pid) if server_pid else 0.0
-        client_before = time.process_time()
-        start = time.perf_counter()
-        deadline = start + seconds
+        clock = _RoundClock(server_pid)
+        deadline = clock.start + seconds
         while count < steps and time.perf_counter() < deadline:
             agent_steps += int(step(self.table[self.done % 256])[4].sum())
             count += 1
             self.done += 1
-        elapsed = time.perf_counter() - start
-        client = time.process_time() - client_before
-        server = (_process_cpu_s(server_pid) if server_pid else 0.0) - server_before
-        return {"steps": count, "agent_steps": agent_steps, "seconds": elapsed, "cpu_s": client + server,
-                "client_cpu_s": client, "agent_steps_per_s": agent_steps / elapsed}
+        return clock.result(count, agent_steps)
 
 
 def _process_cpu_s(pid: int) -> float:
@@ -251,10 +263,8 @@ class HalvesRunner:
 
     def run(self, steps: int, seconds: float, server_pid: int | None = None) -> dict:
         agent_steps, half_steps = 0, 0
-        server_before = _process_cpu_s(server_pid) if server_pid else 0.0
-        client_before = time.process_time()
-        start = time.perf_counter()
-        deadline = start + seconds
+        clock = _RoundClock(server_pid)
+        deadline = clock.start + seconds
         self._send(0)
         # Invariant: half `half_steps % 2` is in flight, the other is not.
         while True:
@@ -268,11 +278,7 @@ class HalvesRunner:
                 self.done += 1
             if last:
                 break
-        elapsed = time.perf_counter() - start
-        client = time.process_time() - client_before
-        server = (_process_cpu_s(server_pid) if server_pid else 0.0) - server_before
-        return {"steps": half_steps / 2, "agent_steps": agent_steps, "seconds": elapsed, "cpu_s": client + server,
-                "client_cpu_s": client, "agent_steps_per_s": agent_steps / elapsed}
+        return clock.result(half_steps / 2, agent_steps)
 
     def close(self) -> None:
         for half in self.halves:
