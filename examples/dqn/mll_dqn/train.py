@@ -15,6 +15,7 @@ import torch
 import tqdm
 
 from mll_dqn.agent import DQNAgent
+from mll_dqn.blas import loaded_openblas_kernels
 from mll_dqn.collect import EpisodeRecord, Timers, make_collector
 from mll_dqn.config import OBS_SIZE, TrainConfig
 from mll_dqn.replay import ReplayBuffer
@@ -302,4 +303,5 @@ def _summary(config: TrainConfig, progress: Progress, agent: DQNAgent,
         time_split_s=seconds,
         time_split_fraction={k: v / wall for k, v in seconds.items()},
         env_call_overlapped_s=env_call,
+        blas_kernels=loaded_openblas_kernels(),
     )
