@@ -117,7 +117,8 @@ absl::StatusOr<std::shared_ptr<EnvSlot>> Registry::Find(
   }
   std::shared_ptr<EnvSlot> slot;
   {
-    absl::MutexLock lock(&mu_);
+    // Shared: a StepBatch's workers look up their envs at the same time.
+    absl::ReaderMutexLock lock(&mu_);
     auto it = by_name_.find(name);
     if (it != by_name_.end() && it->second->owner == owner) slot = it->second;
   }

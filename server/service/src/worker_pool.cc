@@ -7,12 +7,8 @@
 
 namespace mll {
 
-WorkerPool::WorkerPool(int threads) {
-  const int count = std::max(threads, 1);
-  {
-    absl::MutexLock lock(&mu_);
-    own_tasks_.resize(count);
-  }
+WorkerPool::WorkerPool(int threads) : queues_(std::max(threads, 1)) {
+  const int count = static_cast<int>(queues_.size());
   workers_.reserve(count);
   for (int w = 0; w < count; ++w) {
     workers_.emplace_back([this, w] { Run(w); });
@@ -24,36 +20,21 @@ WorkerPool::~WorkerPool() {
     absl::MutexLock lock(&mu_);
     stopping_ = true;
   }
+  for (WorkerQueue& queue : queues_) queue.wake.Signal();
   for (std::thread& worker : workers_) worker.join();
 }
 
-void WorkerPool::Post(std::function<void()> task) {
-  absl::MutexLock lock(&mu_);
-  tasks_.push_back(std::move(task));
-}
-
-void WorkerPool::PostTo(int worker, std::function<void()> task) {
-  absl::MutexLock lock(&mu_);
-  own_tasks_[worker].push_back(std::move(task));
-}
-
 void WorkerPool::Run(int worker) {
-  const auto has_work_or_stopping = [this, worker]()
-                                        ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_) {
-                                          return stopping_ || !tasks_.empty() ||
-                                                 !own_tasks_[worker].empty();
-                                        };
+  WorkerQueue& queue = queues_[worker];
   for (;;) {
     std::function<void()> task;
     {
       absl::MutexLock lock(&mu_);
       // Sleeps (no CPU) until there is work or the pool stops.
-      mu_.Await(absl::Condition(&has_work_or_stopping));
-      std::deque<std::function<void()>>& own = own_tasks_[worker];
-      std::deque<std::function<void()>>& queue = own.empty() ? tasks_ : own;
-      if (queue.empty()) return;  // Stopping, and the queues are drained.
-      task = std::move(queue.front());
-      queue.pop_front();
+      while (queue.tasks.empty() && !stopping_) queue.wake.Wait(&mu_);
+      if (queue.tasks.empty()) return;  // Stopping, and the queue is drained.
+      task = std::move(queue.tasks.front());
+      queue.tasks.pop_front();
     }
     task();
   }
@@ -87,19 +68,25 @@ void WorkerPool::ParallelFor(int count, std::function<void(int)> body,
         static_cast<int>(int64_t{r + 1} * count / runners));
   }
   shared->running = runners;
-  for (int r = 0; r < runners; ++r) {
-    PostTo(r, [shared, r, runners] {
-      for (int k = 0; k < runners; ++k) {
-        const int share = (r + k) % runners;
-        std::atomic<int>& next = shared->share_next[share];
-        for (int i = next.fetch_add(1); i < shared->share_end[share];
-             i = next.fetch_add(1)) {
-          shared->body(i);
+  {
+    absl::MutexLock lock(&mu_);
+    for (int r = 0; r < runners; ++r) {
+      queues_[r].tasks.push_back([shared, r, runners] {
+        for (int k = 0; k < runners; ++k) {
+          const int share = (r + k) % runners;
+          std::atomic<int>& next = shared->share_next[share];
+          for (int i = next.fetch_add(1); i < shared->share_end[share];
+               i = next.fetch_add(1)) {
+            shared->body(i);
+          }
         }
-      }
-      if (shared->running.fetch_sub(1) == 1) shared->done();
-    });
+        if (shared->running.fetch_sub(1) == 1) shared->done();
+      });
+    }
   }
+  // Each runner is woken by this thread directly, after the lock is released
+  // (not one after another through the mutex's waiter queue).
+  for (int r = 0; r < runners; ++r) queues_[r].wake.Signal();
 }
 
 }  // namespace mll

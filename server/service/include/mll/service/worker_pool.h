@@ -25,9 +25,6 @@ class WorkerPool {
 
   int threads() const { return static_cast<int>(workers_.size()); }
 
-  // Queues `task` to run on a worker.
-  void Post(std::function<void()> task);
-
   // Calls body(i) for i in [0, count) spread over the workers, then calls
   // done() on the worker that finished last. Returns at once: the caller
   // (often a gRPC reaction) never waits. count == 0 calls done() at once.
@@ -39,16 +36,17 @@ class WorkerPool {
                    std::function<void()> done);
 
  private:
+  // One worker's queue and the condition it sleeps on.
+  struct WorkerQueue {
+    absl::CondVar wake;
+    std::deque<std::function<void()>> tasks;
+  };
+
   void Run(int worker);
-  // Queues `task` for worker `worker` only.
-  void PostTo(int worker, std::function<void()> task);
 
   absl::Mutex mu_;
-  // Tasks for any worker.
-  std::deque<std::function<void()>> tasks_ ABSL_GUARDED_BY(mu_);
-  // Tasks for worker w only, at own_tasks_[w].
-  std::vector<std::deque<std::function<void()>>> own_tasks_
-      ABSL_GUARDED_BY(mu_);
+  // Worker w takes tasks from queues_[w] only (guarded by mu_).
+  std::vector<WorkerQueue> queues_;
   bool stopping_ ABSL_GUARDED_BY(mu_) = false;
   std::vector<std::thread> workers_;
 };
