@@ -83,6 +83,9 @@ class TrainConfig:
     # late in training keeps a policy that lands from being unlearnt by the
     # last episodes' updates.
     lr_end: float = 0.0
+    # The episode by which the decay reaches `lr_end`, which then holds; 0:
+    # the last episode.
+    lr_decay_episodes: int = 0
     # Learn while the environment steps: the gradient steps owed by the
     # transitions stored so far run during the next environment call (on the
     # other core), so actions are chosen before the last step's updates (the
@@ -122,6 +125,7 @@ class TrainConfig:
                 ("grad_clip", self.grad_clip >= 0, ">= 0"),
                 ("reward_scale", self.reward_scale > 0, "> 0"),
                 ("lr_end", 0 <= self.lr_end <= self.lr, "[0, lr]"),
+                ("lr_decay_episodes", self.lr_decay_episodes >= 0, ">= 0"),
                 ("torch_threads", self.torch_threads >= 1, ">= 1"),
                 ("checkpoint_every", self.checkpoint_every >= 1, ">= 1"),
                 ("time_limit_s", self.time_limit_s >= 0, ">= 0"),

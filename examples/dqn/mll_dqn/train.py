@@ -50,10 +50,12 @@ def epsilon_after(config: TrainConfig, episodes: int) -> float:
 
 def lr_after(config: TrainConfig, episodes: int) -> float:
     """Learning rate after `episodes` finished episodes: `lr` decayed linearly
-    to `lr_end` at the last episode, or `lr` throughout when lr_end is 0."""
+    to `lr_end` at episode `lr_decay_episodes` (0: the last episode) and held
+    there, or `lr` throughout when lr_end is 0."""
     if config.lr_end == 0:
         return config.lr
-    fraction = min(1.0, episodes / max(1, config.episodes - 1))
+    decay_episodes = config.lr_decay_episodes or config.episodes - 1
+    fraction = min(1.0, episodes / max(1, decay_episodes))
     return config.lr + (config.lr_end - config.lr) * fraction
 
 

@@ -101,6 +101,14 @@ def test_learning_rate_decays_linearly_to_lr_end():
     assert agent.optimizer.param_groups[0]["lr"] == pytest.approx(5.5e-4)
 
 
+def test_learning_rate_reaches_lr_end_at_lr_decay_episodes_then_holds():
+    config = dataclasses.replace(preset("paper"), lr=1e-3, lr_end=1e-4,
+                                 lr_decay_episodes=10, episodes=1000)
+    assert lr_after(config, 0) == pytest.approx(1e-3)
+    assert lr_after(config, 5) == pytest.approx(5.5e-4)
+    assert lr_after(config, 10) == lr_after(config, 999) == pytest.approx(1e-4)
+
+
 def test_target_preset_keeps_the_papers_samples_per_transition():
     paper, target = preset("paper"), preset("target")
     assert (target.batch_size / target.update_every
