@@ -293,7 +293,10 @@ def main() -> int:
     parser.add_argument("--n_landers", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of each measurement")
-    parser.add_argument("--steps", type=int, default=500, help="vector steps per round at most (each side)")
+    parser.add_argument(
+        "--steps", type=int, default=2000,
+        help="vector steps per round at most (each side); rounds of 500 (about 1 s) are dominated by start-up",
+    )
     parser.add_argument("--latency_steps", type=int, default=1000, help="timed steps per round (each side)")
     parser.add_argument("--seconds", type=float, default=10.0, help="time bound of each round of each side")
     parser.add_argument("--echo_server", help=argparse.SUPPRESS)

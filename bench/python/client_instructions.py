@@ -54,7 +54,7 @@ def client(kind: str, steps: int, address: str, envs: int, n_landers: int) -> No
     raw_requests = []
     for actions in table:  # Each step's packed request, as bytes.
         server.actions.data = actions.astype("<i4").tobytes()
-        raw_requests.append(server.request.SerializeToString())
+        raw_requests.append(server.message.step_batch.SerializeToString())
     channel = grpc.insecure_channel(address)
     raw = channel.unary_unary("/mll.v1.MultiLunarLander/StepBatch")
     raw(raw_requests[0])  # Every kind's first call is made here, outside the count.

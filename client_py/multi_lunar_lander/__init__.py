@@ -21,8 +21,9 @@ comma-separated string. An environment lives on exactly one server for its whole
 state is there). `env`/`parallel_env` take server_index= (0-based into the list); without it
 they go round robin per process: the k-th env/parallel_env this process creates with the same
 address list lands on server k mod S. `vector_env(n, address=[...])` puts env i on server
-i mod S and steps with one StepBatch per server, all in flight at once; results are in env
-order and are the same bits as on one server (each env's physics is its own).
+i mod S and steps with one StepBatch per server (each on a Session stream kept open to that
+server), all in flight at once; results are in env order and are the same bits as on one server
+(each env's physics is its own).
 
 TLS and token (servers started with --tls_cert/--tls_key, --auth_token_file):
 tls_root_cert= a PEM file's path or PEM bytes (the CA or the self-signed server certificate)
@@ -80,6 +81,6 @@ def parallel_env(address=None, render_mode: str | None = None, **options) -> Mul
 
 
 def vector_env(num_envs: int, address=None, **options) -> VectorEnv:
-    """`num_envs` environments stepped with one StepBatch call per server per step (see
+    """`num_envs` environments stepped with one StepBatch per server per step (see
     VectorEnv)."""
     return VectorEnv(num_envs, address=address, **options)

@@ -84,7 +84,7 @@ def test_vector_env_spreads_envs_round_robin_over_the_servers(two_servers):
     ).stdout,
     reason="this mll_server has no --metrics_address flag",
 )
-def test_each_step_is_one_step_batch_per_server():
+def test_each_step_is_one_step_batch_per_server_on_its_session_stream():
     flags = ("--metrics_address=127.0.0.1:0",)
     with mll.ServerProcess(threads=1, extra_args=flags) as a, mll.ServerProcess(threads=1, extra_args=flags) as b:
         vector = mll.vector_env(5, address=[a.address, b.address], n_landers=2)
@@ -94,8 +94,10 @@ def test_each_step_is_one_step_batch_per_server():
         vector.close()
         for process, envs in ((a, 3), (b, 2)):
             url = metrics_url(process)
-            assert metric(url, 'mll_rpc_duration_seconds_count{method="StepBatch"}') == 7
-            assert metric(url, 'mll_steps_total{method="StepBatch"}') == 7 * envs
+            # Each step is one request on the server's Session stream, a StepBatch of its envs.
+            assert metric(url, 'mll_rpc_duration_seconds_count{method="Session"}') == 7
+            assert metric(url, 'mll_steps_total{method="Session"}') == 7 * envs
+            assert metric(url, 'mll_rpc_duration_seconds_count{method="StepBatch"}') == 0
             assert metric(url, 'mll_rpc_duration_seconds_count{method="ResetEnv"}') == envs
 
 

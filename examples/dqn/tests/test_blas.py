@@ -1,6 +1,7 @@
 """OpenBLAS kernel choice: the package picks kernels from the CPU's flags."""
 
 import os
+import pathlib
 import subprocess
 import sys
 
@@ -21,6 +22,7 @@ def _kernels_in_a_fresh_process(extra_env):
     code = ("import mll_dqn.agent, os; from mll_dqn import blas; "
             "print(os.environ.get('OPENBLAS_CORETYPE'), blas.loaded_openblas_kernels())")
     out = subprocess.run([sys.executable, "-c", code], env=env, check=True,
+                         cwd=pathlib.Path(__file__).parents[1],  # examples/dqn
                          capture_output=True, text=True).stdout.split()
     return out
 
