@@ -2,7 +2,8 @@
 """Benchmarks of the Python client, each against a floor measured in the same run:
 
 1. vector_env throughput: agent-steps/s of `--envs` envs x `--n_landers` landers stepped from
-   Python (one packed StepBatch per step, random discrete actions, auto-reset), against the core
+   Python (one packed StepBatch per step, as one request on vector_env's open Session stream;
+   random discrete actions, auto-reset), against the core
    stepping the same number of envs in-process on `--threads` threads (mll_core_batch_timing,
    built from bench/python/core_batch_timing.cc). Target: >= 70 %. Beside it, the same loop over
    the same envs with StepBatch's per-env form (what vector_env sent before the packed form), to
