@@ -108,7 +108,7 @@ class VectorEnv:
         addresses = parse_addresses(address)
         servers = addresses or (None,)  # None: the embedded server.
         self._names: list[str | None] = [None] * self.num_envs  # None: not created.
-        self._pending = None  # True from step_async until step_wait reads the answers.
+        self._step_in_flight = False  # From step_async until step_wait reads the answers.
         # Env i lives on server i mod S; servers beyond num_envs get no connection.
         self._connections: list[Connection] = []
         try:
@@ -214,7 +214,7 @@ class VectorEnv:
         return columns["observations"], self._result(columns)[-1]
 
     def _check_no_step_in_flight(self) -> None:
-        if self._pending is not None:
+        if self._step_in_flight:
             raise MLLError(
                 grpc.StatusCode.FAILED_PRECONDITION,
                 "a step_async is in flight; call step_wait for its results first",
@@ -238,13 +238,13 @@ class VectorEnv:
         # One StepBatch per server on its Session stream, all in flight at once.
         for server in self._servers:
             server.stream.send(server.message)
-        self._pending = True
+        self._step_in_flight = True
 
     def step_wait(self):
         """The results of the step sent by step_async, as step() returns them."""
-        if self._pending is None:
+        if not self._step_in_flight:
             raise MLLError(grpc.StatusCode.FAILED_PRECONDITION, "step_wait without a step_async in flight")
-        self._pending = None
+        self._step_in_flight = False
         replies, failure = [], None
         for server in self._servers:  # Every answer is read, so each stream is ready for the next step.
             try:
