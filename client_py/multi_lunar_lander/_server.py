@@ -19,7 +19,6 @@ import pathlib
 import shutil
 import signal
 import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -58,13 +57,6 @@ def find_server_binary() -> str:
         "scripts/build.sh, set MLL_SERVER_BIN to its path, or pass address='host:port' of a "
         "running server.",
     )
-
-
-def _set_parent_death_signal() -> None:  # Runs in the child between fork and exec.
-    import ctypes
-
-    pr_set_pdeathsig = 1
-    ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGTERM)
 
 
 def _terminate(process: subprocess.Popen, workdir: str, grace_s: float) -> None:
@@ -143,14 +135,14 @@ class ServerProcess:
         in_main_thread = threading.current_thread() is threading.main_thread()
         with open(self._log_path, "wb") as log:
             try:
+                # No preexec_fn: that would run Python (and grpcio's fork handlers, which restart
+                # its threads) in the forked child; the server asks for the parent-death signal
+                # itself. Only from the main thread: the signal follows the thread that forked.
                 self._process = subprocess.Popen(
-                    args,
+                    args + ([f"--parent_pid={os.getpid()}"] if in_main_thread else []),
                     stdin=subprocess.DEVNULL,
                     stdout=log,
                     stderr=subprocess.STDOUT,
-                    preexec_fn=_set_parent_death_signal
-                    if sys.platform.startswith("linux") and in_main_thread
-                    else None,
                 )
             except OSError as error:
                 shutil.rmtree(self._workdir, ignore_errors=True)

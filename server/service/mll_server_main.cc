@@ -8,6 +8,10 @@
 // a grace period), exit 0.
 #include <pthread.h>
 #include <signal.h>
+#include <unistd.h>
+#ifdef __linux__
+#include <sys/prctl.h>
+#endif
 
 #include <cstdio>
 #include <fstream>
@@ -50,6 +54,10 @@ ABSL_FLAG(std::string, auth_token_file, "",
 ABSL_FLAG(std::string, metrics_address, "",
           "host:port serving Prometheus metrics at GET /metrics, e.g. "
           "127.0.0.1:9464 (empty: off)");
+ABSL_FLAG(int64_t, parent_pid, 0,
+          "stop (as on SIGTERM) when the process with this pid, which must be "
+          "the one that started mll_server, exits (Linux; 0: off); the "
+          "Python client's embedded server uses it");
 
 namespace {
 
@@ -82,7 +90,7 @@ int main(int argc, char** argv) {
       "[--threads=N] [--max_envs=N] [--idle_timeout_s=S] "
       "[--max_message_mb=M] [--shutdown_grace_s=S] "
       "[--tls_cert=PEM --tls_key=PEM] "
-      "[--auth_token_file=F] [--metrics_address=HOST:PORT]");
+      "[--auth_token_file=F] [--metrics_address=HOST:PORT] [--parent_pid=P]");
   absl::ParseCommandLine(argc, argv);
   // Debian's abseil is built with Mutex deadlock detection on, which puts a
   // global graph lock on every Lock (seen in StepBatch profiles). The
@@ -97,6 +105,30 @@ int main(int argc, char** argv) {
   sigaddset(&signals, SIGTERM);
   sigaddset(&signals, SIGINT);
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+
+  // Set here, not between the parent's fork and exec: a forked child of a
+  // multi-threaded parent (gRPC's threads) must do nothing before exec.
+  const int64_t parent_pid = absl::GetFlag(FLAGS_parent_pid);
+  if (parent_pid < 0) {
+    std::fprintf(stderr,
+                 "mll_server: --parent_pid: %lld is out of range: allowed 0 "
+                 "(off) or the pid of the process that started mll_server\n",
+                 static_cast<long long>(parent_pid));
+    return 1;
+  }
+#ifdef __linux__
+  if (parent_pid > 0) {
+    prctl(PR_SET_PDEATHSIG, SIGTERM);
+    // The parent may have exited before the line above took effect.
+    if (getppid() != parent_pid) {
+      std::fprintf(stderr,
+                   "mll_server: --parent_pid=%lld has already exited; not "
+                   "starting\n",
+                   static_cast<long long>(parent_pid));
+      return 1;
+    }
+  }
+#endif
 
   const double shutdown_grace_s = absl::GetFlag(FLAGS_shutdown_grace_s);
   if (!(shutdown_grace_s > 0 && shutdown_grace_s <= kMaxShutdownGraceS)) {

@@ -78,6 +78,15 @@ TEST(ServerBinaryTest, RejectsBadFlagsNamingThem) {
       RunServer("--address=127.0.0.1:0 --shutdown_grace_s=0");
   EXPECT_EQ(code, 1);
   EXPECT_THAT(output, HasSubstr("--shutdown_grace_s: 0 is out of range"));
+  std::tie(code, output) = RunServer("--address=127.0.0.1:0 --parent_pid=-3");
+  EXPECT_EQ(code, 1);
+  EXPECT_THAT(output, HasSubstr("--parent_pid: -3 is out of range"));
+#ifdef __linux__
+  // Pid 1 is not the parent of the shell that RunServer starts the server in.
+  std::tie(code, output) = RunServer("--address=127.0.0.1:0 --parent_pid=1");
+  EXPECT_EQ(code, 1);
+  EXPECT_THAT(output, HasSubstr("--parent_pid=1 has already exited"));
+#endif
   std::tie(code, output) = RunServer("--address=not-an-address");
   EXPECT_EQ(code, 1);
   EXPECT_THAT(output, HasSubstr("--address: cannot listen on not-an-address"));
@@ -89,7 +98,7 @@ TEST(ServerBinaryTest, HelpListsEveryFlag) {
                            "--max_envs", "--idle_timeout_s",
                            "--max_message_mb", "--tls_cert", "--tls_key",
                            "--auth_token_file", "--metrics_address",
-                           "--shutdown_grace_s"}) {
+                           "--shutdown_grace_s", "--parent_pid"}) {
     EXPECT_THAT(output, HasSubstr(flag));
   }
 }
