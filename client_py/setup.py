@@ -11,7 +11,7 @@ HERE = pathlib.Path(__file__).resolve().parent
 
 
 def _codegen():
-    spec = importlib.util.spec_from_file_location("_mll_codegen", HERE / "multi_lunar_lander" / "_codegen.py")
+    spec = importlib.util.spec_from_file_location("_mll_generate_stubs", HERE / "generate_stubs.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module

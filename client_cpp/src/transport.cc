@@ -5,6 +5,8 @@
 #include <utility>
 
 #include "absl/base/thread_annotations.h"
+#include "absl/strings/match.h"
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/synchronization/mutex.h"
 #include "google/protobuf/io/coded_stream.h"
@@ -337,12 +339,43 @@ absl::StatusOr<std::shared_ptr<Transport>> Transport::OpenSession() const {
       std::make_shared<SessionTransport>(address_, channel_, options_));
 }
 
-absl::StatusOr<std::shared_ptr<Transport>> MakeUnaryTransport(
-    absl::string_view address, const ClientOptions& options) {
+namespace {
+
+// A host:port target needs a port in 1..65535 (gRPC would wrap 99999 around
+// to another port) and brackets around an IPv6 host. Targets with a gRPC
+// scheme ("dns:", "unix:", "ipv4:", ...) are gRPC's to check.
+absl::Status CheckAddress(absl::string_view address) {
+  const std::string expected =
+      "expected host:port with a port in 1..65535, e.g. 127.0.0.1:50051 or "
+      "[::1]:50051";
   if (address.empty()) {
     return absl::InvalidArgumentError(
-        "address is empty; expected host:port, e.g. 127.0.0.1:50051");
+        absl::StrCat("address is empty; ", expected));
   }
+  for (absl::string_view scheme :
+       {"dns:", "unix:", "unix-abstract:", "ipv4:", "ipv6:", "vsock:"}) {
+    if (absl::StartsWith(address, scheme)) return absl::OkStatus();
+  }
+  const size_t colon = address.rfind(':');
+  absl::string_view host = address.substr(0, colon);
+  const bool bracketed = absl::StartsWith(host, "[") && absl::EndsWith(host, "]");
+  int port = 0;
+  if (colon == absl::string_view::npos || host.empty() ||
+      (!bracketed && absl::StrContains(host, ':')) ||
+      (absl::StrContains(host, '[') && !bracketed) ||
+      !absl::SimpleAtoi(address.substr(colon + 1), &port) || port < 1 ||
+      port > 65535) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("address \"", address, "\" is not valid; ", expected));
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::StatusOr<std::shared_ptr<Transport>> MakeUnaryTransport(
+    absl::string_view address, const ClientOptions& options) {
+  if (absl::Status valid = CheckAddress(address); !valid.ok()) return valid;
   if (options.max_receive_message_bytes <= 0) {
     return absl::InvalidArgumentError(
         absl::StrCat("max_receive_message_bytes is ",

@@ -40,8 +40,6 @@
 #include <vector>
 
 #include "absl/flags/flag.h"
-#include "absl/flags/parse.h"
-#include "absl/flags/usage.h"
 #include "absl/status/status.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
@@ -51,7 +49,9 @@
 #include "absl/strings/strip.h"
 #include "config_flags.h"
 #include "core_bridge.h"
+#include "grpc/support/log.h"
 #include "mll/client.h"
+#include "program_usage.h"
 
 ABSL_FLAG(std::string, address, "127.0.0.1:50051",
           "Server address host:port, or a comma-separated list of servers.");
@@ -154,11 +154,6 @@ std::string StepDataJson(const StepData& data) {
 
 absl::StatusOr<std::string> EnvName(const std::vector<std::string>& args) {
   const std::string flag = absl::GetFlag(FLAGS_name);
-  if (args.size() > 1) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "expected one environment name after the command; got ",
-        args.size(), ": ", absl::StrJoin(args, " ")));
-  }
   if (!args.empty()) return args[0];
   if (!flag.empty()) return flag;
   return absl::InvalidArgumentError(
@@ -261,16 +256,17 @@ Result Health(const Client& client, const std::vector<std::string>&) {
 Result List(const Client& client, const std::vector<std::string>&) {
   absl::StatusOr<std::vector<EnvInfo>> envs = client.ListEnvs();
   if (!envs.ok()) return Server(envs.status());
+  if (envs->empty()) {
+    // On stderr: stdout stays one JSON object per environment.
+    std::cerr << "mll_cli list: no environments on "
+              << absl::GetFlag(FLAGS_address) << std::endl;
+  }
   for (const EnvInfo& env : *envs) std::cout << env.json << "\n";
   std::cout << std::flush;
   return std::nullopt;
 }
 
-Result Create(const Client& client, const std::vector<std::string>& args) {
-  if (!args.empty()) {
-    return Usage(absl::InvalidArgumentError(
-        absl::StrCat("create takes flags only; got ", absl::StrJoin(args, " "))));
-  }
+Result Create(const Client& client, const std::vector<std::string>&) {
   absl::StatusOr<EnvConfig> config = EnvConfigFromFlags();
   if (!config.ok()) return Usage(config.status());
   RemoteEnvConfig remote = RemoteConfigFrom(*config);
@@ -385,11 +381,7 @@ Result Render(const Client& client, const std::vector<std::string>& args) {
 // servers, stepping them together with StepBatch; prints one line per env and
 // episode and a summary, in mll_rollout's format (with one env, the same
 // lines as mll_rollout's).
-Result Play(const Client& client, const std::vector<std::string>& args) {
-  if (!args.empty()) {
-    return Usage(absl::InvalidArgumentError(
-        absl::StrCat("play takes flags only; got ", absl::StrJoin(args, " "))));
-  }
+Result Play(const Client& client, const std::vector<std::string>&) {
   absl::StatusOr<PilotPolicy> policy =
       ParsePilotPolicy(absl::GetFlag(FLAGS_policy));
   if (!policy.ok()) return Usage(policy.status());
@@ -529,11 +521,40 @@ Result Play(const Client& client, const std::vector<std::string>& args) {
 
 using Command = Result (*)(const Client&, const std::vector<std::string>&);
 
-const std::map<std::string, Command>& Commands() {
-  static const auto* const kCommands = new std::map<std::string, Command>{
-      {"health", Health}, {"list", List},     {"create", Create},
-      {"get", Get},       {"delete", Delete}, {"reset", Reset},
-      {"step", Step},     {"render", Render}, {"play", Play},
+// What a command does, the arguments it takes and the flags it reads beyond
+// the connection flags every command reads.
+struct CommandSpec {
+  Command run;
+  int max_arguments;  // 1 for the commands naming an environment.
+  const char* arguments;
+  const char* summary;
+  std::vector<absl::string_view> flags;
+  bool takes_env_options;  // --n_landers, --continuous, ... (create, play).
+};
+
+const std::map<std::string, CommandSpec>& Commands() {
+  static const auto* const kCommands = new std::map<std::string, CommandSpec>{
+      {"health", {Health, 0, "", "checks that the server is serving", {}, false}},
+      {"list", {List, 0, "", "lists the environments (one JSON line each)", {},
+        false}},
+      {"create",
+       {Create, 0, "", "creates an environment and prints its name",
+        {"server", "auto_reset"}, true}},
+      {"get", {Get, 1, " envs/ID", "prints an environment", {"name"}, false}},
+      {"delete", {Delete, 1, " envs/ID", "deletes an environment", {"name"},
+        false}},
+      {"reset",
+       {Reset, 1, " envs/ID", "resets an environment", {"name", "seed"},
+        false}},
+      {"step",
+       {Step, 1, " envs/ID", "steps every active lander once",
+        {"name", "actions"}, false}},
+      {"render",
+       {Render, 1, " envs/ID", "writes a frame", {"name", "out", "format"},
+        false}},
+      {"play",
+       {Play, 0, "", "flies landers with a pilot and prints one JSON line per "
+        "episode", {"policy", "episodes", "seed", "envs", "name"}, true}},
   };
   return *kCommands;
 }
@@ -544,13 +565,55 @@ std::string CommandNames() {
   return absl::StrJoin(names, ", ");
 }
 
-int Run(const std::vector<char*>& positional) {
-  if (positional.size() < 2) {
+constexpr absl::string_view kConnectionFlags[] = {
+    "address", "timeout_ms", "tls", "tls_root_cert", "tls_server_name",
+    "token", "token_file"};
+
+// `mll_cli --help`, or `mll_cli COMMAND --help` for one command's flags.
+std::string Help(const std::vector<std::string>& words) {
+  const std::vector<const absl::CommandLineFlag*> connection =
+      tools::FlagsNamed({std::begin(kConnectionFlags),
+                         std::end(kConnectionFlags)});
+  for (const std::string& word : words) {
+    const auto command = Commands().find(word);
+    if (command == Commands().end()) continue;
+    const CommandSpec& spec = command->second;
+    std::string text = absl::StrCat("mll_cli ", word, spec.arguments,
+                                     " [--flags]: ", spec.summary, "\n");
+    if (!spec.flags.empty()) {
+      absl::StrAppend(&text, "\nFlags:\n",
+                      tools::DescribeFlags(tools::FlagsNamed(spec.flags)));
+    }
+    if (spec.takes_env_options) {
+      absl::StrAppend(&text, "\nEnvironment options:\n",
+                      tools::DescribeFlags(
+                          tools::FlagsDefinedIn("config_flags.cc")));
+    }
+    absl::StrAppend(&text, "\nConnection flags:\n",
+                    tools::DescribeFlags(connection));
+    return text;
+  }
+  std::string text =
+      "mll_cli: talks to Multi Lunar Lander servers; prints JSON lines.\n"
+      "Usage: mll_cli COMMAND [envs/ID] [--flags]; mll_cli COMMAND --help "
+      "lists a command's flags.\nExit codes: 0 done, 1 the server or the "
+      "connection failed, 2 bad command line.\n\nCommands:\n";
+  for (const auto& [name, spec] : Commands()) {
+    absl::StrAppend(&text, "  ", name, spec.arguments, ": ", spec.summary,
+                    "\n");
+  }
+  absl::StrAppend(&text, "\nConnection flags (every command):\n",
+                  tools::DescribeFlags(connection));
+  return text;
+}
+
+int Run(const std::vector<std::string>& positional) {
+  if (positional.empty()) {
     std::cerr << "mll_cli: missing command; one of " << CommandNames()
               << std::endl;
     return kExitUsage;
   }
-  const std::string command_name = positional[1];
+  const std::string& command_name = positional[0];
   const auto command = Commands().find(command_name);
   if (command == Commands().end()) {
     std::cerr << "mll_cli: unknown command \"" << command_name
@@ -569,9 +632,18 @@ int Run(const std::vector<char*>& positional) {
     std::cerr << "mll_cli: " << client.status() << std::endl;
     return kExitUsage;
   }
-  const std::vector<std::string> args(positional.begin() + 2,
+  const std::vector<std::string> args(positional.begin() + 1,
                                       positional.end());
-  Result failure = command->second(*client, args);
+  if (static_cast<int>(args.size()) > command->second.max_arguments) {
+    std::cerr << "mll_cli " << command_name << ": takes "
+              << (command->second.max_arguments == 0
+                      ? "flags only"
+                      : "one environment name and flags")
+              << "; got \"" << absl::StrJoin(args, " ") << "\"; see mll_cli "
+              << command_name << " --help" << std::endl;
+    return kExitUsage;
+  }
+  Result failure = command->second.run(*client, args);
   if (!failure.has_value()) return 0;
   std::cerr << "mll_cli " << command_name << ": " << failure->status
             << std::endl;
@@ -582,9 +654,12 @@ int Run(const std::vector<char*>& positional) {
 }  // namespace mll
 
 int main(int argc, char** argv) {
-  absl::SetProgramUsageMessage(
-      "Talks to a Multi Lunar Lander server.\n"
-      "  mll_cli health|list|create|get|delete|reset|step|render|play "
-      "[envs/ID] [--flags]\nSee --helpfull for every flag.");
-  return mll::Run(absl::ParseCommandLine(argc, argv));
+  const std::vector<std::string> positional =
+      mll::tools::ParseCommandLine(argc, argv, mll::Help);
+  // gRPC's own log lines (e.g. "E1125 ... Failed to parse [::1") repeat the
+  // error mll_cli prints; GRPC_VERBOSITY (DEBUG, INFO, ERROR) turns them on.
+  if (std::getenv("GRPC_VERBOSITY") == nullptr) {
+    gpr_set_log_function([](gpr_log_func_args*) {});
+  }
+  return mll::Run(positional);
 }

@@ -19,6 +19,7 @@ import pathlib
 import shutil
 import signal
 import subprocess
+import sysconfig
 import tempfile
 import threading
 import time
@@ -31,31 +32,44 @@ from ._channel import Security, open_channel
 from ._errors import MLLError
 
 SERVER_BIN_ENV = "MLL_SERVER_BIN"
-_REPO_BUILD_BIN = pathlib.Path(__file__).resolve().parents[2] / "build" / "server" / "service" / "mll_server"
+SERVER_BIN_NAME = "mll_server"
+# A source checkout's build tree (scripts/build.sh), seen from client_py/multi_lunar_lander/.
+_CHECKOUT_ROOT = pathlib.Path(__file__).resolve().parents[2]
+_CHECKOUT_BUILD_BIN = _CHECKOUT_ROOT / "build" / "server" / "service" / SERVER_BIN_NAME
+
+
+def _is_executable_file(path: str | os.PathLike) -> bool:
+    return os.path.isfile(path) and os.access(path, os.X_OK)
 
 
 def find_server_binary() -> str:
-    """$MLL_SERVER_BIN, else `mll_server` on PATH, else the repository's build tree."""
-    tried = []
+    """The `mll_server` an embedded server runs: $MLL_SERVER_BIN; else the one installed beside
+    this Python (`pip install .` puts it in the environment's scripts directory, which need not
+    be on PATH); else `mll_server` on PATH; else, in a source checkout, its build tree."""
     from_env = os.environ.get(SERVER_BIN_ENV)
     if from_env:
-        if os.access(from_env, os.X_OK) and os.path.isfile(from_env):
+        if _is_executable_file(from_env):
             return from_env
-        tried.append(f"${SERVER_BIN_ENV}={from_env} (not an executable file)")
-    else:
-        tried.append(f"${SERVER_BIN_ENV} (unset)")
-    on_path = shutil.which("mll_server")
+        raise MLLError(
+            grpc.StatusCode.UNAVAILABLE,
+            f"cannot start an embedded mll_server: ${SERVER_BIN_ENV}={from_env} is not an "
+            "executable file",
+        )
+    scripts_dir = sysconfig.get_path("scripts")
+    beside_python = os.path.join(scripts_dir, SERVER_BIN_NAME) if scripts_dir else ""
+    if beside_python and _is_executable_file(beside_python):
+        return beside_python
+    on_path = shutil.which(SERVER_BIN_NAME)
     if on_path:
         return on_path
-    tried.append("mll_server on PATH (not found)")
-    if os.access(_REPO_BUILD_BIN, os.X_OK):
-        return str(_REPO_BUILD_BIN)
-    tried.append(f"{_REPO_BUILD_BIN} (not built)")
+    if _is_executable_file(_CHECKOUT_BUILD_BIN):
+        return str(_CHECKOUT_BUILD_BIN)
     raise MLLError(
         grpc.StatusCode.UNAVAILABLE,
-        "cannot start an embedded mll_server: tried " + "; ".join(tried) + ". Build it with "
-        "scripts/build.sh, set MLL_SERVER_BIN to its path, or pass address='host:port' of a "
-        "running server.",
+        f"cannot start an embedded mll_server: none in {scripts_dir}, none on PATH, and "
+        f"${SERVER_BIN_ENV} is unset. Install the package with the server (pip install . in a "
+        "clone of the repository), set $MLL_SERVER_BIN to an mll_server binary, or pass "
+        "address='host:port' of a running server.",
     )
 
 

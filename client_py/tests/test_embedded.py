@@ -83,14 +83,41 @@ def test_no_server_left_after_the_parent_is_killed():
             child.wait()
 
 
-def test_missing_binary_names_every_path_tried(monkeypatch, tmp_path):
-    monkeypatch.setenv("MLL_SERVER_BIN", str(tmp_path / "no_such_server"))
+def _no_server_anywhere(monkeypatch, tmp_path):
+    """Hides every mll_server find_server_binary could use; returns the empty scripts dir."""
+    scripts = tmp_path / "venv_bin"
+    scripts.mkdir()
+    monkeypatch.delenv("MLL_SERVER_BIN", raising=False)
     monkeypatch.setenv("PATH", str(tmp_path))
-    monkeypatch.setattr(_server, "_REPO_BUILD_BIN", tmp_path / "build" / "mll_server")
+    monkeypatch.setattr(_server.sysconfig, "get_path", lambda name, *a, **k: str(scripts))
+    monkeypatch.setattr(_server, "_CHECKOUT_BUILD_BIN", tmp_path / "build" / "mll_server")
+    return scripts
+
+
+def test_a_bad_server_bin_variable_is_named(monkeypatch, tmp_path):
+    monkeypatch.setenv("MLL_SERVER_BIN", str(tmp_path / "no_such_server"))
+    with pytest.raises(mll.MLLError) as caught:
+        mll.env()
+    assert caught.value.code == grpc.StatusCode.UNAVAILABLE
+    assert f"$MLL_SERVER_BIN={tmp_path / 'no_such_server'} is not an executable file" in caught.value.message
+    assert mll.embedded_server() is None
+
+
+def test_missing_binary_says_how_to_install_it(monkeypatch, tmp_path):
+    scripts = _no_server_anywhere(monkeypatch, tmp_path)
     with pytest.raises(mll.MLLError) as caught:
         mll.env()
     message = caught.value.message
     assert caught.value.code == grpc.StatusCode.UNAVAILABLE
-    assert str(tmp_path / "no_such_server") in message and str(tmp_path / "build" / "mll_server") in message
-    assert "MLL_SERVER_BIN" in message and "address=" in message
+    assert str(scripts) in message and "PATH" in message and "MLL_SERVER_BIN" in message
+    assert "pip install ." in message and "address=" in message
+    assert "build" not in message  # No path inside a repository the user may not have.
     assert mll.embedded_server() is None
+
+
+def test_the_server_installed_beside_python_is_found_off_path(monkeypatch, tmp_path):
+    scripts = _no_server_anywhere(monkeypatch, tmp_path)
+    installed = scripts / "mll_server"
+    installed.write_text("#!/bin/sh\nexit 0\n")
+    installed.chmod(0o755)
+    assert mll.find_server_binary() == str(installed)

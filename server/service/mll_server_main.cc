@@ -14,19 +14,20 @@
 #endif
 
 #include <cstdio>
+#include <cstdlib>
 #include <fstream>
 #include <string>
 #include <thread>
 #include <vector>
 
 #include "absl/flags/flag.h"
-#include "absl/flags/parse.h"
-#include "absl/flags/usage.h"
 #include "absl/strings/str_cat.h"
 #include "absl/synchronization/mutex.h"
 #include "absl/time/time.h"
+#include "grpc/support/log.h"
 #include "mll/service/auth.h"
 #include "mll/service/server.h"
+#include "program_usage.h"
 
 ABSL_FLAG(std::string, address, "127.0.0.1:50051",
           "host:port to listen on; port 0 picks a free port");
@@ -76,6 +77,15 @@ bool WritePortFile(const std::string& path, int port) {
   return std::rename(temporary.c_str(), path.c_str()) == 0;
 }
 
+// gRPC's own log lines (e.g. "E1125 ... Failed to add port") repeat what the
+// server reports itself in one line; GRPC_VERBOSITY (DEBUG, INFO, ERROR) turns
+// them back on.
+void QuietGrpcLogsUnlessAsked() {
+  if (std::getenv("GRPC_VERBOSITY") == nullptr) {
+    gpr_set_log_function([](gpr_log_func_args*) {});
+  }
+}
+
 // The host part of host:port.
 std::string HostOf(const std::string& address) {
   return address.substr(0, address.rfind(':'));
@@ -84,14 +94,14 @@ std::string HostOf(const std::string& address) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  absl::SetProgramUsageMessage(
-      "Hosts Multi Lunar Lander environments over gRPC (mll.v1).\n"
-      "Usage: mll_server [--address=127.0.0.1:50051] [--port_file=F] "
-      "[--threads=N] [--max_envs=N] [--idle_timeout_s=S] "
-      "[--max_message_mb=M] [--shutdown_grace_s=S] "
-      "[--tls_cert=PEM --tls_key=PEM] "
-      "[--auth_token_file=F] [--metrics_address=HOST:PORT] [--parent_pid=P]");
-  absl::ParseCommandLine(argc, argv);
+  mll::tools::ParseFlagsOnly(argc, argv, "mll_server", [] {
+    return absl::StrCat(
+        "mll_server: hosts Multi Lunar Lander environments over gRPC "
+        "(mll.v1).\nUsage: mll_server [--flags]\n\nFlags:\n",
+        mll::tools::DescribeFlags(
+            mll::tools::FlagsDefinedIn("mll_server_main.cc")));
+  });
+  QuietGrpcLogsUnlessAsked();
   // Debian's abseil is built with Mutex deadlock detection on, which puts a
   // global graph lock on every Lock (seen in StepBatch profiles). The
   // server's lock order is fixed (the registry's, then one env's, never two

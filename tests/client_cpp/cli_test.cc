@@ -1,5 +1,6 @@
 // mll_cli against the real mll_server: every command, its JSON output, and
 // its exit codes (1 with the server's code and message, 2 for usage errors).
+#include <algorithm>
 #include <fstream>
 #include <memory>
 #include <regex>
@@ -17,6 +18,7 @@ namespace mll {
 namespace {
 
 using ::testing::HasSubstr;
+using ::testing::Not;
 using ::testing::StartsWith;
 
 class CliTest : public ::testing::Test {
@@ -138,6 +140,68 @@ TEST_F(CliTest, UsageErrorsExitTwo) {
   result = Cli({"reset", "envs/x", "--seed=-1"});
   EXPECT_EQ(result.exit_code, 2);
   EXPECT_THAT(result.err, HasSubstr("seed"));
+}
+
+TEST_F(CliTest, PositionalArgumentsBeyondTheCommandsAreRefused) {
+  CommandResult result = Cli({"health", "extra"});
+  EXPECT_EQ(result.exit_code, 2);
+  EXPECT_THAT(result.err, HasSubstr("health: takes flags only; got \"extra\""));
+  result = Cli({"get", "envs/a", "envs/b"});
+  EXPECT_EQ(result.exit_code, 2);
+  EXPECT_THAT(result.err, HasSubstr("one environment name"));
+}
+
+TEST_F(CliTest, HelpListsEveryCommandAndEachCommandsFlags) {
+  CommandResult result = RunCli({"--help"});
+  EXPECT_EQ(result.exit_code, 0);
+  for (const char* command : {"health", "list", "create", "get", "delete",
+                              "reset", "step", "render", "play"}) {
+    EXPECT_THAT(result.out, HasSubstr(absl::StrCat("  ", command)));
+  }
+  EXPECT_THAT(result.out, HasSubstr("--address="));
+  result = RunCli({"play", "--help"});
+  EXPECT_EQ(result.exit_code, 0);
+  for (const char* flag : {"--policy=heuristic", "--episodes=1", "--envs=",
+                           "--n_landers=3", "--continuous=", "--address="}) {
+    EXPECT_THAT(result.out, HasSubstr(flag)) << flag;
+  }
+  result = RunCli({"render", "--help"});
+  EXPECT_THAT(result.out, HasSubstr("--out=frame.png"));
+  EXPECT_THAT(result.out, HasSubstr("--format=png"));
+  EXPECT_THAT(result.out, Not(HasSubstr("--n_landers")));
+  EXPECT_THAT(result.out, Not(HasSubstr(".cc")));  // No build paths.
+}
+
+TEST_F(CliTest, ListSaysWhenThereAreNoEnvironments) {
+  // A server of its own, so that no other test's environment is listed.
+  absl::StatusOr<std::unique_ptr<ServerProcess>> empty =
+      ServerProcess::Start(MLL_SERVER_PATH);
+  ASSERT_TRUE(empty.ok()) << empty.status();
+  const CommandResult result =
+      RunCli({"list", absl::StrCat("--address=", (*empty)->address())});
+  EXPECT_EQ(result.exit_code, 0);
+  EXPECT_EQ(result.out, "");
+  EXPECT_THAT(result.err, HasSubstr("no environments on"));
+}
+
+TEST_F(CliTest, ABadAddressIsAUsageErrorNamingTheRange) {
+  for (const char* address : {"127.0.0.1:99999", "127.0.0.1", "[::1",
+                              "::1:50051", "localhost:port"}) {
+    const CommandResult result =
+        RunCli({"health", absl::StrCat("--address=", address)});
+    EXPECT_EQ(result.exit_code, 2) << address;
+    EXPECT_THAT(result.err, HasSubstr(absl::StrCat("\"", address, "\"")));
+    EXPECT_THAT(result.err, HasSubstr("1..65535"));
+  }
+}
+
+TEST_F(CliTest, AFailedConnectionGivesOneLineWithoutGrpcLogs) {
+  // A target gRPC itself cannot parse: gRPC logs an error line of its own.
+  const CommandResult result = RunCli({"health", "--address=dns:///[::1"});
+  EXPECT_EQ(result.exit_code, 1);
+  EXPECT_THAT(result.err, HasSubstr("UNAVAILABLE"));
+  EXPECT_EQ(std::count(result.err.begin(), result.err.end(), '\n'), 1)
+      << result.err;
 }
 
 TEST_F(CliTest, NoServerExitsOneUnavailable) {

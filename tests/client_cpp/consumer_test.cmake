@@ -1,6 +1,7 @@
-# The installed-package test: installs the client component into a fresh
-# prefix, configures and builds tests/client_cpp/consumer against it with
-# find_package(MultiLunarLander), then runs it against a real server.
+# The installed-package test: installs the programs (mll_server, mll_cli) and
+# the client component into a fresh prefix, configures and builds
+# tests/client_cpp/consumer against it with find_package(MultiLunarLander),
+# then runs it against a real server.
 # Inputs (-D): BUILD_DIR, SOURCE_DIR, WORK_DIR, GENERATOR, RUN_WITH_SERVER,
 # SERVER.
 file(REMOVE_RECURSE ${WORK_DIR})
@@ -13,9 +14,12 @@ function(run step)
   endif()
 endfunction()
 
+run(install_programs ${CMAKE_COMMAND} --install ${BUILD_DIR} --prefix ${prefix}
+    --component mll_programs)
 run(install ${CMAKE_COMMAND} --install ${BUILD_DIR} --prefix ${prefix}
     --component mll_client)
-foreach(file include/mll/client.h lib/cmake/MultiLunarLander/MultiLunarLanderConfig.cmake)
+foreach(file bin/mll_server bin/mll_cli include/mll/client.h
+        lib/cmake/MultiLunarLander/MultiLunarLanderConfig.cmake)
   if(NOT EXISTS ${prefix}/${file})
     message(FATAL_ERROR "consumer test: ${file} was not installed")
   endif()

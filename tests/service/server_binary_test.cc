@@ -15,6 +15,7 @@ namespace mll::testing {
 namespace {
 
 using ::testing::HasSubstr;
+using ::testing::Not;
 
 TEST(ServerBinaryTest, ServesOverTcpAndExitsCleanlyOnSigterm) {
   ServerProcess process({"--threads=2", "--idle_timeout_s=60"});
@@ -87,13 +88,20 @@ TEST(ServerBinaryTest, RejectsBadFlagsNamingThem) {
   EXPECT_EQ(code, 1);
   EXPECT_THAT(output, HasSubstr("--parent_pid=1 has already exited"));
 #endif
+  std::tie(code, output) = RunServer("--address=127.0.0.1:0 stray");
+  EXPECT_EQ(code, 2);
+  EXPECT_THAT(output, HasSubstr("takes flags only"));
+  EXPECT_THAT(output, HasSubstr("\"stray\""));
   std::tie(code, output) = RunServer("--address=not-an-address");
   EXPECT_EQ(code, 1);
   EXPECT_THAT(output, HasSubstr("--address: cannot listen on not-an-address"));
 }
 
-TEST(ServerBinaryTest, HelpListsEveryFlag) {
-  const std::string output = RunServer("--help").second;
+TEST(ServerBinaryTest, HelpListsEveryFlagAndExitsZero) {
+  const auto [code, output] = RunServer("--help");
+  EXPECT_EQ(code, 0);
+  // No build paths: flags are listed by name, not by the file defining them.
+  EXPECT_THAT(output, Not(HasSubstr(".cc")));
   for (const char* flag : {"--address", "--port_file", "--threads",
                            "--max_envs", "--idle_timeout_s",
                            "--max_message_mb", "--tls_cert", "--tls_key",

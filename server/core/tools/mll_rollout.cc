@@ -18,8 +18,6 @@
 #include <vector>
 
 #include "absl/flags/flag.h"
-#include "absl/flags/parse.h"
-#include "absl/flags/usage.h"
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -28,6 +26,7 @@
 #include "mll/core/env.h"
 #include "mll/core/heuristic.h"
 #include "mll/core/renderer.h"
+#include "program_usage.h"
 #include "rng.h"
 
 ABSL_FLAG(int, episodes, 1, "Number of episodes, >= 1.");
@@ -264,10 +263,16 @@ absl::Status Run(const Options& options) {
 }  // namespace mll
 
 int main(int argc, char** argv) {
-  absl::SetProgramUsageMessage(
-      "Runs Multi Lunar Lander episodes in-process; prints one JSON line per "
-      "episode and a summary line.");
-  absl::ParseCommandLine(argc, argv);
+  mll::tools::ParseFlagsOnly(argc, argv, "mll_rollout", [] {
+    return absl::StrCat(
+        "mll_rollout: runs Multi Lunar Lander episodes in-process; prints one "
+        "JSON line per episode and a summary line.\n"
+        "Usage: mll_rollout [--flags]\n\nFlags:\n",
+        mll::tools::DescribeFlags(mll::tools::FlagsDefinedIn("mll_rollout.cc")),
+        "\nEnvironment options:\n",
+        mll::tools::DescribeFlags(
+            mll::tools::FlagsDefinedIn("config_flags.cc")));
+  });
   absl::StatusOr<mll::Options> options = mll::OptionsFromFlags();
   if (!options.ok()) {
     std::cerr << "mll_rollout: " << options.status().message() << std::endl;

@@ -1,8 +1,10 @@
-"""Generates the Python stubs of the wire contract (proto/mll/v1) with grpcio-tools.
+"""Generates the Python stubs of the wire contract (proto/mll/v1) with grpcio-tools, at build
+time only: client_py/setup.py loads this file by path (wheel and editable builds of the client
+alone), and the top-level CMake build of `pip install .` runs it as a script:
 
-Standalone on purpose (imports nothing from the package): setup.py loads this file by path at
-build and editable-install time, and the package calls it as a fallback when the stubs are
-missing (a source checkout that was never installed). The stubs are never committed.
+    python client_py/generate_stubs.py proto client_py/multi_lunar_lander/_proto
+
+Standalone on purpose (imports nothing from the package). The stubs are never committed.
 """
 
 from __future__ import annotations
@@ -15,15 +17,6 @@ PROTO_RELATIVE = "mll/v1/multi_lunar_lander.proto"
 STUB_MODULES = ("multi_lunar_lander_pb2", "multi_lunar_lander_pb2_grpc")
 
 
-def default_proto_root() -> pathlib.Path:
-    """<repo>/proto, seen from <repo>/client_py/multi_lunar_lander/_codegen.py."""
-    return pathlib.Path(__file__).resolve().parents[2] / "proto"
-
-
-def default_out_dir() -> pathlib.Path:
-    return pathlib.Path(__file__).resolve().parent / "_proto"
-
-
 def stubs_are_current(proto_root: pathlib.Path, out_dir: pathlib.Path) -> bool:
     proto = proto_root / PROTO_RELATIVE
     outputs = [out_dir / f"{name}.py" for name in STUB_MODULES]
@@ -34,13 +27,11 @@ def stubs_are_current(proto_root: pathlib.Path, out_dir: pathlib.Path) -> bool:
     return min(path.stat().st_mtime for path in outputs) >= proto.stat().st_mtime
 
 
-def generate(proto_root: pathlib.Path | None = None, out_dir: pathlib.Path | None = None) -> None:
+def generate(proto_root: pathlib.Path, out_dir: pathlib.Path) -> None:
     """Writes _proto/{multi_lunar_lander_pb2,_pb2_grpc}.py(i) and _proto/__init__.py."""
     from grpc_tools import protoc  # Only needed at build time.
     import grpc_tools
 
-    proto_root = pathlib.Path(proto_root or default_proto_root())
-    out_dir = pathlib.Path(out_dir or default_out_dir())
     proto = proto_root / PROTO_RELATIVE
     if not proto.exists():
         raise FileNotFoundError(
@@ -73,16 +64,19 @@ def generate(proto_root: pathlib.Path | None = None, out_dir: pathlib.Path | Non
             target.write_text(text)
             os.utime(target)
     (out_dir / "__init__.py").write_text(
-        '"""Generated from proto/mll/v1 by multi_lunar_lander._codegen; not committed."""\n'
+        '"""Generated from proto/mll/v1 by client_py/generate_stubs.py; not committed."""\n'
     )
 
 
-def ensure(proto_root: pathlib.Path | None = None, out_dir: pathlib.Path | None = None) -> None:
-    proto_root = pathlib.Path(proto_root or default_proto_root())
-    out_dir = pathlib.Path(out_dir or default_out_dir())
+def ensure(proto_root: pathlib.Path, out_dir: pathlib.Path) -> None:
+    """Generates the stubs unless they are newer than the proto."""
     if not stubs_are_current(proto_root, out_dir):
         generate(proto_root, out_dir)
 
 
 if __name__ == "__main__":
-    generate()
+    import sys
+
+    if len(sys.argv) != 3:
+        sys.exit(f"usage: {sys.argv[0]} PROTO_ROOT OUT_DIR")
+    generate(pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2]))

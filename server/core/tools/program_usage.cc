@@ -1,0 +1,110 @@
+#include "program_usage.h"
+
+#include <algorithm>
+#include <cstdio>
+#include <cstdlib>
+#include <iostream>
+
+#include "absl/flags/parse.h"
+#include "absl/flags/reflection.h"
+#include "absl/strings/match.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "absl/strings/str_split.h"
+
+namespace mll::tools {
+namespace {
+
+constexpr int kExitUsage = 2;
+
+absl::string_view Basename(absl::string_view path) {
+  const size_t slash = path.rfind('/');
+  return slash == absl::string_view::npos ? path : path.substr(slash + 1);
+}
+
+bool IsHelpFlag(absl::string_view word) {
+  for (absl::string_view help : {"--help", "-help", "-h", "--helpfull",
+                                 "-helpfull", "--helpshort", "-helpshort"}) {
+    if (word == help) return true;
+  }
+  return false;
+}
+
+}  // namespace
+
+std::vector<const absl::CommandLineFlag*> FlagsDefinedIn(
+    absl::string_view source_basename) {
+  std::vector<const absl::CommandLineFlag*> flags;
+  for (const auto& [name, flag] : absl::GetAllFlags()) {
+    if (Basename(flag->Filename()) == source_basename) flags.push_back(flag);
+  }
+  std::sort(flags.begin(), flags.end(),
+            [](const absl::CommandLineFlag* a, const absl::CommandLineFlag* b) {
+              return a->Name() < b->Name();
+            });
+  return flags;
+}
+
+std::vector<const absl::CommandLineFlag*> FlagsNamed(
+    const std::vector<absl::string_view>& names) {
+  std::vector<const absl::CommandLineFlag*> flags;
+  for (absl::string_view name : names) {
+    const absl::CommandLineFlag* flag = absl::FindCommandLineFlag(name);
+    if (flag == nullptr) {
+      std::fprintf(stderr, "program_usage: no flag --%.*s\n",
+                   static_cast<int>(name.size()), name.data());
+      std::abort();
+    }
+    flags.push_back(flag);
+  }
+  return flags;
+}
+
+std::string DescribeFlags(
+    const std::vector<const absl::CommandLineFlag*>& flags) {
+  std::string text;
+  for (const absl::CommandLineFlag* flag : flags) {
+    const std::string default_value = flag->DefaultValue();
+    absl::StrAppend(&text, "  --", flag->Name(), "=",
+                    default_value.empty() ? "\"\"" : default_value, "\n");
+    for (absl::string_view line : absl::StrSplit(flag->Help(), '\n')) {
+      absl::StrAppend(&text, "      ", line, "\n");
+    }
+  }
+  return text;
+}
+
+std::vector<std::string> ParseCommandLine(
+    int argc, char** argv,
+    absl::FunctionRef<std::string(const std::vector<std::string>&)> help) {
+  bool wants_help = false;
+  std::vector<std::string> words;
+  for (int i = 1; i < argc; ++i) {
+    const absl::string_view word = argv[i];
+    if (IsHelpFlag(word)) {
+      wants_help = true;
+    } else if (!absl::StartsWith(word, "-")) {
+      words.emplace_back(word);
+    }
+  }
+  if (wants_help) {
+    std::cout << help(words) << std::flush;
+    std::exit(0);
+  }
+  std::vector<char*> positional = absl::ParseCommandLine(argc, argv);
+  return std::vector<std::string>(positional.begin() + 1, positional.end());
+}
+
+void ParseFlagsOnly(int argc, char** argv, absl::string_view program,
+                    absl::FunctionRef<std::string()> help) {
+  const std::vector<std::string> positional = ParseCommandLine(
+      argc, argv, [&](const std::vector<std::string>&) { return help(); });
+  if (!positional.empty()) {
+    std::cerr << program << ": takes flags only (--name=value); got \""
+              << absl::StrJoin(positional, " ") << "\"; see " << program
+              << " --help" << std::endl;
+    std::exit(kExitUsage);
+  }
+}
+
+}  // namespace mll::tools

@@ -1,0 +1,45 @@
+// Command-line help shared by mll_rollout, mll_server and mll_cli: `--help`
+// lists the program's own flags by name, default and description (never
+// abseil's internal flags or the paths of the files that define them) and
+// exits 0, and positional arguments are refused where a program takes none.
+#ifndef MLL_CORE_TOOLS_PROGRAM_USAGE_H_
+#define MLL_CORE_TOOLS_PROGRAM_USAGE_H_
+
+#include <string>
+#include <vector>
+
+#include "absl/flags/commandlineflag.h"
+#include "absl/functional/function_ref.h"
+#include "absl/strings/string_view.h"
+
+namespace mll::tools {
+
+// The flags defined in the source file with this base name (e.g.
+// "config_flags.cc"), sorted by name.
+std::vector<const absl::CommandLineFlag*> FlagsDefinedIn(
+    absl::string_view source_basename);
+
+// The flags with these names, in this order; a name that is not a flag is a
+// bug in the caller and aborts.
+std::vector<const absl::CommandLineFlag*> FlagsNamed(
+    const std::vector<absl::string_view>& names);
+
+// One block per flag: "  --name=DEFAULT" and its description indented below.
+std::string DescribeFlags(const std::vector<const absl::CommandLineFlag*>& flags);
+
+// absl::ParseCommandLine, except that --help, -h, --helpfull and --helpshort
+// print help(arguments) to stdout and exit 0, where `arguments` are the
+// command line's words that are not flags. Returns the positional arguments
+// (argv[0] excluded).
+std::vector<std::string> ParseCommandLine(
+    int argc, char** argv,
+    absl::FunctionRef<std::string(const std::vector<std::string>&)> help);
+
+// ParseCommandLine for a program that takes flags only: any positional
+// argument is a usage error (a one-line message on stderr, exit 2).
+void ParseFlagsOnly(int argc, char** argv, absl::string_view program,
+                    absl::FunctionRef<std::string()> help);
+
+}  // namespace mll::tools
+
+#endif  // MLL_CORE_TOOLS_PROGRAM_USAGE_H_
