@@ -13,6 +13,7 @@
 #include <sys/prctl.h>
 #endif
 
+#include <atomic>
 #include <cstdio>
 #include <fstream>
 #include <string>
@@ -25,6 +26,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/synchronization/mutex.h"
 #include "absl/time/time.h"
+#include "grpc/support/log.h"
 #include "mll/service/auth.h"
 #include "mll/service/server.h"
 
@@ -36,6 +38,10 @@ ABSL_FLAG(int32_t, threads,
           static_cast<int32_t>(std::thread::hardware_concurrency()),
           "worker threads stepping StepBatch's environments (default: cores)");
 ABSL_FLAG(int32_t, max_envs, 10000, "most environments hosted at once");
+ABSL_FLAG(int32_t, max_envs_per_token, 0,
+          "most environments one token (tenant) hosts at once; 0: the "
+          "default, unlimited without --auth_token_file, else "
+          "max(1, max_envs / number of tokens)");
 ABSL_FLAG(double, idle_timeout_s, 300,
           "an environment untouched this many seconds is destroyed");
 ABSL_FLAG(double, shutdown_grace_s, 5,
@@ -76,6 +82,17 @@ bool WritePortFile(const std::string& path, int port) {
   return std::rename(temporary.c_str(), path.c_str()) == 0;
 }
 
+// gRPC logs a failed bind on several lines of its own; while the server
+// starts, a failure is reported by the one line of main instead.
+std::atomic<bool> quiet_grpc_log{false};
+
+void GrpcLog(gpr_log_func_args* args) {
+  if (quiet_grpc_log.load()) return;
+  std::fprintf(stderr, "grpc %s %s:%d] %s\n",
+               gpr_log_severity_string(args->severity), args->file, args->line,
+               args->message);
+}
+
 // The host part of host:port.
 std::string HostOf(const std::string& address) {
   return address.substr(0, address.rfind(':'));
@@ -87,11 +104,19 @@ int main(int argc, char** argv) {
   absl::SetProgramUsageMessage(
       "Hosts Multi Lunar Lander environments over gRPC (mll.v1).\n"
       "Usage: mll_server [--address=127.0.0.1:50051] [--port_file=F] "
-      "[--threads=N] [--max_envs=N] [--idle_timeout_s=S] "
+      "[--threads=N] [--max_envs=N] [--max_envs_per_token=N] "
+      "[--idle_timeout_s=S] "
       "[--max_message_mb=M] [--shutdown_grace_s=S] "
       "[--tls_cert=PEM --tls_key=PEM] "
       "[--auth_token_file=F] [--metrics_address=HOST:PORT] [--parent_pid=P]");
-  absl::ParseCommandLine(argc, argv);
+  const std::vector<char*> positional = absl::ParseCommandLine(argc, argv);
+  if (positional.size() > 1) {  // positional[0] is the program.
+    std::fprintf(stderr,
+                 "mll_server: unexpected argument: \"%s\" (mll_server takes "
+                 "only flags, --name=value; see --help)\n",
+                 positional[1]);
+    return 1;
+  }
   // Debian's abseil is built with Mutex deadlock detection on, which puts a
   // global graph lock on every Lock (seen in StepBatch profiles). The
   // server's lock order is fixed (the registry's, then one env's, never two
@@ -144,6 +169,7 @@ int main(int argc, char** argv) {
   options.max_message_mb = absl::GetFlag(FLAGS_max_message_mb);
   options.service.threads = absl::GetFlag(FLAGS_threads);
   options.service.max_envs = absl::GetFlag(FLAGS_max_envs);
+  options.service.max_envs_per_token = absl::GetFlag(FLAGS_max_envs_per_token);
   options.service.idle_timeout =
       absl::Seconds(absl::GetFlag(FLAGS_idle_timeout_s));
   options.tls_cert_file = absl::GetFlag(FLAGS_tls_cert);
@@ -160,8 +186,11 @@ int main(int argc, char** argv) {
     }
     options.service.auth_tokens = *std::move(tokens);
   }
+  gpr_set_log_function(GrpcLog);
+  quiet_grpc_log = true;
   absl::StatusOr<std::unique_ptr<mll::Server>> server =
       mll::Server::Start(options);
+  quiet_grpc_log = false;
   if (!server.ok()) {
     std::fprintf(stderr, "mll_server: %s\n",
                  std::string(server.status().message()).c_str());
@@ -176,11 +205,13 @@ int main(int argc, char** argv) {
   const std::string host = HostOf(options.address);
   std::fprintf(stderr,
                "mll_server: listening on %s:%d (--address=%s --port_file=%s "
-               "--threads=%d --max_envs=%d --idle_timeout_s=%g "
-               "--max_message_mb=%d --shutdown_grace_s=%g)\n",
+               "--threads=%d --max_envs=%d --max_envs_per_token=%d "
+               "--idle_timeout_s=%g --max_message_mb=%d "
+               "--shutdown_grace_s=%g)\n",
                host.c_str(), (*server)->port(), options.address.c_str(),
                port_file.c_str(), options.service.threads,
                options.service.max_envs,
+               mll::EffectiveMaxEnvsPerToken(options.service),
                absl::ToDoubleSeconds(options.service.idle_timeout),
                options.max_message_mb, shutdown_grace_s);
   // What protects the server, in one line; never the tokens themselves.
