@@ -165,14 +165,16 @@ TEST(TenancyTest, KeepAliveRenewsLeasesAndReportsUnknownNames) {
   const grpc::Status gone = GetAs(*s.stub, kAlpha, idle);
   EXPECT_EQ(gone.error_code(), grpc::StatusCode::NOT_FOUND);
   EXPECT_THAT(gone.error_message(),
-              AllOf(HasSubstr(idle), HasSubstr("reclaimed after being idle 0.6 s"),
+              AllOf(HasSubstr(idle),
+                    HasSubstr("reclaimed after being idle 0.6 s"),
                     HasSubstr("keep the client's env object alive"),
                     HasSubstr("raise the server's --idle_timeout_s")));
   // To another tenant the reclaimed name is just unknown.
   const grpc::Status elsewhere = GetAs(*s.stub, kBeta, idle);
   EXPECT_EQ(elsewhere.error_code(), grpc::StatusCode::NOT_FOUND);
   EXPECT_THAT(elsewhere.error_message(),
-              AllOf(HasSubstr("does not exist"), Not(HasSubstr("was reclaimed"))));
+              AllOf(HasSubstr("does not exist"),
+                    Not(HasSubstr("was reclaimed"))));
 }
 
 TEST(TenancyTest, EnvReportsTheIdleTimeoutAndKeepAliveIsBounded) {
