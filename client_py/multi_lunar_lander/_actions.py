@@ -8,7 +8,7 @@ INVALID_ARGUMENT naming the lander, as for any client."""
 
 from __future__ import annotations
 
-from typing import Iterable, Sequence
+from typing import Collection, Iterable, Sequence
 
 import numpy as np
 
@@ -38,17 +38,18 @@ def _problem(array: np.ndarray | None, expected: tuple[int, ...], continuous: bo
         return f"shape {array.shape}, expected {expected}"
     if array.size and array.dtype.kind not in _KINDS[continuous]:
         return f"of type {array.dtype if array.ndim else type(array.item()).__name__}"
-    if not continuous and array.size and (array.min() < _INT32.min or array.max() > _INT32.max):
+    wide = array.dtype.itemsize > 4 or (array.dtype.kind == "u" and array.dtype.itemsize == 4)
+    if not continuous and array.size and wide and (array.min() < _INT32.min or array.max() > _INT32.max):
         return "out of the 32-bit range"
     return None
 
 
 def _is_plain(value, continuous: bool) -> bool:
     """The common forms of one agent's action, recognised without building an array: an int or
-    numpy integer (not a bool), or a numeric array of shape (2,)."""
+    numpy integer (not a bool) in the 32-bit range, or a numeric array of shape (2,)."""
     if continuous:
         return isinstance(value, np.ndarray) and value.shape == (2,) and value.dtype.kind in "iuf"
-    return type(value) is int or isinstance(value, np.integer)
+    return (type(value) is int or isinstance(value, np.integer)) and _INT32.min <= value <= _INT32.max
 
 
 def _as_array(values) -> np.ndarray | None:
@@ -67,12 +68,18 @@ def check_actions(
     parallel step): an error then names the first bad item's agent; else it names `what`."""
     expected = tuple(shape_prefix) + ((2,) if continuous else ())
     if labels is not None:  # Item by item first: numpy would turn [True, 2] into [1, 2].
+        plain = True
         for label, value in zip(labels, values):
-            item = None if _is_plain(value, continuous) else _problem(_as_array(value), expected[1:], continuous)
+            if _is_plain(value, continuous):
+                continue
+            plain = False
+            item = _problem(_as_array(value), expected[1:], continuous)
             if item is not None:
                 raise invalid_argument(
                     f"the action of {label} is {_short(value)}: {item}; allowed: {ALLOWED[continuous]}"
                 )
+        if plain and not continuous and len(values) == expected[0]:
+            return np.array(values, dtype=np.int32)  # Integers already known to fit.
     array = _as_array(values)
     problem = _problem(array, expected, continuous)
     if problem is None:
@@ -81,12 +88,11 @@ def check_actions(
     raise invalid_argument(f"{what} {verb} {_short(values)}: {problem}; allowed{per_agent}: {ALLOWED[continuous]}")
 
 
-def check_agents(keys: Iterable, possible_agents: Sequence[str], active: Sequence[str]) -> None:
-    """A parallel step's action keys must be agents of the env: an unknown key (e.g.
-    "lander_99") would otherwise be dropped silently. Keys of agents already done are allowed
-    and ignored, as PettingZoo's parallel envs do."""
-    known = set(possible_agents)
-    unknown = [key for key in keys if key not in known]
+def check_agents(keys: Iterable, possible_agents: Collection[str], active: Sequence[str]) -> None:
+    """A parallel step's action keys must be agents of the env (`possible_agents`, best a dict
+    or set): an unknown key (e.g. "lander_99") would otherwise be dropped silently. Keys of
+    agents already done are allowed and ignored, as PettingZoo's parallel envs do."""
+    unknown = [key for key in keys if key not in possible_agents]
     if unknown:
         raise invalid_argument(
             f"actions has key(s) {_short(unknown)} that are not agents of this env; allowed: "

@@ -57,7 +57,7 @@ class MultiLunarLanderParallelEnv(RemoteEnvBase, ParallelEnv):
             raise invalid_argument(
                 f"actions is a {type(actions).__name__}; expected a dict from agent name to action"
             )
-        check_agents(actions, self.possible_agents, self.agents)
+        check_agents(actions, self._agent_index, self.agents)
         missing = [agent for agent in self.agents if agent not in actions]
         if missing:
             raise invalid_argument(f"actions has no entry for active agent(s) {missing}")
