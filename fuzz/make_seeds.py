@@ -69,7 +69,8 @@ def service_seeds():
                         f'steps {{ name: "@1" actions {{ {int32s([0])} }} }} '
                         f'steps {{ name: "@2" actions {{ {int32s([1] * 32)} }} }}')
         for _ in range(5)) + op("ListEnvs", "page_size: 2") + op("GetEnv", 'name: "@1"') + op(
-        "DeleteEnv", 'name: "@1"') + op("StepEnv", f'name: "@1" actions {{ {int32s([0])} }}')
+        "DeleteEnv", 'name: "@1"') + op("StepEnv", f'name: "@1" actions {{ {int32s([0])} }}') + op(
+        "KeepAlive", 'names: "@0" names: "@1" names: "@2" names: "envs/none" names: "bad"')
     yield "bad_requests", op("CreateEnv", "config { n_landers: 33 gravity: 0 }") + discrete + op(
         "StepEnv", f'name: "@0" actions {{ {int32s([1, 1, 1])} }}') + op(
         "ResetEnv", 'name: "@0"') + op("StepEnv", 'name: "@0" actions { dtype: DTYPE_INT32 shape: 3 data: "\\001" }') + op(

@@ -312,6 +312,20 @@ void RunOp(Service& service, Method method, const std::string& bytes,
       }
       return;
     }
+    case Method::kKeepAlive: {
+      v1::KeepAliveRequest request;
+      if (!request.ParseFromString(bytes)) return;
+      for (std::string& name : *request.mutable_names()) {
+        Resolve(*created, &name);
+      }
+      v1::KeepAliveResponse response;
+      absl::Status status = ops.KeepAlive(request, &response);
+      CheckCode(status, {absl::StatusCode::kInvalidArgument}, "KeepAlive");
+      if (status.ok() && response.not_found_size() > request.names_size()) {
+        Fail("KeepAlive: more names not found than asked for");
+      }
+      return;
+    }
     case Method::kSession:
       // RunSessionOp never comes back here: a SessionRequest cannot nest one.
       RunSessionOp(service, bytes, created);

@@ -80,7 +80,9 @@ AecTurn AecState::Last(int agent) const {
 
 RemoteEnv::RemoteEnv(std::shared_ptr<Transport> transport, EnvInfo info,
                      bool owned)
-    : transport_(std::move(transport)), info_(std::move(info)), owned_(owned) {}
+    : transport_(std::move(transport)), info_(std::move(info)), owned_(owned) {
+  transport_->Hold(info_.name, info_.idle_timeout_s);
+}
 
 RemoteEnv::RemoteEnv(RemoteEnv&& other) noexcept
     : transport_(std::move(other.transport_)),
@@ -91,6 +93,7 @@ RemoteEnv::RemoteEnv(RemoteEnv&& other) noexcept
 RemoteEnv& RemoteEnv::operator=(RemoteEnv&& other) noexcept {
   if (this != &other) {
     if (owned_) (void)Delete();
+    if (transport_ != nullptr) transport_->Unhold(info_.name);
     transport_ = std::move(other.transport_);
     info_ = std::move(other.info_);
     owned_ = std::exchange(other.owned_, false);
@@ -103,6 +106,7 @@ RemoteEnv::~RemoteEnv() {
   // A destructor cannot report; the server's idle timeout reclaims an env
   // whose deletion failed (e.g. the server was unreachable).
   if (owned_) (void)Delete();
+  if (transport_ != nullptr) transport_->Unhold(info_.name);
 }
 
 absl::StatusOr<StepData> RemoteEnv::Reset(std::optional<uint64_t> seed) {
@@ -231,6 +235,7 @@ absl::Status RemoteEnv::Delete() {
     return absl::FailedPreconditionError("Delete on an empty RemoteEnv handle");
   }
   absl::Status status = DeleteEnvOn(*transport_, info_.name);
+  transport_->Unhold(info_.name);
   transport_ = nullptr;
   owned_ = false;
   return status;

@@ -1,8 +1,10 @@
 #include "transport.h"
 
+#include <algorithm>
 #include <future>
 #include <string>
 #include <utility>
+#include <vector>
 
 #include "absl/base/thread_annotations.h"
 #include "absl/strings/match.h"
@@ -27,6 +29,14 @@ namespace {
 using ::google::protobuf::internal::WireFormatLite;
 
 constexpr char kHealthCheckMethod[] = "/grpc.health.v1.Health/Check";
+// Lease renewals per idle timeout: two more before a lease could expire.
+constexpr int kRenewalsPerTimeout = 3;
+// Never more often than this, whatever the server's timeout.
+constexpr absl::Duration kMinRenewalPeriod = absl::Milliseconds(50);
+// A renewal call waits at most this long (or one period).
+constexpr absl::Duration kMaxRenewalWait = absl::Seconds(10);
+// The most names the server takes in one KeepAlive call.
+constexpr int kMaxKeepAliveNames = 10000;
 // grpc.health.v1.HealthCheckResponse.ServingStatus.SERVING.
 constexpr uint32_t kServing = 1;
 
@@ -279,6 +289,59 @@ Transport::Transport(std::string address,
       channel_(std::move(channel)),
       options_(std::move(options)),
       stub_(v1::MultiLunarLander::NewStub(channel_)) {}
+
+Transport::~Transport() {
+  {
+    absl::MutexLock lock(&lease_mu_);
+    stopping_ = true;
+    lease_wake_.Signal();
+  }
+  if (renewer_.joinable()) renewer_.join();
+}
+
+void Transport::Hold(const std::string& name, double idle_timeout_s) {
+  if (!(idle_timeout_s > 0)) return;
+  absl::MutexLock lock(&lease_mu_);
+  ++held_[name];
+  lease_period_ =
+      std::min(lease_period_, std::max(absl::Seconds(idle_timeout_s) /
+                                           kRenewalsPerTimeout,
+                                       kMinRenewalPeriod));
+  if (!renewer_.joinable()) renewer_ = std::thread([this] { RenewLoop(); });
+}
+
+void Transport::Unhold(const std::string& name) {
+  absl::MutexLock lock(&lease_mu_);
+  auto it = held_.find(name);
+  if (it != held_.end() && --it->second == 0) held_.erase(it);
+}
+
+void Transport::RenewLoop() {
+  absl::MutexLock lock(&lease_mu_);
+  while (!stopping_) {
+    lease_wake_.WaitWithTimeout(&lease_mu_, lease_period_);
+    if (stopping_ || held_.empty()) continue;
+    std::vector<v1::KeepAliveRequest> requests(1);
+    for (const auto& [name, count] : held_) {
+      if (requests.back().names_size() == kMaxKeepAliveNames) {
+        requests.emplace_back();
+      }
+      requests.back().add_names(name);
+    }
+    const absl::Duration deadline = std::min(lease_period_, kMaxRenewalWait);
+    lease_mu_.Unlock();  // A round trip: Hold and Unhold must not wait.
+    for (const v1::KeepAliveRequest& request : requests) {
+      grpc::ClientContext context;
+      Prepare(&context, /*unary=*/false);
+      context.set_deadline(absl::ToChronoTime(absl::Now() + deadline));
+      v1::KeepAliveResponse response;
+      // A failure (server unreachable for now) is retried next period; the
+      // names the server no longer knows stay held until their handles go.
+      (void)stub_->KeepAlive(&context, request, &response);
+    }
+    lease_mu_.Lock();
+  }
+}
 
 std::future<absl::Status> Transport::CallAsync(v1::SessionRequest& request,
                                                v1::SessionResponse* response) {

@@ -8,10 +8,15 @@
 #include <future>
 #include <memory>
 #include <string>
+#include <thread>
 
 #include "absl/status/status.h"
+#include "absl/base/thread_annotations.h"
+#include "absl/container/flat_hash_map.h"
 #include "absl/status/statusor.h"
 #include "absl/strings/string_view.h"
+#include "absl/synchronization/mutex.h"
+#include "absl/time/time.h"
 #include "grpcpp/channel.h"
 #include "grpcpp/client_context.h"
 #include "grpcpp/support/status.h"
@@ -29,7 +34,8 @@ class Transport {
  public:
   Transport(std::string address, std::shared_ptr<grpc::Channel> channel,
             ClientOptions options);
-  virtual ~Transport() = default;
+  // Stops the lease renewals.
+  virtual ~Transport();
   Transport(const Transport&) = delete;
   Transport& operator=(const Transport&) = delete;
 
@@ -60,6 +66,13 @@ class Transport {
   // A new session stream on the same channel.
   absl::StatusOr<std::shared_ptr<Transport>> OpenSession() const;
 
+  // Leases (EnvInfo::idle_timeout_s): while `name` is held (once per Hold,
+  // until as many Unholds), a thread of this transport renews it with a
+  // KeepAlive call carrying every held name, every third of the timeout.
+  // idle_timeout_s <= 0 (a server without KeepAlive) holds nothing.
+  void Hold(const std::string& name, double idle_timeout_s);
+  void Unhold(const std::string& name);
+
  protected:
   // Adds the token and, for unary calls, the deadline.
   void Prepare(grpc::ClientContext* context, bool unary) const;
@@ -68,6 +81,17 @@ class Transport {
   std::shared_ptr<grpc::Channel> channel_;
   ClientOptions options_;
   std::unique_ptr<v1::MultiLunarLander::Stub> stub_;
+
+ private:
+  void RenewLoop();
+
+  absl::Mutex lease_mu_;
+  absl::CondVar lease_wake_;
+  absl::flat_hash_map<std::string, int> held_ ABSL_GUARDED_BY(lease_mu_);
+  absl::Duration lease_period_ ABSL_GUARDED_BY(lease_mu_) =
+      absl::InfiniteDuration();
+  bool stopping_ ABSL_GUARDED_BY(lease_mu_) = false;
+  std::thread renewer_;  // Started by the first Hold.
 };
 
 // A unary transport for `address`.

@@ -258,6 +258,7 @@ EnvInfo DecodeEnv(const v1::Env& proto) {
   info.cycles = proto.cycles();
   info.episodes = proto.episodes();
   info.session_bound = proto.session_bound();
+  info.idle_timeout_s = proto.idle_timeout_s();
   google::protobuf::util::JsonPrintOptions options;
   options.preserve_proto_field_names = true;
   options.always_print_primitive_fields = true;

@@ -9,7 +9,7 @@ from typing import Any, Sequence
 import gymnasium
 import numpy as np
 
-from . import _arrays
+from . import _arrays, _lease
 from ._errors import MLLError
 from ._channel import Security
 from ._remote import Connection, config_dict, connect_single, make_config, space_from_proto
@@ -65,6 +65,7 @@ class RemoteEnvBase:
         self._connection = connection
         self._name = env.name
         self._deleter = weakref.finalize(self, _delete_env, connection, env.name)
+        _lease.hold(connection, env.name, env.idle_timeout_s)
         self.render_mode = render_mode
         self.config = config_dict(env.config)
         self.continuous = bool(env.config.continuous)

@@ -15,6 +15,7 @@ import numpy as np
 from gymnasium import spaces
 
 from . import _arrays
+from ._actions import check_actions
 from ._channel import Security, open_channel, parse_addresses
 from ._errors import MLLError, from_item_error, from_rpc_error, invalid_argument
 from ._server import acquire_embedded
@@ -137,28 +138,9 @@ class Columns(NamedTuple):
         return info
 
 
-def action_array(actions, continuous: bool, shape_prefix: tuple[int, ...], what: str) -> np.ndarray:
-    """Checks the shape of a block of actions and casts it to the wire's element type
-    (int32 [..] discrete, float32 [.., 2] continuous); values are the server's to check."""
-    expected = shape_prefix + ((2,) if continuous else ())
-    array = np.asarray(actions)
-    if array.shape != expected:
-        raise invalid_argument(
-            f"{what} have shape {array.shape}; expected {expected} "
-            f"({'continuous [main, lateral] per agent' if continuous else 'one discrete action 0..3 per agent'})"
-        )
-    if continuous:
-        return array.astype(np.float32, copy=False)
-    if array.dtype.kind not in "iub":
-        rounded = array.astype(np.int64) if np.isfinite(array).all() else None
-        if rounded is None or not np.array_equal(rounded, array):
-            raise invalid_argument(f"{what} are {array.ravel()[:8].tolist()}; discrete actions are integers 0..3")
-    return array.astype(np.int32, copy=False)
-
-
 def encode_agent_action(action, continuous: bool, agent: str, out: "pb.AgentAction") -> None:
     """Fills an AEC AgentAction from one agent's action."""
-    values = action_array(action, continuous, (), f"the action of {agent}")
+    values = check_actions(action, continuous, (), f"the action of {agent}")
     if continuous:
         _arrays.to_proto(values, pb.DTYPE_FLOAT32, out.continuous)
     else:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 
 import numpy as np
 from pettingzoo import ParallelEnv
@@ -9,7 +10,8 @@ from pettingzoo import ParallelEnv
 from . import _arrays
 from ._base import RemoteEnvBase
 from ._errors import invalid_argument
-from ._remote import Columns, action_array, seed_value
+from ._actions import check_actions, check_agents
+from ._remote import Columns, seed_value
 from ._stubs import pb
 
 
@@ -51,13 +53,18 @@ class MultiLunarLanderParallelEnv(RemoteEnvBase, ParallelEnv):
         return observations, infos
 
     def step(self, actions: dict):
+        if not isinstance(actions, Mapping):
+            raise invalid_argument(
+                f"actions is a {type(actions).__name__}; expected a dict from agent name to action"
+            )
+        check_agents(actions, self._agent_index, self.agents)
         missing = [agent for agent in self.agents if agent not in actions]
         if missing:
             raise invalid_argument(f"actions has no entry for active agent(s) {missing}")
         self._actions.fill(0)
-        self._actions[[self._agent_index[agent] for agent in self.agents]] = action_array(
+        self._actions[[self._agent_index[agent] for agent in self.agents]] = check_actions(
             [actions[agent] for agent in self.agents], self.continuous, (len(self.agents),),
-            f"the actions of {self.agents}",
+            f"the actions of {self.agents}", labels=self.agents,
         )
         request = pb.StepEnvRequest(name=self._name)
         _arrays.to_proto(self._actions, pb.DTYPE_FLOAT32 if self.continuous else pb.DTYPE_INT32, request.actions)

@@ -26,10 +26,11 @@ from typing import Any, NamedTuple, Sequence
 import grpc
 import numpy as np
 
-from . import _arrays
+from . import _arrays, _lease
 from ._channel import Security, parse_addresses
 from ._errors import MLLError, from_item_error, invalid_argument
-from ._remote import Connection, SessionStream, action_array, config_dict, make_config, seed_value, space_from_proto
+from ._actions import check_actions
+from ._remote import Connection, SessionStream, config_dict, make_config, seed_value, space_from_proto
 from ._stubs import pb
 
 # Result columns: (field of StepData / PackedStepData, wire dtype, numpy dtype of the result,
@@ -127,6 +128,8 @@ class VectorEnv:
                     failure = failure or error
             if failure is not None:
                 raise failure
+            for index, name in enumerate(self._names):
+                _lease.hold(self._connection_of(index), name, envs[index].idle_timeout_s)
         except BaseException:
             self.close()
             raise
@@ -223,7 +226,7 @@ class VectorEnv:
     def _set_actions(self, actions) -> None:
         """Checks `actions` and puts each server's rows into its reused StepBatch request."""
         self._check_no_step_in_flight()
-        block = action_array(actions, self.continuous, (self.num_envs, self.n_landers), "actions")
+        block = check_actions(actions, self.continuous, (self.num_envs, self.n_landers), "actions")
         for server in self._servers:
             server.actions.data = _arrays.to_bytes(block[server.rows], self._action_dtype)
 

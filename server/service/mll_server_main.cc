@@ -37,6 +37,10 @@ ABSL_FLAG(int32_t, threads,
           static_cast<int32_t>(std::thread::hardware_concurrency()),
           "worker threads stepping StepBatch's environments (default: cores)");
 ABSL_FLAG(int32_t, max_envs, 10000, "most environments hosted at once");
+ABSL_FLAG(int32_t, max_envs_per_token, 0,
+          "most environments one token (tenant) hosts at once; 0: the "
+          "default, unlimited without --auth_token_file, else "
+          "max(1, max_envs / number of tokens)");
 ABSL_FLAG(double, idle_timeout_s, 300,
           "an environment untouched this many seconds is destroyed");
 ABSL_FLAG(double, shutdown_grace_s, 5,
@@ -154,6 +158,7 @@ int main(int argc, char** argv) {
   options.max_message_mb = absl::GetFlag(FLAGS_max_message_mb);
   options.service.threads = absl::GetFlag(FLAGS_threads);
   options.service.max_envs = absl::GetFlag(FLAGS_max_envs);
+  options.service.max_envs_per_token = absl::GetFlag(FLAGS_max_envs_per_token);
   options.service.idle_timeout =
       absl::Seconds(absl::GetFlag(FLAGS_idle_timeout_s));
   options.tls_cert_file = absl::GetFlag(FLAGS_tls_cert);
@@ -186,11 +191,13 @@ int main(int argc, char** argv) {
   const std::string host = HostOf(options.address);
   std::fprintf(stderr,
                "mll_server: listening on %s:%d (--address=%s --port_file=%s "
-               "--threads=%d --max_envs=%d --idle_timeout_s=%g "
-               "--max_message_mb=%d --shutdown_grace_s=%g)\n",
+               "--threads=%d --max_envs=%d --max_envs_per_token=%d "
+               "--idle_timeout_s=%g --max_message_mb=%d "
+               "--shutdown_grace_s=%g)\n",
                host.c_str(), (*server)->port(), options.address.c_str(),
                port_file.c_str(), options.service.threads,
                options.service.max_envs,
+               mll::EffectiveMaxEnvsPerToken(options.service),
                absl::ToDoubleSeconds(options.service.idle_timeout),
                options.max_message_mb, shutdown_grace_s);
   // What protects the server, in one line; never the tokens themselves.

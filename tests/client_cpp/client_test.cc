@@ -4,8 +4,10 @@
 #include "mll/client.h"
 
 #include <algorithm>
+#include <chrono>
 #include <memory>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "gmock/gmock.h"
@@ -454,6 +456,36 @@ TEST(ServerGoneTest, CallsFailUnavailable) {
   EXPECT_EQ(session->GetEnv(session_env->name()).status().code(),
             absl::StatusCode::kUnavailable);
   EXPECT_EQ(env->Delete().code(), absl::StatusCode::kUnavailable);
+}
+
+// Leases follow the handles: a paused program keeps its environments for
+// many idle timeouts; once the handle is gone, the server reclaims the env
+// after the timeout and its NOT_FOUND says so.
+TEST(LeaseTest, HandlesKeepTheirEnvsThroughPausesLongerThanTheTimeout) {
+  absl::StatusOr<std::unique_ptr<ServerProcess>> server =
+      ServerProcess::Start(MLL_SERVER_PATH, {"--idle_timeout_s=0.6"});
+  ASSERT_TRUE(server.ok()) << server.status();
+  absl::StatusOr<Client> client = Client::Create((*server)->address());
+  ASSERT_TRUE(client.ok()) << client.status();
+  absl::StatusOr<Client> session = client->OpenSession();
+  ASSERT_TRUE(session.ok()) << session.status();
+  absl::StatusOr<RemoteEnv> env = client->CreateEnv(Landers(1));
+  ASSERT_TRUE(env.ok()) << env.status();
+  EXPECT_DOUBLE_EQ(env->info().idle_timeout_s, 0.6);
+  absl::StatusOr<RemoteEnv> bound = session->CreateEnv(Landers(1));
+  ASSERT_TRUE(bound.ok()) << bound.status();
+  absl::StatusOr<RemoteEnv> released = client->CreateEnv(Landers(1));
+  ASSERT_TRUE(released.ok()) << released.status();
+  const std::string name = released->Release();
+  released = absl::CancelledError("dropped");  // Destroys the handle.
+
+  std::this_thread::sleep_for(std::chrono::milliseconds(2000));  // The pause.
+  EXPECT_TRUE(env->Reset(1).ok());
+  EXPECT_TRUE(bound->Reset(1).ok());
+  absl::Status gone = client->GetEnv(name).status();
+  EXPECT_EQ(gone.code(), absl::StatusCode::kNotFound);
+  EXPECT_THAT(gone.message(),
+              HasSubstr("was reclaimed after being idle 0.6 s"));
 }
 
 TEST(ServerGoneTest, NoServerAtAll) {

@@ -2,6 +2,7 @@
 // TCP: the service, the health service, and a clean exit on SIGTERM.
 #include <signal.h>
 
+#include <algorithm>
 #include <chrono>
 #include <string>
 #include <tuple>
@@ -88,13 +89,56 @@ TEST(ServerBinaryTest, RejectsBadFlagsNamingThem) {
   EXPECT_EQ(code, 1);
   EXPECT_THAT(output, HasSubstr("--parent_pid=1 has already exited"));
 #endif
-  std::tie(code, output) = RunServer("--address=127.0.0.1:0 stray");
-  EXPECT_EQ(code, 2);
-  EXPECT_THAT(output, HasSubstr("takes flags only"));
-  EXPECT_THAT(output, HasSubstr("\"stray\""));
   std::tie(code, output) = RunServer("--address=not-an-address");
   EXPECT_EQ(code, 1);
-  EXPECT_THAT(output, HasSubstr("--address: cannot listen on not-an-address"));
+  EXPECT_THAT(output,
+              HasSubstr("--address: \"not-an-address\" is not host:port"));
+}
+
+// Exit code 1 and exactly one line, which names `flag` and `address`.
+void ExpectOneLineRefusal(const std::string& flags, const std::string& flag,
+                          const std::string& address) {
+  auto [code, output] = RunServer(flags);
+  EXPECT_EQ(code, 1) << flags;
+  EXPECT_EQ(std::count(output.begin(), output.end(), '\n'), 1)
+      << flags << ": " << output;
+  EXPECT_THAT(output, HasSubstr(flag + ": ")) << flags;
+  EXPECT_THAT(output, HasSubstr(address)) << flags;
+}
+
+TEST(ServerBinaryTest, RefusesABusyPortInsteadOfSharingIt) {
+  ServerProcess first({});
+  const int port = first.WaitForPort();
+  ASSERT_GT(port, 0);
+  const std::string busy = "127.0.0.1:" + std::to_string(port);
+  ExpectOneLineRefusal("--address=" + busy, "--address",
+                       "cannot listen on " + busy);
+  // The metrics listener refuses it as well.
+  ExpectOneLineRefusal("--address=127.0.0.1:0 --metrics_address=" + busy,
+                       "--metrics_address", "cannot listen on " + busy);
+  EXPECT_EQ(first.SignalAndWait(SIGTERM), 0);
+}
+
+TEST(ServerBinaryTest, RefusesMalformedAndOutOfRangePorts) {
+  for (const std::string address :
+       {"127.0.0.1:99999", "127.0.0.1:65536", "abc", "127.0.0.1",
+        "127.0.0.1:", ":50051", "127.0.0.1:-1", "127.0.0.1:5x", "::1:50051"}) {
+    ExpectOneLineRefusal("--address=" + address, "--address",
+                         "\"" + address + "\" is not host:port");
+    ExpectOneLineRefusal("--address=127.0.0.1:0 --metrics_address=" + address,
+                         "--metrics_address",
+                         "\"" + address + "\" is not host:port");
+  }
+}
+
+TEST(ServerBinaryTest, PositionalArgumentsAreAUsageError) {
+  for (const std::string argument : {"extra", "127.0.0.1:50051"}) {
+    auto [code, output] = RunServer("--address=127.0.0.1:0 " + argument);
+    EXPECT_EQ(code, 2) << argument;
+    EXPECT_EQ(std::count(output.begin(), output.end(), '\n'), 1) << output;
+    EXPECT_THAT(output, HasSubstr("takes flags only"));
+    EXPECT_THAT(output, HasSubstr("\"" + argument + "\""));
+  }
 }
 
 TEST(ServerBinaryTest, HelpListsEveryFlagAndExitsZero) {
@@ -103,7 +147,8 @@ TEST(ServerBinaryTest, HelpListsEveryFlagAndExitsZero) {
   // No build paths: flags are listed by name, not by the file defining them.
   EXPECT_THAT(output, Not(HasSubstr(".cc")));
   for (const char* flag : {"--address", "--port_file", "--threads",
-                           "--max_envs", "--idle_timeout_s",
+                           "--max_envs", "--max_envs_per_token",
+                           "--idle_timeout_s",
                            "--max_message_mb", "--tls_cert", "--tls_key",
                            "--auth_token_file", "--metrics_address",
                            "--shutdown_grace_s", "--parent_pid"}) {

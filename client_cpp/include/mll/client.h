@@ -145,6 +145,12 @@ struct EnvInfo {
   int cycles = 0;
   int64_t episodes = 0;
   bool session_bound = false;
+  // The server's --idle_timeout_s (0 from a server without KeepAlive): an
+  // environment no call touches this long is destroyed. While a RemoteEnv
+  // handle lives, a background thread of its client renews the lease every
+  // third of it, so a paused program keeps its environments; a dead one
+  // loses them after this long.
+  double idle_timeout_s = 0;
   // Index of the server hosting the environment in the client's address
   // list (0 with one server).
   int server = 0;
@@ -259,7 +265,8 @@ struct Actions {
 
 // A handle to one environment on the server. Move-only. When it owns its
 // environment, destroying it deletes the environment (errors are ignored
-// there; call Delete() to see them).
+// there; call Delete() to see them). While it lives, the environment's lease
+// is renewed (EnvInfo::idle_timeout_s), owned or not.
 class RemoteEnv {
  public:
   RemoteEnv(RemoteEnv&& other) noexcept;

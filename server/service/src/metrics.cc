@@ -14,7 +14,8 @@ constexpr std::memory_order kRelaxed = std::memory_order_relaxed;
 
 constexpr absl::string_view kMethodNames[kMethodCount] = {
     "CreateEnv", "GetEnv",    "ListEnvs",  "DeleteEnv", "ResetEnv",
-    "StepEnv",   "StepAgent", "StepBatch", "RenderEnv", "Session"};
+    "StepEnv",   "StepAgent", "StepBatch", "RenderEnv", "Session",
+    "KeepAlive"};
 
 // The methods that step environments, the only ones with step counters.
 constexpr Method kStepMethods[] = {Method::kStepEnv, Method::kStepAgent,
@@ -112,10 +113,22 @@ void Metrics::RecordStepAgent(Method method, bool acted) {
 
 void Metrics::RecordReset() { episodes_.fetch_add(1, kRelaxed); }
 
-std::string Metrics::Render(int live_envs) const {
+std::string Metrics::Render(
+    int live_envs,
+    const std::vector<std::pair<std::string, int>>& live_by_tenant) const {
   std::string out;
   Family("mll_envs_live", "gauge", "Environments hosted now.", &out);
   absl::StrAppend(&out, "mll_envs_live ", live_envs, "\n");
+  Family("mll_tenant_envs_live", "gauge",
+         "Environments hosted now (or being built) per tenant: token#N is the "
+         "N-th token of --auth_token_file, anonymous a server without tokens; "
+         "tenants without environments are not listed.",
+         &out);
+  for (const auto& [tenant, count] : live_by_tenant) {
+    absl::StrAppend(&out, "mll_tenant_envs_live{tenant=\"",
+                    tenant.empty() ? "anonymous" : tenant, "\"} ", count,
+                    "\n");
+  }
   Family("mll_episodes_started_total", "counter",
          "Episodes started, by ResetEnv or by an auto_reset step.", &out);
   absl::StrAppend(&out, "mll_episodes_started_total ",

@@ -6,10 +6,10 @@
 #include <utility>
 
 #include "absl/status/status.h"
-#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/string_view.h"
 #include "httplib.h"
+#include "mll/service/listen_address.h"
 
 namespace mll {
 namespace {
@@ -18,6 +18,7 @@ constexpr char kContentType[] = "text/plain; version=0.0.4; charset=utf-8";
 // A scraper or two: more threads would only idle.
 constexpr int kHttpThreads = 2;
 constexpr int kIoTimeoutS = 5;
+constexpr int kExamplePort = 9464;
 
 }  // namespace
 
@@ -26,17 +27,11 @@ MetricsHttpServer::MetricsHttpServer()
 
 absl::StatusOr<std::unique_ptr<MetricsHttpServer>> MetricsHttpServer::Start(
     const std::string& address, std::function<std::string()> render) {
-  const size_t colon = address.rfind(':');
-  int port = -1;
-  if (colon == std::string::npos ||
-      !absl::SimpleAtoi(absl::string_view(address).substr(colon + 1), &port) ||
-      port < 0 || port > 65535) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "--metrics_address: \"", address,
-        "\" is not host:port (allowed: e.g. 127.0.0.1:9464, 0.0.0.0:9464, "
-        "[::1]:9464; port 0..65535, 0 picks a free port; empty: off)"));
-  }
-  std::string host = address.substr(0, colon);
+  absl::StatusOr<ListenAddress> parsed =
+      ParseListenAddress("--metrics_address", address, kExamplePort);
+  if (!parsed.ok()) return parsed.status();
+  const int port = parsed->port;
+  std::string host = parsed->host;
   if (host.size() >= 2 && host.front() == '[' && host.back() == ']') {
     host = host.substr(1, host.size() - 2);
   }

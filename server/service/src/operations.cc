@@ -120,8 +120,11 @@ absl::Status CheckDistinctNames(int count, NameOf name_of, ItemOf item_of,
   return absl::OkStatus();
 }
 
-void FillEnvLocked(const EnvSlot& slot, v1::Env* out)
-    ABSL_EXCLUSIVE_LOCKS_REQUIRED(slot.mu) {
+// The most names one KeepAlive renews: a client holding more sends several.
+constexpr int kMaxKeepAliveNames = 10000;
+
+void FillEnvLocked(const EnvSlot& slot, absl::Duration idle_timeout,
+                   v1::Env* out) ABSL_EXCLUSIVE_LOCKS_REQUIRED(slot.mu) {
   out->set_name(slot.name);
   *out->mutable_config() = EnvConfigToProto(slot.config, slot.auto_reset);
   for (int i = 0; i < slot.config.n_landers; ++i) {
@@ -135,6 +138,7 @@ void FillEnvLocked(const EnvSlot& slot, v1::Env* out)
   out->set_cycles(slot.env->cycles());
   out->set_episodes(slot.episodes);
   out->set_session_bound(slot.session_bound);
+  out->set_idle_timeout_s(absl::ToDoubleSeconds(idle_timeout));
 }
 
 }  // namespace
@@ -151,7 +155,7 @@ absl::Status Operations::CreateEnv(const v1::CreateEnvRequest& request,
       *config, request.config().auto_reset(), session_bound, owner);
   if (!slot.ok()) return slot.status();
   absl::MutexLock lock(&(*slot)->mu);
-  FillEnvLocked(**slot, out);
+  FillEnvLocked(**slot, registry_->idle_timeout(), out);
   return absl::OkStatus();
 }
 
@@ -161,7 +165,7 @@ absl::Status Operations::GetEnv(const v1::GetEnvRequest& request,
       registry_->Find(request.name(), "name", owner);
   if (!slot.ok()) return slot.status();
   absl::MutexLock lock(&(*slot)->mu);
-  FillEnvLocked(**slot, out);
+  FillEnvLocked(**slot, registry_->idle_timeout(), out);
   return absl::OkStatus();
 }
 
@@ -173,7 +177,7 @@ absl::Status Operations::ListEnvs(const v1::ListEnvsRequest& request,
   if (!page.ok()) return page.status();
   for (const std::shared_ptr<EnvSlot>& slot : page->slots) {
     absl::MutexLock lock(&slot->mu);
-    FillEnvLocked(*slot, out->add_envs());
+    FillEnvLocked(*slot, registry_->idle_timeout(), out->add_envs());
   }
   out->set_next_page_token(page->next_page_token);
   return absl::OkStatus();
@@ -182,6 +186,25 @@ absl::Status Operations::ListEnvs(const v1::ListEnvsRequest& request,
 absl::Status Operations::DeleteEnv(const v1::DeleteEnvRequest& request,
                                    absl::string_view owner) {
   return registry_->Delete(request.name(), "name", owner);
+}
+
+absl::Status Operations::KeepAlive(const v1::KeepAliveRequest& request,
+                                   v1::KeepAliveResponse* out,
+                                   absl::string_view owner) {
+  if (request.names_size() > kMaxKeepAliveNames) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "names: ", request.names_size(), " names (allowed: at most ",
+        kMaxKeepAliveNames, " per call; send several calls)"));
+  }
+  for (int i = 0; i < request.names_size(); ++i) {
+    // Find renews the lease; a name that is malformed, unknown or another
+    // owner's is reported alike.
+    if (!registry_->Find(request.names(i), "names", owner).ok()) {
+      out->add_not_found(request.names(i));
+    }
+  }
+  out->set_idle_timeout_s(absl::ToDoubleSeconds(registry_->idle_timeout()));
+  return absl::OkStatus();
 }
 
 absl::Status Operations::ResetEnv(const v1::ResetEnvRequest& request,

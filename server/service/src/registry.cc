@@ -19,6 +19,9 @@ constexpr int kMaxPageSize = 1000;
 // their deadline cannot make it spin; an env may outlive its timeout by
 // this much (or a tenth of the timeout, if smaller).
 constexpr absl::Duration kMaxReapGranularity = absl::Seconds(1);
+// How many reclaimed names NOT_FOUND can explain; 4096 names of ~40 bytes
+// and their owners are well under 1 MB.
+constexpr size_t kMaxReclaimedNames = 4096;
 
 int64_t SteadyNowNs() {
   return std::chrono::duration_cast<std::chrono::nanoseconds>(
@@ -52,9 +55,11 @@ EnvSlot::EnvSlot(std::string name, uint64_t serial, std::unique_ptr<Env> env,
   Touch(*this);
 }
 
-Registry::Registry(int max_envs, absl::Duration idle_timeout)
+Registry::Registry(int max_envs, absl::Duration idle_timeout,
+                   int max_envs_per_owner)
     : max_envs_(max_envs),
       idle_timeout_(idle_timeout),
+      max_envs_per_owner_(max_envs_per_owner),
       random_(SeededFromEntropy()) {
   reaper_ = std::thread([this] { ReapLoop(); });
 }
@@ -90,13 +95,28 @@ absl::StatusOr<std::shared_ptr<EnvSlot>> Registry::Create(
           "be reclaimed after --idle_timeout_s = ",
           absl::ToDoubleSeconds(idle_timeout_)));
     }
+    int& owned = live_by_owner_[owner];
+    if (max_envs_per_owner_ > 0 && owned >= max_envs_per_owner_) {
+      return absl::ResourceExhaustedError(absl::StrCat(
+          "tenant ", owner.empty() ? "anonymous" : owner,
+          " hosts its quota of --max_envs_per_token=", max_envs_per_owner_,
+          " environments (the server hosts ", by_name_.size() + pending_,
+          " of --max_envs=", max_envs_,
+          "); delete some of yours (DeleteEnv) or wait for idle ones to be "
+          "reclaimed after --idle_timeout_s = ",
+          absl::ToDoubleSeconds(idle_timeout_)));
+    }
+    ++owned;
     ++pending_;
   }
   // Building a Box2D world takes a while: not under the registry's lock.
   absl::StatusOr<std::unique_ptr<Env>> env = Env::Create(config);
   absl::MutexLock lock(&mu_);
   --pending_;
-  if (!env.ok()) return env.status();
+  if (!env.ok()) {
+    ReleaseOwnerLocked(std::string(owner));
+    return env.status();
+  }
   const std::string name = NewNameLocked();
   auto slot = std::make_shared<EnvSlot>(name, next_serial_++, *std::move(env),
                                         auto_reset, session_bound,
@@ -123,6 +143,16 @@ absl::StatusOr<std::shared_ptr<EnvSlot>> Registry::Find(
     if (it != by_name_.end() && it->second->owner == owner) slot = it->second;
   }
   if (slot == nullptr) {
+    absl::ReaderMutexLock lock(&mu_);
+    auto reclaimed = reclaimed_.find(name);
+    if (reclaimed != reclaimed_.end() && reclaimed->second == owner) {
+      return absl::NotFoundError(absl::StrCat(
+          field, ": ", name, " was reclaimed after being idle ",
+          absl::ToDoubleSeconds(idle_timeout_),
+          " s (--idle_timeout_s): no call touched it for that long; keep "
+          "the client's env object alive (it renews the lease with KeepAlive "
+          "while it lives) or raise the server's --idle_timeout_s"));
+    }
     return absl::NotFoundError(absl::StrCat(
         field, ": ", name,
         " does not exist (never created, deleted, ended with its session, or "
@@ -139,7 +169,8 @@ absl::Status Registry::Delete(absl::string_view name, absl::string_view field,
   if (!found.ok()) return found.status();
   {
     absl::MutexLock lock(&mu_);
-    by_name_.erase((*found)->name);
+    // A concurrent Delete or the reaper may have removed it already.
+    if (by_name_.erase((*found)->name) > 0) ReleaseOwnerLocked((*found)->owner);
     by_serial_.erase((*found)->serial);
   }
   // The last holder (maybe this call, maybe an in-flight step) destroys the
@@ -190,6 +221,32 @@ int Registry::size() {
   return static_cast<int>(by_name_.size());
 }
 
+std::vector<std::pair<std::string, int>> Registry::SizeByOwner() {
+  std::vector<std::pair<std::string, int>> sizes;
+  {
+    absl::MutexLock lock(&mu_);
+    sizes.assign(live_by_owner_.begin(), live_by_owner_.end());
+  }
+  std::sort(sizes.begin(), sizes.end());
+  return sizes;
+}
+
+void Registry::ReleaseOwnerLocked(const std::string& owner) {
+  auto it = live_by_owner_.find(owner);
+  if (it != live_by_owner_.end() && --it->second <= 0) {
+    live_by_owner_.erase(it);
+  }
+}
+
+void Registry::RememberReclaimedLocked(const EnvSlot& slot) {
+  if (!reclaimed_.emplace(slot.name, slot.owner).second) return;
+  reclaimed_order_.push_back(slot.name);
+  if (reclaimed_order_.size() > kMaxReclaimedNames) {
+    reclaimed_.erase(reclaimed_order_.front());
+    reclaimed_order_.pop_front();
+  }
+}
+
 absl::Time Registry::ReapExpiredLocked(
     std::vector<std::shared_ptr<EnvSlot>>* expired) {
   const int64_t now_ns = SteadyNowNs();
@@ -198,6 +255,8 @@ absl::Time Registry::ReapExpiredLocked(
   for (auto it = by_name_.begin(); it != by_name_.end();) {
     const int64_t deadline_ns = it->second->last_touched_ns.load() + timeout_ns;
     if (deadline_ns <= now_ns) {
+      ReleaseOwnerLocked(it->second->owner);
+      RememberReclaimedLocked(*it->second);
       by_serial_.erase(it->second->serial);
       expired->push_back(std::move(it->second));
       by_name_.erase(it++);

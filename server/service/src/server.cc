@@ -9,12 +9,14 @@
 #include "absl/time/clock.h"
 #include "grpcpp/ext/proto_server_reflection_plugin.h"
 #include "grpcpp/health_check_service_interface.h"
+#include "mll/service/listen_address.h"
 
 namespace mll {
 namespace {
 
 constexpr int kMaxMessageMb = 2047;  // gRPC sizes messages in an int.
 constexpr absl::Duration kDestructorGrace = absl::Seconds(1);
+constexpr int kExamplePort = 50051;
 // How long Shutdown refuses new calls with UNAVAILABLE before gRPC's own
 // shutdown, which fails calls that reach it before the client has seen its
 // GOAWAY with CANCELLED, a code clients do not retry elsewhere.
@@ -72,6 +74,10 @@ absl::Status ValidateServerOptions(const ServerOptions& options) {
   if (options.service.max_envs < 1) {
     return OutOfRange("max_envs", options.service.max_envs, ">= 1");
   }
+  if (options.service.max_envs_per_token < 0) {
+    return OutOfRange("max_envs_per_token", options.service.max_envs_per_token,
+                      ">= 1, or 0 for the default");
+  }
   if (!(options.service.idle_timeout > absl::ZeroDuration())) {
     return OutOfRange("idle_timeout_s",
                       absl::ToDoubleSeconds(options.service.idle_timeout),
@@ -80,6 +86,11 @@ absl::Status ValidateServerOptions(const ServerOptions& options) {
   if (options.max_message_mb < 1 || options.max_message_mb > kMaxMessageMb) {
     return OutOfRange("max_message_mb", options.max_message_mb,
                       absl::StrCat("1..", kMaxMessageMb));
+  }
+  if (!options.address.empty()) {
+    absl::Status address =
+        ParseListenAddress("--address", options.address, kExamplePort).status();
+    if (!address.ok()) return address;
   }
   if (options.tls_cert_file.empty() != options.tls_key_file.empty()) {
     return absl::InvalidArgumentError(absl::StrCat(
@@ -109,13 +120,22 @@ absl::StatusOr<std::unique_ptr<Server>> Server::Start(
   builder.SetMaxReceiveMessageSize(max_bytes);
   builder.SetMaxSendMessageSize(max_bytes);
   builder.RegisterService(server->service_.get());
+  // gRPC sets SO_REUSEPORT by default, with which a second server on a port
+  // in use would share it (and its clients' envs) instead of failing.
+  builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
   if (!options.address.empty()) {
     builder.AddListeningPort(options.address, *credentials, &server->port_);
   }
   server->tls_ = !options.tls_cert_file.empty();
   server->server_ = builder.BuildAndStart();
+  const int asked_port =
+      options.address.empty()
+          ? 0
+          : ParseListenAddress("--address", options.address, kExamplePort)
+                ->port;
   if (server->server_ == nullptr ||
-      (!options.address.empty() && server->port_ == 0)) {
+      (!options.address.empty() && server->port_ == 0) ||
+      (asked_port != 0 && server->port_ != asked_port)) {
     return absl::UnavailableError(absl::StrCat(
         "--address: cannot listen on ", options.address,
         " (in use, or not host:port of a local interface",

@@ -1,5 +1,6 @@
 #include "mll/service/service.h"
 
+#include <algorithm>
 #include <chrono>
 #include <optional>
 #include <string>
@@ -245,9 +246,17 @@ MultiLunarLanderService::StepBatchArenas::AllocateMessages() {
   return new StepBatchMessages();
 }
 
+int EffectiveMaxEnvsPerToken(const ServiceOptions& options) {
+  if (options.max_envs_per_token > 0) return options.max_envs_per_token;
+  if (options.auth_tokens.empty()) return 0;
+  return std::max(1, options.max_envs /
+                         static_cast<int>(options.auth_tokens.size()));
+}
+
 MultiLunarLanderService::MultiLunarLanderService(const ServiceOptions& options)
     : authenticator_(options.auth_tokens),
-      registry_(options.max_envs, options.idle_timeout),
+      registry_(options.max_envs, options.idle_timeout,
+                EffectiveMaxEnvsPerToken(options)),
       operations_(&registry_, &pool_),
       pool_(options.threads) {
   SetMessageAllocatorFor_StepBatch(&step_batch_arenas_);
@@ -256,7 +265,7 @@ MultiLunarLanderService::MultiLunarLanderService(const ServiceOptions& options)
 MultiLunarLanderService::~MultiLunarLanderService() = default;
 
 std::string MultiLunarLanderService::MetricsText() {
-  return metrics_.Render(registry_.size());
+  return metrics_.Render(registry_.size(), registry_.SizeByOwner());
 }
 
 absl::StatusOr<absl::string_view> MultiLunarLanderService::Admit(
@@ -377,6 +386,15 @@ grpc::ServerUnaryReactor* MultiLunarLanderService::RenderEnv(
   return RunUnary(context, Admit(*context), &metrics_, Method::kRenderEnv,
                   [&](absl::string_view owner) {
                     return operations_.RenderEnv(*request, response, owner);
+                  });
+}
+
+grpc::ServerUnaryReactor* MultiLunarLanderService::KeepAlive(
+    grpc::CallbackServerContext* context, const v1::KeepAliveRequest* request,
+    v1::KeepAliveResponse* response) {
+  return RunUnary(context, Admit(*context), &metrics_, Method::kKeepAlive,
+                  [&](absl::string_view owner) {
+                    return operations_.KeepAlive(*request, response, owner);
                   });
 }
 

@@ -9,6 +9,8 @@
 #include <atomic>
 #include <cstdint>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "absl/status/status.h"
 #include "absl/strings/string_view.h"
@@ -28,8 +30,9 @@ enum class Method {
   kStepBatch,
   kRenderEnv,
   kSession,  // Each request of a Session stream counts as one call.
+  kKeepAlive,
 };
-inline constexpr int kMethodCount = 10;
+inline constexpr int kMethodCount = 11;
 
 absl::string_view MethodName(Method method);
 
@@ -62,9 +65,14 @@ class Metrics {
   // A successful ResetEnv.
   void RecordReset();
 
-  // The exposition text, with `live_envs` as the environments gauge and the
-  // process's resident memory read from /proc/self/statm.
-  std::string Render(int live_envs) const;
+  // The exposition text, with `live_envs` as the environments gauge,
+  // `live_by_tenant` (owner, envs; auth.h's owners, never a token) as the
+  // per-tenant gauge and the process's resident memory read from
+  // /proc/self/statm.
+  std::string Render(
+      int live_envs,
+      const std::vector<std::pair<std::string, int>>& live_by_tenant = {})
+      const;
 
  private:
   static constexpr int kBuckets = kBucketBoundsNs.size() + 1;  // With +Inf.

@@ -35,6 +35,11 @@ class Operations {
                         absl::string_view owner = kAnonymousOwner);
   absl::Status DeleteEnv(const v1::DeleteEnvRequest& request,
                          absl::string_view owner = kAnonymousOwner);
+  // Renews the lease of each named env; names it cannot find go to
+  // out->not_found. INVALID_ARGUMENT for more than 10000 names.
+  absl::Status KeepAlive(const v1::KeepAliveRequest& request,
+                         v1::KeepAliveResponse* out,
+                         absl::string_view owner = kAnonymousOwner);
   absl::Status ResetEnv(const v1::ResetEnvRequest& request,
                         v1::ResetEnvResponse* out,
                         absl::string_view owner = kAnonymousOwner);

@@ -7,12 +7,14 @@
 
 #include <atomic>
 #include <cstdint>
+#include <deque>
 #include <map>
 #include <memory>
 #include <optional>
 #include <random>
 #include <string>
 #include <thread>
+#include <utility>
 #include <vector>
 
 #include "absl/base/thread_annotations.h"
@@ -63,8 +65,10 @@ struct EnvSlot {
 
 class Registry {
  public:
-  // `max_envs` >= 1; `idle_timeout` > 0. Starts the reaper.
-  Registry(int max_envs, absl::Duration idle_timeout);
+  // `max_envs` >= 1; `idle_timeout` > 0; `max_envs_per_owner` >= 1 bounds
+  // each owner's live envs (0: only max_envs does). Starts the reaper.
+  Registry(int max_envs, absl::Duration idle_timeout,
+           int max_envs_per_owner = 0);
   // Stops the reaper and destroys every environment.
   ~Registry();
   Registry(const Registry&) = delete;
@@ -75,14 +79,16 @@ class Registry {
   // exactly as an unknown name, so that names of others' envs leak nothing.
 
   // Builds an env under a fresh unguessable name. RESOURCE_EXHAUSTED at
-  // max_envs; INVALID_ARGUMENT for a bad config (from the core).
+  // max_envs or at the owner's max_envs_per_owner; INVALID_ARGUMENT for a
+  // bad config (from the core).
   absl::StatusOr<std::shared_ptr<EnvSlot>> Create(
       const EnvConfig& config, bool auto_reset, bool session_bound,
       absl::string_view owner = kAnonymousOwner);
 
   // The env called `name` (touching it: its idle clock restarts). `field`
   // names the request field in errors. INVALID_ARGUMENT for a name that is
-  // not `envs/{id}`, NOT_FOUND for an unknown one.
+  // not `envs/{id}`, NOT_FOUND for an unknown one (saying so when the idle
+  // timeout reclaimed it recently).
   absl::StatusOr<std::shared_ptr<EnvSlot>> Find(
       absl::string_view name, absl::string_view field,
       absl::string_view owner = kAnonymousOwner);
@@ -106,6 +112,8 @@ class Registry {
   uint64_t DrawSeed();
 
   int size();
+  // Live envs of each owner that has any, sorted by owner.
+  std::vector<std::pair<std::string, int>> SizeByOwner();
   int max_envs() const { return max_envs_; }
   absl::Duration idle_timeout() const { return idle_timeout_; }
 
@@ -117,9 +125,17 @@ class Registry {
       std::vector<std::shared_ptr<EnvSlot>>* expired)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   std::string NewNameLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
+  // Counts an env of `owner` out (it left the map, or was never built).
+  void ReleaseOwnerLocked(const std::string& owner)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
+  // Remembers that the reaper destroyed `slot`, forgetting the oldest such
+  // name beyond kMaxReclaimedNames.
+  void RememberReclaimedLocked(const EnvSlot& slot)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
 
   const int max_envs_;
   const absl::Duration idle_timeout_;
+  const int max_envs_per_owner_;
 
   absl::Mutex mu_;
   absl::CondVar reaper_wake_;
@@ -131,6 +147,13 @@ class Registry {
   absl::flat_hash_map<std::string, std::shared_ptr<EnvSlot>> by_name_
       ABSL_GUARDED_BY(mu_);
   std::map<uint64_t, std::shared_ptr<EnvSlot>> by_serial_ ABSL_GUARDED_BY(mu_);
+  // Live and pending envs per owner; owners at zero are erased.
+  absl::flat_hash_map<std::string, int> live_by_owner_ ABSL_GUARDED_BY(mu_);
+  // Names the reaper destroyed recently -> their owner, so NOT_FOUND can say
+  // why; `reclaimed_order_` holds them oldest first.
+  absl::flat_hash_map<std::string, std::string> reclaimed_
+      ABSL_GUARDED_BY(mu_);
+  std::deque<std::string> reclaimed_order_ ABSL_GUARDED_BY(mu_);
   std::thread reaper_;
 };
 

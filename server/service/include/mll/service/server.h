@@ -39,8 +39,10 @@ absl::Status ValidateServerOptions(const ServerOptions& options);
 
 class Server {
  public:
-  // Validates the options, builds and starts the server. UNAVAILABLE when
-  // the address cannot be bound.
+  // Validates the options, builds and starts the server. INVALID_ARGUMENT
+  // for a malformed or out-of-range address; UNAVAILABLE when the address
+  // cannot be bound (in use: gRPC's SO_REUSEPORT is off) or gRPC bound
+  // another port than the one asked for.
   static absl::StatusOr<std::unique_ptr<Server>> Start(
       const ServerOptions& options);
 

@@ -26,12 +26,22 @@ struct ServiceOptions {
   int threads = 1;
   // Most environments hosted at once (--max_envs). >= 1.
   int max_envs = 10000;
+  // Most environments one token (tenant) hosts at once
+  // (--max_envs_per_token). >= 0; 0 picks the default of
+  // EffectiveMaxEnvsPerToken.
+  int max_envs_per_token = 0;
   // An env untouched this long is destroyed (--idle_timeout_s). > 0.
   absl::Duration idle_timeout = absl::Seconds(300);
   // Bearer tokens a caller must present (--auth_token_file, read with
   // ReadTokenFile); empty: no authentication, one anonymous owner.
   std::vector<std::string> auth_tokens;
 };
+
+// The per-token quota `options` give: max_envs_per_token when set; else,
+// with tokens, max(1, max_envs / tokens), so that every tenant can always
+// get its share however many envs the others hold; without tokens 0
+// (unlimited: every caller is the one anonymous tenant).
+int EffectiveMaxEnvsPerToken(const ServiceOptions& options);
 
 class MultiLunarLanderService final
     : public v1::MultiLunarLander::CallbackService {
@@ -77,6 +87,9 @@ class MultiLunarLanderService final
                                       v1::Frame* response) override;
   grpc::ServerBidiReactor<v1::SessionRequest, v1::SessionResponse>* Session(
       grpc::CallbackServerContext* context) override;
+  grpc::ServerUnaryReactor* KeepAlive(grpc::CallbackServerContext* context,
+                                      const v1::KeepAliveRequest* request,
+                                      v1::KeepAliveResponse* response) override;
 
  private:
   // The caller of a new call (see Authenticator), or UNAVAILABLE once
