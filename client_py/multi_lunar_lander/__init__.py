@@ -6,6 +6,7 @@ a batched vector environment, each a thin client of an `mll_server`.
     penv = mll.parallel_env(address="127.0.0.1:50051", continuous=True)
     venv = mll.vector_env(64, n_landers=3)
     genv = mll.gym_vector_env(64, n_landers=3)  # gymnasium.vector.VectorEnv, one lander per row
+    sb3env = mll.sb3_vec_env(64, n_landers=3)    # stable_baselines3 VecEnv, one lander per row
 
 Options (shared/ENV_SPEC.md): n_landers, continuous, max_cycles, gravity, enable_wind,
 wind_power, turbulence_power, remove_on_damage, terminate_on_damage, shared_reward,
@@ -67,6 +68,7 @@ __all__ = [
     "heuristic",
     "parallel_env",
     "raw_env",
+    "sb3_vec_env",
     "vector_env",
 ]
 
@@ -95,3 +97,17 @@ def gym_vector_env(num_envs: int, address=None, **options) -> GymVectorEnv:
     lander (num_envs x n_landers of them; parameter sharing), on vector_env's batched step
     (see GymVectorEnv)."""
     return GymVectorEnv(num_envs, address=address, **options)
+
+
+def sb3_vec_env(num_envs: int, address=None, **options):
+    """`num_envs` environments as a Stable-Baselines3 VecEnv with one environment per lander
+    (num_envs x n_landers; parameter sharing), on vector_env's batched step (see
+    multi_lunar_lander.sb3.SB3VecEnv). Needs stable-baselines3 (`multi_lunar_lander[sb3]`)."""
+    try:
+        from .sb3 import SB3VecEnv
+    except ImportError as error:
+        raise ImportError(
+            f"sb3_vec_env needs stable-baselines3 ({error}); install it with "
+            "`pip install 'multi_lunar_lander[sb3]'`"
+        ) from error
+    return SB3VecEnv(num_envs, address=address, **options)
