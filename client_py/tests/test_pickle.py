@@ -16,9 +16,8 @@ import pytest
 import supersuit as ss
 
 import multi_lunar_lander as mll
-from multi_lunar_lander._stubs import pb, pb_grpc
 
-from mll_test_helpers import raises_code
+from mll_test_helpers import listed_names, raises_code
 
 # Run in a fresh interpreter: unpickles the env in argv[1], resets it with seed 7, steps it once
 # with zero actions and prints what it saw.
@@ -125,8 +124,7 @@ def own_server():
 
 
 def _env_count(address):
-    with grpc.insecure_channel(address) as channel:
-        return len(pb_grpc.MultiLunarLanderStub(channel).ListEnvs(pb.ListEnvsRequest(page_size=1000)).envs)
+    return len(listed_names(address))
 
 
 @pytest.mark.parametrize("num_cpus", [0, 2])
@@ -134,9 +132,9 @@ def test_supersuit_concat_vec_envs_for_stable_baselines3(own_server, num_cpus):
     """PettingZoo's SB3 tutorial recipe: black_death_v3 keeps finished landers in the batch (it
     steps the env with {} once no agent is left), 4 copies of 3 landers = 12 SB3 envs."""
     base = mll.parallel_env(address=own_server, n_landers=3)
-    vec = ss.concat_vec_envs_v1(
-        ss.pettingzoo_env_to_vec_env_v1(ss.black_death_v3(base)), 4, num_cpus=num_cpus, base_class="stable_baselines3"
-    )
+    # Kept referenced: a gymnasium VectorEnv closes its env when garbage-collected (gymnasium 1.2).
+    markov = ss.pettingzoo_env_to_vec_env_v1(ss.black_death_v3(base))
+    vec = ss.concat_vec_envs_v1(markov, 4, num_cpus=num_cpus, base_class="stable_baselines3")
     try:
         assert vec.num_envs == 12
         assert _env_count(own_server) == 1 + 4  # The original and its 4 copies.
@@ -153,7 +151,7 @@ def test_supersuit_concat_vec_envs_for_stable_baselines3(own_server, num_cpus):
         assert episodes >= 24
     finally:
         vec.close()
-        base.close()
+        markov.close()
     assert _env_count(own_server) == 0
 
 

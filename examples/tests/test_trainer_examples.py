@@ -6,10 +6,16 @@ import math
 import pathlib
 import subprocess
 import sys
+import time
 
 import pytest
 
+import multi_lunar_lander as mll
+
 EXAMPLES = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(EXAMPLES.parent / "client_py" / "tests"))  # The client's test helpers.
+
+from mll_test_helpers import listed_names  # noqa: E402
 SHORT = ["--envs", "4", "--landers", "3", "--total-steps", "3072", "--num-steps", "128", "--max-cycles", "200"]
 
 
@@ -37,3 +43,36 @@ def test_ppo_example_trains_and_writes_its_curve(script, tmp_path):
         from stable_baselines3 import PPO
 
         assert PPO.load(tmp_path / "model.zip", device="cpu").num_timesteps == 3072
+
+
+def _env_count(address):
+    return len(listed_names(address))
+
+
+def test_rllib_ppo_spreads_env_runners_over_two_servers(tmp_path):
+    """RLlib PPO, one shared policy, 2 env runners (Ray actors) on a local Ray, 2 iterations;
+    runner k's env lives on server k mod 2, so both servers hold an env while it trains."""
+
+    with mll.ServerProcess(threads=1) as first, mll.ServerProcess(threads=1) as second:
+        curve = tmp_path / "curve.csv"
+        process = subprocess.Popen(
+            [sys.executable, str(EXAMPLES / "rllib_ppo.py"), "--addresses", f"{first.address},{second.address}",
+             "--env-runners", "2", "--iterations", "2", "--batch", "400", "--minibatch", "100", "--epochs", "1",
+             "--max-cycles", "100", "--num-cpus", "2", "--csv", str(curve)],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        )
+        most = [0, 0]
+        deadline = time.monotonic() + 300
+        while process.poll() is None and time.monotonic() < deadline:
+            most = [max(most[0], _env_count(first.address)), max(most[1], _env_count(second.address))]
+            time.sleep(0.2)
+        if process.poll() is None:
+            process.kill()
+        output = process.communicate()[0]
+        assert process.returncode == 0, output[-4000:]
+        assert most[0] >= 1 and most[1] >= 1, (most, output[-2000:])
+        with open(curve) as file:
+            rows = list(csv.DictReader(file))
+        assert [row["iteration"] for row in rows] == ["1", "2"]
+        assert float(rows[-1]["agent_steps"]) > float(rows[0]["agent_steps"]) > 0
+        assert math.isfinite(float(rows[-1]["episode_return_mean"]))
