@@ -16,6 +16,7 @@ EXAMPLES = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(EXAMPLES.parent / "client_py" / "tests"))  # The client's test helpers.
 
 from mll_test_helpers import listed_names  # noqa: E402
+
 SHORT = ["--envs", "4", "--landers", "3", "--total-steps", "3072", "--num-steps", "128", "--max-cycles", "200"]
 
 
