@@ -3,6 +3,11 @@ sub-environment of a gymnasium.vector.VectorEnv and all of them share one policy
 sharing).
 
     python examples/ppo_cleanrl.py --envs 16 --landers 3 --total-steps 2000000 --csv ppo.csv
+    python examples/ppo_cleanrl.py --paper --total-steps 2500000 --episodes-csv ppo_paper.csv
+
+--paper uses the environment of the paper's DQN experiment (docs/dqn.md) and writes, with
+--episodes-csv, one row per environment episode with its score (the sum of its landers'
+returns) and the running 50-episode mean, like examples/dqn's episodes.csv.
 
 The env uses Gymnasium's NEXT_STEP autoreset; the observation returned on the step an episode
 ends is its final observation, so a truncated episode is bootstrapped from it. Rows with
@@ -17,6 +22,7 @@ import argparse
 import csv
 import time
 
+import gymnasium
 import numpy as np
 import torch
 from torch import nn
@@ -43,7 +49,9 @@ def parse_args(argv=None):
     parser.add_argument("--max-cycles", type=int, default=500, help="episode step limit")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    parser.add_argument("--paper", action="store_true", help="the paper's environment options (docs/dqn.md)")
     parser.add_argument("--csv", default=None, help="write one row per iteration: steps, episodes, mean return")
+    parser.add_argument("--episodes-csv", default=None, help="write one row per environment episode: its score")
     return parser.parse_args(argv)
 
 
@@ -72,12 +80,46 @@ class Agent(nn.Module):
         return action, distribution.log_prob(action), distribution.entropy(), self.value(x)
 
 
-def train(args) -> list[tuple[int, int, float]]:
-    """Runs PPO; returns (lander steps so far, episodes ended so far, mean return of the episodes
-    ended in the iteration) per iteration."""
+# The environment of the paper's DQN experiment (docs/dqn.md).
+PAPER_OPTIONS = dict(
+    n_landers=3, max_cycles=2000, damage_reward=-300.0, successful_reward=700.0, terminate_reward=-100.0,
+    shared_reward=False, terminate_on_damage=False, remove_on_damage=True,
+)
+
+
+class EnvScores:
+    """Environment episodes' scores (the sum of their landers' returns), from the per-lander
+    episode ends: an env's episode is complete once each of its landers has ended."""
+
+    def __init__(self, envs: int, landers: int):
+        self.shape = (envs, landers)
+        self.sums = np.zeros(envs)
+        self.ended = np.zeros(envs, dtype=int)
+        self.scores: list[float] = []
+
+    def add(self, infos) -> None:
+        if "_episode_return" not in infos:
+            return
+        mask = infos["_episode_return"].reshape(self.shape)
+        self.sums += np.where(mask, infos["episode_return"].reshape(self.shape), 0.0).sum(axis=1)
+        self.ended += mask.sum(axis=1)
+        complete = self.ended == self.shape[1]
+        self.scores.extend(self.sums[complete].tolist())
+        self.sums[complete], self.ended[complete] = 0.0, 0
+
+
+def train(args) -> tuple[list[tuple[int, int, float]], list[tuple[int, float, float, int, float]]]:
+    """Runs PPO; returns (lander steps so far, lander episodes ended so far, mean return of the
+    lander episodes ended in the iteration) per iteration, and (env episode, score, 50-episode
+    mean, env steps so far, wall seconds) per environment episode."""
     torch.manual_seed(args.seed)
     torch.set_num_threads(args.threads)
-    envs = mll.gym_vector_env(args.envs, address=args.address, n_landers=args.landers, max_cycles=args.max_cycles)
+    options = PAPER_OPTIONS if args.paper else dict(n_landers=args.landers, max_cycles=args.max_cycles)
+    base = mll.gym_vector_env(args.envs, address=args.address, **options)
+    scores, episode_rows = EnvScores(args.envs, base.n_landers), []
+    # Gymnasium's own wrapper scales the rewards the learner sees (landing +700, damage -300 in
+    # the paper's setting); the scores come from the env's infos, unscaled.
+    envs = gymnasium.wrappers.vector.NormalizeReward(base, gamma=args.gamma)
     n, steps = envs.num_envs, args.num_steps
     agent = Agent(envs.single_observation_space.shape[0], envs.single_action_space.n)
     optimizer = torch.optim.Adam(agent.parameters(), lr=args.lr, eps=1e-5)
@@ -108,6 +150,13 @@ def train(args) -> list[tuple[int, int, float]]:
             valid[step] = torch.from_numpy(~infos["idle"])
             if "_episode_return" in infos:
                 returns.extend(infos["episode_return"][infos["_episode_return"]].tolist())
+            known = len(scores.scores)
+            scores.add(infos)
+            env_steps = ((iteration - 1) * steps + step + 1) * args.envs
+            for index in range(known, len(scores.scores)):
+                mean50 = float(np.mean(scores.scores[max(0, index - 49) : index + 1]))
+                row = (index + 1, scores.scores[index], mean50, env_steps, time.perf_counter() - started)
+                episode_rows.append(row)
 
         with torch.no_grad():  # GAE; a truncated episode bootstraps from its final observation.
             next_values = agent.value(next_observations)
@@ -149,17 +198,22 @@ def train(args) -> list[tuple[int, int, float]]:
             flush=True,
         )
     envs.close()
-    return curve
+    return curve, episode_rows
 
 
 def main(argv=None):
     args = parse_args(argv)
-    curve = train(args)
+    curve, episode_rows = train(args)
     if args.csv:
         with open(args.csv, "w", newline="") as file:
             writer = csv.writer(file)
             writer.writerow(["lander_steps", "episodes", "mean_return"])
             writer.writerows(curve)
+    if args.episodes_csv:
+        with open(args.episodes_csv, "w", newline="") as file:
+            writer = csv.writer(file)
+            writer.writerow(["episode", "score", "mean50", "env_steps", "wall_s"])
+            writer.writerows((e, f"{s:.3f}", f"{m:.3f}", n, f"{w:.3f}") for e, s, m, n, w in episode_rows)
 
 
 if __name__ == "__main__":

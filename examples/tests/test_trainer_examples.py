@@ -40,6 +40,14 @@ def test_ppo_example_trains_and_writes_its_curve(script, tmp_path):
     # Random landers crash within 200 steps: episodes end in every rollout, with finite returns.
     assert int(rows[-1]["episodes"]) >= 12
     assert all(math.isfinite(float(row["mean_return"])) for row in rows)
+    if script == "ppo_cleanrl.py":  # Per env episode: the sum of its 3 landers' returns.
+        rows, _ = _run(script, tmp_path, "--episodes-csv", str(tmp_path / "episodes.csv"))
+        with open(tmp_path / "episodes.csv") as file:
+            episodes = list(csv.DictReader(file))
+        assert len(episodes) >= 4 and [int(e["episode"]) for e in episodes] == list(range(1, len(episodes) + 1))
+        scores = [float(e["score"]) for e in episodes]
+        assert float(episodes[1]["mean50"]) == pytest.approx((scores[0] + scores[1]) / 2, abs=2e-3)
+        assert all(score < 0 for score in scores)  # Untrained landers crash.
     if script == "ppo_sb3.py":
         from stable_baselines3 import PPO
 
