@@ -18,8 +18,6 @@ advantages never reach a real transition (a real episode always ends with done b
 
 from __future__ import annotations
 
-import argparse
-import csv
 import time
 
 import gymnasium
@@ -28,29 +26,19 @@ import torch
 from torch import nn
 
 import multi_lunar_lander as mll
+import trainer_common
 
 
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--envs", type=int, default=16, help="Multi Lunar Lander environments")
-    parser.add_argument("--landers", type=int, default=3, help="landers per environment")
-    parser.add_argument("--address", default=None, help="mll_server address(es); default: embedded")
-    parser.add_argument("--total-steps", type=int, default=2_000_000, help="lander steps (all rows) in total")
-    parser.add_argument("--num-steps", type=int, default=128, help="steps per rollout")
+    parser = trainer_common.parser(__doc__.split("\n\n")[0], "CleanRL's num_steps")
     parser.add_argument("--minibatches", type=int, default=4)
-    parser.add_argument("--epochs", type=int, default=4)
-    parser.add_argument("--lr", type=float, default=2.5e-4)
     parser.add_argument("--gamma", type=float, default=0.99)
     parser.add_argument("--gae-lambda", type=float, default=0.95)
     parser.add_argument("--clip", type=float, default=0.2)
     parser.add_argument("--ent-coef", type=float, default=0.01)
     parser.add_argument("--vf-coef", type=float, default=0.5)
     parser.add_argument("--max-grad-norm", type=float, default=0.5)
-    parser.add_argument("--max-cycles", type=int, default=500, help="episode step limit")
-    parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--threads", type=int, default=1, help="torch threads")
     parser.add_argument("--paper", action="store_true", help="the paper's environment options (docs/dqn.md)")
-    parser.add_argument("--csv", default=None, help="write one row per iteration: steps, episodes, mean return")
     parser.add_argument("--episodes-csv", default=None, help="write one row per environment episode: its score")
     return parser.parse_args(argv)
 
@@ -204,16 +192,12 @@ def train(args) -> tuple[list[tuple[int, int, float]], list[tuple[int, float, fl
 def main(argv=None):
     args = parse_args(argv)
     curve, episode_rows = train(args)
-    if args.csv:
-        with open(args.csv, "w", newline="") as file:
-            writer = csv.writer(file)
-            writer.writerow(["lander_steps", "episodes", "mean_return"])
-            writer.writerows(curve)
-    if args.episodes_csv:
-        with open(args.episodes_csv, "w", newline="") as file:
-            writer = csv.writer(file)
-            writer.writerow(["episode", "score", "mean50", "env_steps", "wall_s"])
-            writer.writerows((e, f"{s:.3f}", f"{m:.3f}", n, f"{w:.3f}") for e, s, m, n, w in episode_rows)
+    trainer_common.write_csv(args.csv, ["lander_steps", "episodes", "mean_return"], curve)
+    trainer_common.write_csv(
+        args.episodes_csv,
+        ["episode", "score", "mean50", "env_steps", "wall_s"],
+        ((e, f"{s:.3f}", f"{m:.3f}", n, f"{w:.3f}") for e, s, m, n, w in episode_rows),
+    )
 
 
 if __name__ == "__main__":

@@ -10,32 +10,19 @@ Needs stable-baselines3 (`pip install 'multi_lunar_lander[sb3]'`; this repositor
 
 from __future__ import annotations
 
-import argparse
-import csv
-
 import numpy as np
 import torch
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 
 import multi_lunar_lander as mll
+import trainer_common
 
 
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--envs", type=int, default=16, help="Multi Lunar Lander environments")
-    parser.add_argument("--landers", type=int, default=3, help="landers per environment")
-    parser.add_argument("--address", default=None, help="mll_server address(es); default: embedded")
-    parser.add_argument("--total-steps", type=int, default=2_000_000, help="lander steps (all rows) in total")
-    parser.add_argument("--num-steps", type=int, default=128, help="steps per rollout (SB3's n_steps)")
+    parser = trainer_common.parser(__doc__.split("\n\n")[0], "SB3's n_steps")
     parser.add_argument("--batch-size", type=int, default=256)
-    parser.add_argument("--epochs", type=int, default=4)
-    parser.add_argument("--lr", type=float, default=2.5e-4)
-    parser.add_argument("--max-cycles", type=int, default=500, help="episode step limit")
-    parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--threads", type=int, default=1, help="torch threads")
     parser.add_argument("--save", default=None, help="save the trained model to this .zip")
-    parser.add_argument("--csv", default=None, help="write one row per rollout: steps, episodes, mean return")
     return parser.parse_args(argv)
 
 
@@ -72,11 +59,7 @@ def main(argv=None):
     env.close()
     if args.save:
         model.save(args.save)
-    if args.csv:
-        with open(args.csv, "w", newline="") as file:
-            writer = csv.writer(file)
-            writer.writerow(["lander_steps", "episodes", "mean_return"])
-            writer.writerows(curve.rows)
+    trainer_common.write_csv(args.csv, ["lander_steps", "episodes", "mean_return"], curve.rows)
     return curve.rows
 
 

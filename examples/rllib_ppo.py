@@ -13,7 +13,6 @@ servers on Kubernetes.
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 
 import ray
@@ -24,6 +23,7 @@ from ray.rllib.env.wrappers.pettingzoo_env import ParallelPettingZooEnv
 from ray.tune.registry import register_env
 
 import multi_lunar_lander as mll
+import trainer_common
 
 ENV_NAME = "multi_lunar_lander"
 
@@ -107,11 +107,7 @@ def main(argv=None):
         algo.stop()
     finally:
         ray.shutdown()
-    if args.csv:
-        with open(args.csv, "w", newline="") as file:
-            writer = csv.writer(file)
-            writer.writerow(["iteration", "agent_steps", "episode_return_mean"])
-            writer.writerows(rows)
+    trainer_common.write_csv(args.csv, ["iteration", "agent_steps", "episode_return_mean"], rows)
     return rows
 
 
