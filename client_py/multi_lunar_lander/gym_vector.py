@@ -137,4 +137,6 @@ class GymVectorEnv(gymnasium.vector.VectorEnv):
         return step.observations, step.rewards, step.terminated, step.truncated, infos
 
     def close_extras(self, **kwargs: Any) -> None:
-        self.vector.close()
+        vector = getattr(self, "vector", None)  # None when __init__ failed (gymnasium's __del__ closes).
+        if vector is not None:
+            vector.close()

@@ -81,7 +81,9 @@ class SB3VecEnv(VecEnv):
         return observations, step.rewards, step.ended | step.idle, infos
 
     def close(self) -> None:
-        self.vector.close()
+        vector = getattr(self, "vector", None)  # None when __init__ failed.
+        if vector is not None:
+            vector.close()
 
     def get_attr(self, attr_name: str, indices=None) -> list:
         """An attribute shared by every lander (spaces, render_mode, ...), once per index."""

@@ -115,7 +115,10 @@ class VectorEnv:
         config = make_config(None, True, options)
         security = Security.from_options(tls_root_cert, tls_server_name, token)
         addresses = parse_addresses(address)
-        self._init_kwargs = dict(options, num_envs=self.num_envs, address=list(addresses) or None, **security.as_options())
+        # What a pickle carries (__reduce__): the arguments, never a connection or stream.
+        self._init_kwargs = dict(
+            options, num_envs=self.num_envs, address=list(addresses) or None, **security.as_options()
+        )
         servers = addresses or (None,)  # None: the embedded server.
         self._names: list[str | None] = [None] * self.num_envs  # None: not created.
         self._step_in_flight = False  # From step_async until step_wait reads the answers.

@@ -148,6 +148,19 @@ def test_bad_actions_and_seeds_are_rejected_with_the_shape(address):
     env.close()
 
 
+def test_a_bad_option_raises_the_servers_error_and_nothing_else(address, monkeypatch):
+    import gc
+    import sys
+
+    ignored = []  # Exceptions raised in __del__ (gymnasium's VectorEnv.__del__ closes the env).
+    monkeypatch.setattr(sys, "unraisablehook", ignored.append)
+    error = raises_code(grpc.StatusCode.INVALID_ARGUMENT, mll.gym_vector_env, 2, address=address, n_landers=0)
+    assert "n_landers" in error.message
+    del error
+    gc.collect()
+    assert not ignored, [u.exc_value for u in ignored]
+
+
 def test_it_pickles_as_its_arguments(address):
     env = mll.gym_vector_env(2, address=address, n_landers=2, gravity=-8.0)
     copy = pickle.loads(pickle.dumps(env))
