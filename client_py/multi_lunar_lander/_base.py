@@ -11,8 +11,7 @@ import numpy as np
 
 from . import _arrays
 from ._errors import MLLError
-from ._channel import Security
-from ._channel import parse_addresses
+from ._channel import Security, parse_addresses
 from ._remote import Connection, config_dict, connect_single, make_config, rebuild, space_from_proto
 from ._stubs import pb
 from ._viewer import Viewer
