@@ -3,8 +3,9 @@ over a list of mll_server addresses, all landers sharing one policy.
 
     python examples/rllib_ppo.py --addresses 10.0.0.5:50051,10.0.0.6:50051 --env-runners 4 --iterations 100
 
-Env runner k (k = 1, 2, ...) and its j-th env use server (k * envs_per_runner + j) mod S of
---addresses, so the runners' envs are spread evenly; without --addresses each runner process
+Env runner k (k = 1, 2, ...) puts the j-th env it creates on server
+(k * envs_per_runner + j mod envs_per_runner) mod S of --addresses, so the runners' envs are
+spread evenly; without --addresses each runner process
 starts its own embedded server. --ray-address joins an existing Ray cluster ("auto" from a
 node of it); without it a local Ray is started. docs/training.md shows the cluster setup with
 servers on Kubernetes.
@@ -13,6 +14,7 @@ servers on Kubernetes.
 from __future__ import annotations
 
 import argparse
+import itertools
 import math
 
 import ray
@@ -47,13 +49,19 @@ def parse_args(argv=None):
     return parser.parse_args(argv)
 
 
+# How many envs this process (one env runner) has created: RLlib 2.60's multi-agent env runner
+# gives every env of a runner vector_index 0, so the runner counts them itself.
+_CREATED = itertools.count()
+
+
 def make_env(context):
     """RLlib's env creator. `context` is an EnvContext: env_config plus the runner's
-    worker_index and the env's vector_index, which pick the server."""
+    worker_index, which with the runner's own count picks the server."""
     addresses = [a for a in context["addresses"].split(",") if a]
     server_index = None
     if addresses:
-        slot = context.worker_index * context["envs_per_runner"] + getattr(context, "vector_index", 0)
+        per_runner = context["envs_per_runner"]
+        slot = context.worker_index * per_runner + next(_CREATED) % per_runner
         server_index = slot % len(addresses)
     env = mll.parallel_env(
         address=addresses or None,
