@@ -27,12 +27,13 @@ fi
 # The venv is rebuilt when requirements.txt changes.
 VENV=.venv
 stamp="$VENV/.requirements.sha256"
-want=$({ cat requirements.txt; cat client_py/pyproject.toml 2>/dev/null || true; } | sha256sum | cut -d' ' -f1)
+want=$({ cat requirements.txt requirements-nodeps.txt; cat client_py/pyproject.toml 2>/dev/null || true; } | sha256sum | cut -d' ' -f1)
 if [ ! -x "$VENV/bin/python" ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   echo "setup: creating the Python venv in $VENV"
   /usr/bin/python3 -m venv --system-site-packages "$VENV"
   "$VENV/bin/pip" install -q --upgrade pip
   "$VENV/bin/pip" install -q -r requirements.txt
+  "$VENV/bin/pip" install -q --no-deps -r requirements-nodeps.txt
   echo "$want" > "$stamp"
 fi
 

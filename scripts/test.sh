@@ -7,8 +7,8 @@ scripts/setup.sh
 scripts/build.sh
 echo "== C++ tests (ctest)"
 ctest --test-dir "${BUILD_DIR:-build}" --output-on-failure -j "$(nproc)" --timeout 600
-if ls client_py/tests/*.py examples/dqn/tests/*.py >/dev/null 2>&1; then
+if ls client_py/tests/*.py examples/dqn/tests/*.py examples/tests/*.py >/dev/null 2>&1; then
   echo "== Python tests (pytest)"
   export MLL_SERVER_BIN="$PWD/${BUILD_DIR:-build}/server/service/mll_server"
-  .venv/bin/python -m pytest -q $(ls -d client_py/tests examples/dqn/tests 2>/dev/null)
+  .venv/bin/python -m pytest -q $(ls -d client_py/tests examples/dqn/tests examples/tests 2>/dev/null)
 fi

@@ -5,6 +5,8 @@ a batched vector environment, each a thin client of an `mll_server`.
     env = mll.env(n_landers=3)                  # AEC; an embedded server is started
     penv = mll.parallel_env(address="127.0.0.1:50051", continuous=True)
     venv = mll.vector_env(64, n_landers=3)
+    genv = mll.gym_vector_env(64, n_landers=3)  # gymnasium.vector.VectorEnv, one lander per row
+    sb3env = mll.sb3_vec_env(64, n_landers=3)    # stable_baselines3 VecEnv, one lander per row
 
 Options (shared/ENV_SPEC.md): n_landers, continuous, max_cycles, gravity, enable_wind,
 wind_power, turbulence_power, remove_on_damage, terminate_on_damage, shared_reward,
@@ -44,12 +46,14 @@ from ._errors import MLLError
 from ._remote import CONFIG_OPTIONS, OUTCOMES
 from ._server import ServerProcess, embedded_server, find_server_binary
 from .aec import MultiLunarLanderEnv
+from .gym_vector import GymVectorEnv
 from .heuristic import heuristic
 from .parallel import MultiLunarLanderParallelEnv
 from .vector import VectorEnv
 
 __all__ = [
     "CONFIG_OPTIONS",
+    "GymVectorEnv",
     "MLLError",
     "MultiLunarLanderEnv",
     "MultiLunarLanderParallelEnv",
@@ -60,9 +64,11 @@ __all__ = [
     "embedded_server",
     "env",
     "find_server_binary",
+    "gym_vector_env",
     "heuristic",
     "parallel_env",
     "raw_env",
+    "sb3_vec_env",
     "vector_env",
 ]
 
@@ -84,3 +90,24 @@ def vector_env(num_envs: int, address=None, **options) -> VectorEnv:
     """`num_envs` environments stepped with one StepBatch per server per step (see
     VectorEnv)."""
     return VectorEnv(num_envs, address=address, **options)
+
+
+def gym_vector_env(num_envs: int, address=None, **options) -> GymVectorEnv:
+    """`num_envs` environments as a gymnasium.vector.VectorEnv with one sub-environment per
+    lander (num_envs x n_landers of them; parameter sharing), on vector_env's batched step
+    (see GymVectorEnv)."""
+    return GymVectorEnv(num_envs, address=address, **options)
+
+
+def sb3_vec_env(num_envs: int, address=None, **options):
+    """`num_envs` environments as a Stable-Baselines3 VecEnv with one environment per lander
+    (num_envs x n_landers; parameter sharing), on vector_env's batched step (see
+    multi_lunar_lander.sb3.SB3VecEnv). Needs stable-baselines3 (`multi_lunar_lander[sb3]`)."""
+    try:
+        from .sb3 import SB3VecEnv
+    except ImportError as error:
+        raise ImportError(
+            f"sb3_vec_env needs stable-baselines3 ({error}); install it with "
+            "`pip install 'multi_lunar_lander[sb3]'`"
+        ) from error
+    return SB3VecEnv(num_envs, address=address, **options)

@@ -11,8 +11,8 @@ import numpy as np
 
 from . import _arrays, _lease
 from ._errors import MLLError
-from ._channel import Security
-from ._remote import Connection, config_dict, connect_single, make_config, space_from_proto
+from ._channel import Security, parse_addresses
+from ._remote import Connection, config_dict, connect_single, make_config, rebuild, space_from_proto
 from ._stubs import pb
 from ._viewer import Viewer
 
@@ -56,7 +56,17 @@ class RemoteEnvBase:
         super().__init__()  # pettingzoo.AECEnv / ParallelEnv, next in the subclass's MRO.
         security = Security.from_options(tls_root_cert, tls_server_name, token)
         config = make_config(render_mode, False, options)
-        connection = connect_single(address, server_index, security)
+        connection, server_index = connect_single(address, server_index, security)
+        # What a pickle carries (__reduce__): the arguments that make the same environment on the
+        # same server again, never the connection.
+        addresses = parse_addresses(address)
+        self._init_kwargs = dict(
+            options,
+            address=list(addresses) or None,
+            server_index=server_index if addresses else None,
+            render_mode=render_mode,
+            **security.as_options(),
+        )
         try:
             env = connection.call("CreateEnv", pb.CreateEnvRequest(config=config))
         except BaseException:
@@ -78,6 +88,14 @@ class RemoteEnvBase:
         self.metadata = dict(METADATA, render_fps=env.render_fps or METADATA["render_fps"])
         self._viewer: Viewer | None = None
         self._init_state()
+
+    def __reduce__(self):
+        """Pickles as its arguments: options, address (the server it lives on; None stays None,
+        the embedded server of the unpickling process) and TLS/token settings (the token
+        itself included). Unpickling creates a new, not yet reset environment on that server,
+        so copies made by cloudpickle or sent to worker processes (SuperSuit's
+        concat_vec_envs_v1, Ray) each have their own."""
+        return rebuild, (type(self), self._init_kwargs)
 
     def _init_state(self) -> None:
         """The subclass's own attributes, set once the server-side env exists."""

@@ -120,6 +120,17 @@ class Security:
             token=_token_value(token),
         )
 
+    def as_options(self) -> dict:
+        """The tls_root_cert=, tls_server_name= and token= arguments that give these settings
+        again (what a pickled environment carries): the PEM bytes rather than a file's path (the
+        file may not exist where the copy is unpickled), and token="" for none, so the $MLL_TOKEN
+        of the unpickling process does not change them."""
+        return {
+            "tls_root_cert": self.root_certificates,
+            "tls_server_name": self.server_name,
+            "token": self.token or "",
+        }
+
     @property
     def tls(self) -> bool:
         return self.root_certificates is not None

@@ -174,15 +174,21 @@ def choose_server(addresses: tuple[str, ...], server_index: int | None) -> int:
     return placed % count
 
 
-def connect_single(address, server_index: int | None, security: Security) -> "Connection":
+def connect_single(address, server_index: int | None, security: Security) -> tuple["Connection", int]:
     """The connection of one AEC or parallel environment, pinned to one of the servers of
-    `address` for its lifetime (address=None: the embedded server)."""
+    `address` for its lifetime (address=None: the embedded server), and that server's index."""
     addresses = parse_addresses(address)
     if not addresses:
         if server_index not in (None, 0):
             raise invalid_argument(f"server_index is {server_index!r} but address is None (one embedded server)")
-        return Connection(None, security)
-    return Connection(addresses[choose_server(addresses, server_index)], security, addresses)
+        return Connection(None, security), 0
+    index = choose_server(addresses, server_index)
+    return Connection(addresses[index], security, addresses), index
+
+
+def rebuild(cls, kwargs: dict):
+    """Unpickles a client object: a new one made from its constructor's arguments."""
+    return cls(**kwargs)
 
 
 class Connection:

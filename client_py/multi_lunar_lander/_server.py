@@ -265,6 +265,20 @@ class Lease:
 _SHARED = _SharedServer()
 
 
+def _forget_embedded_after_fork() -> None:
+    """In a forked child (e.g. a SuperSuit or multiprocessing worker), the parent's embedded
+    server is the parent's: the child must neither use its leases nor stop it at exit. The child
+    starts its own on first use; leases it inherited release into the parent's old record."""
+    global _SHARED
+    inherited = _SHARED.server
+    if inherited is not None:
+        inherited._finalizer.detach()
+    _SHARED = _SharedServer()
+
+
+os.register_at_fork(after_in_child=_forget_embedded_after_fork)
+
+
 def acquire_embedded() -> Lease:
     """A lease on this process's embedded server, starting it if needed."""
     return _SHARED.acquire()

@@ -33,11 +33,14 @@ class MultiLunarLanderParallelEnv(RemoteEnvBase, ParallelEnv):
 
     step(actions) needs an action for every agent in `agents`; it returns dicts over those
     agents, and afterwards `agents` is the previous list minus the agents just terminated or
-    truncated.
+    truncated. Once the episode is over (`agents` empty), step({}) returns five empty dicts, as
+    PettingZoo's own parallel envs do (SuperSuit's black_death_v3 relies on it); a step with
+    actions after the end, or any step before the first reset, raises FAILED_PRECONDITION.
     """
 
     def _init_state(self) -> None:
         self.agents: list[str] = []
+        self._was_reset = False
         n = len(self.possible_agents)
         self._actions = np.zeros((n, 2) if self.continuous else (n,), np.float32 if self.continuous else np.int32)
 
@@ -49,10 +52,13 @@ class MultiLunarLanderParallelEnv(RemoteEnvBase, ParallelEnv):
         data = self._connection.call("ResetEnv", request).data
         observations, _, _, _, infos = decode_step(data, self.possible_agents)
         self.agents = list(self.possible_agents)
+        self._was_reset = True
         self._show_if_human()
         return observations, infos
 
     def step(self, actions: dict):
+        if not actions and not self.agents and self._was_reset:
+            return {}, {}, {}, {}, {}
         if not isinstance(actions, Mapping):
             raise invalid_argument(
                 f"actions is a {type(actions).__name__}; expected a dict from agent name to action"

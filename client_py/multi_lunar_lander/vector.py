@@ -30,7 +30,15 @@ from . import _arrays, _lease
 from ._channel import Security, parse_addresses
 from ._errors import MLLError, from_item_error, invalid_argument
 from ._actions import check_actions
-from ._remote import Connection, SessionStream, config_dict, make_config, seed_value, space_from_proto
+from ._remote import (
+    Connection,
+    SessionStream,
+    config_dict,
+    make_config,
+    rebuild,
+    seed_value,
+    space_from_proto,
+)
 from ._stubs import pb
 
 # Result columns: (field of StepData / PackedStepData, wire dtype, numpy dtype of the result,
@@ -107,6 +115,10 @@ class VectorEnv:
         config = make_config(None, True, options)
         security = Security.from_options(tls_root_cert, tls_server_name, token)
         addresses = parse_addresses(address)
+        # What a pickle carries (__reduce__): the arguments, never a connection or stream.
+        self._init_kwargs = dict(
+            options, num_envs=self.num_envs, address=list(addresses) or None, **security.as_options()
+        )
         servers = addresses or (None,)  # None: the embedded server.
         self._names: list[str | None] = [None] * self.num_envs  # None: not created.
         self._step_in_flight = False  # From step_async until step_wait reads the answers.
@@ -159,6 +171,12 @@ class VectorEnv:
             self._servers.append(
                 _Server(connection, rows, len(names), message, actions, columns, SessionStream(connection))
             )
+
+    def __reduce__(self):
+        """Pickles as its arguments (num_envs, options, address, TLS/token settings), never a
+        connection or stream: unpickling creates `num_envs` new environments on the same servers
+        (address=None: on the unpickling process's embedded server)."""
+        return rebuild, (type(self), self._init_kwargs)
 
     def _connection_of(self, index: int) -> Connection:
         return self._connections[index % len(self._connections)]

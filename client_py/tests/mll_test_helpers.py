@@ -5,7 +5,7 @@ import grpc
 import pytest
 
 import multi_lunar_lander as mll
-from multi_lunar_lander._stubs import pb
+from multi_lunar_lander._stubs import pb, pb_grpc
 
 
 def run_heuristic_parallel(env, seed):
@@ -42,3 +42,16 @@ def assert_not_found(raw_stub, name):
     with pytest.raises(grpc.RpcError) as caught:
         raw_stub.GetEnv(pb.GetEnvRequest(name=name))
     assert caught.value.code() == grpc.StatusCode.NOT_FOUND
+
+
+def listed_names(address):
+    """Every env name the server at `address` lists (all pages), through a plain stub."""
+    names, token = set(), ""
+    with grpc.insecure_channel(address) as channel:
+        stub = pb_grpc.MultiLunarLanderStub(channel)
+        while True:
+            page = stub.ListEnvs(pb.ListEnvsRequest(page_size=7, page_token=token), timeout=10)
+            names.update(env.name for env in page.envs)
+            token = page.next_page_token
+            if not token:
+                return names

@@ -13,6 +13,8 @@ import pytest
 import multi_lunar_lander as mll
 from multi_lunar_lander._stubs import pb, pb_grpc
 
+from mll_test_helpers import listed_names
+
 
 @pytest.fixture(scope="module")
 def two_servers():
@@ -38,19 +40,6 @@ def metric(url, series):
             if line.startswith(series + " "):
                 return float(line.split()[-1])
     raise AssertionError(f"{series} not in {url}")
-
-
-def listed_names(address):
-    """Every env name the server at `address` lists (all pages), through a plain stub."""
-    names, token = set(), ""
-    with grpc.insecure_channel(address) as channel:
-        stub = pb_grpc.MultiLunarLanderStub(channel)
-        while True:
-            page = stub.ListEnvs(pb.ListEnvsRequest(page_size=7, page_token=token), timeout=10)
-            names.update(env.name for env in page.envs)
-            token = page.next_page_token
-            if not token:
-                return names
 
 
 def rollout(vector, seed, steps):

@@ -222,3 +222,36 @@ def test_vector_env_over_two_tls_token_servers_matches_one_plaintext_server(tls_
         observations = ours[0]
     spread.close()
     single.close()
+
+
+@needs_tls
+@needs_auth
+def test_a_pickled_env_keeps_tls_and_token_without_the_certificate_file(
+    tls_auth_servers, certificate, tmp_path, monkeypatch
+):
+    """The pickle carries the root certificate's bytes, the name override and the token: the
+    copy connects after the certificate file is gone and with $MLL_TOKEN set to another token."""
+    import pickle
+
+    cert_copy = tmp_path / "ca.pem"
+    cert_copy.write_bytes(certificate[0].read_bytes())
+    envs = [
+        mll.parallel_env(address=tls_auth_servers[1], tls_root_cert=str(cert_copy), tls_server_name=SERVER_NAME,
+                         token=TOKEN_A, n_landers=2),
+        mll.gym_vector_env(2, address=list(tls_auth_servers), tls_root_cert=str(cert_copy),
+                           tls_server_name=SERVER_NAME, token=TOKEN_A, n_landers=2),
+    ]
+    data = [pickle.dumps(env) for env in envs]
+    cert_copy.unlink()
+    monkeypatch.setenv(mll.TOKEN_ENV, TOKEN_B)
+    parallel, vector = (pickle.loads(item) for item in data)
+    assert parallel.address == tls_auth_servers[1]
+    assert parallel.reset(seed=4)[0]["lander_0"].tobytes() == envs[0].reset(seed=4)[0]["lander_0"].tobytes()
+    assert vector.vector.env_addresses == list(tls_auth_servers)
+    assert vector.reset(seed=4)[0].tobytes() == envs[1].reset(seed=4)[0].tobytes()
+    # Same token as the originals: the copies' envs belong to TOKEN_A, so TOKEN_B cannot see them.
+    stranger = _remote.Connection(tls_auth_servers[1], Security.from_options(str(certificate[0]), SERVER_NAME, TOKEN_B))
+    _error(grpc.StatusCode.NOT_FOUND, stranger.call, "GetEnv", pb.GetEnvRequest(name=parallel.name))
+    stranger.close()
+    for env in (parallel, vector, *envs):
+        env.close()

@@ -1,12 +1,13 @@
 """What the PettingZoo suite does not pin down: reward accounting, agent bookkeeping, and the
 same episode through every client class."""
 
+import grpc
 import numpy as np
 import pytest
 
 import multi_lunar_lander as mll
 
-from mll_test_helpers import run_heuristic_parallel
+from mll_test_helpers import raises_code, run_heuristic_parallel
 
 
 @pytest.mark.parametrize("shared_reward", [True, False])
@@ -144,4 +145,26 @@ def test_rgb_array_frames(address):
     frame = env.render()
     assert frame.shape == (400, 600, 3) and frame.dtype == np.uint8
     assert frame.std() > 0  # Not a blank image.
+    env.close()
+
+
+def test_parallel_step_with_no_agent_left_returns_empty_dicts(address):
+    """PettingZoo's reference parallel envs answer step({}) after the episode with five empty
+    dicts (SuperSuit's black_death_v3 relies on it); the other steps after the end fail."""
+    env = mll.parallel_env(address=address, n_landers=2, max_cycles=30)
+    error = raises_code(grpc.StatusCode.FAILED_PRECONDITION, env.step, {})
+    assert "ResetEnv" in error.message  # Before the first reset: no episode to be over.
+    env.reset(seed=2)
+    for _ in range(30):
+        env.step({agent: 0 for agent in env.agents})
+        if not env.agents:
+            break
+    assert env.agents == []
+    assert env.step({}) == ({}, {}, {}, {}, {})
+    assert env.step({}) == ({}, {}, {}, {}, {})
+    error = raises_code(grpc.StatusCode.FAILED_PRECONDITION, env.step, {"lander_0": 0})
+    assert "episode is over" in error.message
+    env.reset(seed=2)
+    assert env.agents == ["lander_0", "lander_1"]
+    raises_code(grpc.StatusCode.INVALID_ARGUMENT, env.step, {})  # Agents are active again.
     env.close()

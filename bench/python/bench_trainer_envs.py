@@ -1,0 +1,104 @@
+#!/usr/bin/env python3
+"""The trainers' adapters against the raw vector env they are built on, in the same run:
+agent-steps/s of `gym_vector_env` (gymnasium.vector.VectorEnv) and `sb3_vec_env` (SB3 VecEnv)
+at `--envs` envs x `--n_landers` landers, each against `vector_env` with the same envs, options
+and random discrete actions (auto-reset), on one server with `--threads` threads. Target for
+gym_vector_env: >= 90% of vector_env.
+
+The three sides alternate in every round (so that a change of machine load hits all of them),
+each bounded by `--steps` steps and `--seconds` seconds per round. Beside wall-clock
+throughput, the CPU time per agent-step (this process + the server process), which a loaded
+machine does not distort: the adapters only add client work. Loopback only. Prints a Markdown
+table and JSON.
+
+    .venv/bin/python bench/python/bench_trainer_envs.py --server build/server/service/mll_server
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import time
+
+import numpy as np
+
+from bench_client import _process_cpu_s
+
+REPO = pathlib.Path(__file__).resolve().parents[2]
+
+
+def run(step, actions: np.ndarray, steps: int, seconds: float, server_pid: int) -> tuple[int, float, float]:
+    """(steps done, wall seconds, CPU seconds of this process and the server) of stepping with
+    the rows of `actions` in turn."""
+    deadline = time.perf_counter() + seconds
+    started, cpu = time.perf_counter(), time.process_time() + _process_cpu_s(server_pid)
+    done = 0
+    while done < steps and time.perf_counter() < deadline:
+        step(actions[done % len(actions)])
+        done += 1
+    return done, time.perf_counter() - started, time.process_time() + _process_cpu_s(server_pid) - cpu
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--server", default=os.environ.get("MLL_SERVER_BIN", str(REPO / "build/server/service/mll_server")))
+    parser.add_argument("--envs", type=int, default=64)
+    parser.add_argument("--n_landers", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--steps", type=int, default=500, help="steps per round and side")
+    parser.add_argument("--seconds", type=float, default=10.0, help="time bound per round and side")
+    args = parser.parse_args()
+    os.environ["MLL_SERVER_BIN"] = args.server
+    import multi_lunar_lander as mll
+
+    rows = args.envs * args.n_landers
+    table = np.random.default_rng(0).integers(0, 4, size=(256, rows), dtype=np.int32)
+    rates: dict[str, list[float]] = {"vector_env": [], "gym_vector_env": [], "sb3_vec_env": []}
+    cpu_us: dict[str, list[float]] = {name: [] for name in rates}  # CPU microseconds per agent-step.
+    with mll.ServerProcess(threads=args.threads) as server:
+        options = dict(address=server.address, n_landers=args.n_landers)
+        raw = mll.vector_env(args.envs, **options)
+        gym_env = mll.gym_vector_env(args.envs, **options)
+        sb3_env = mll.sb3_vec_env(args.envs, **options)
+        raw.reset(seed=0)
+        gym_env.reset(seed=0)
+        sb3_env.seed(0)
+        sb3_env.reset()
+        sides = {
+            "vector_env": (raw.step, table.reshape(len(table), args.envs, args.n_landers)),
+            "gym_vector_env": (gym_env.step, table),
+            "sb3_vec_env": (sb3_env.step, table),
+        }
+        for _ in range(args.rounds):
+            for name, (step, actions) in sides.items():
+                done, wall, cpu = run(step, actions, args.steps, args.seconds, server.pid)
+                rates[name].append(done * rows / wall)
+                cpu_us[name].append(cpu * 1e6 / (done * rows))
+        for env in (raw, gym_env, sb3_env):
+            env.close()
+    sides = ("gym_vector_env", "sb3_vec_env")
+    ratios = {name: [side / base for side, base in zip(rates[name], rates["vector_env"])] for name in sides}
+    cpu_ratios = {name: [base / side for side, base in zip(cpu_us[name], cpu_us["vector_env"])] for name in sides}
+    print(
+        f"| side | agent-steps/s (median of {args.rounds} rounds) | vs vector_env (median; per round) "
+        "| CPU us per agent-step, client + server | vs vector_env, CPU (median; per round) |"
+    )
+    print("|---|---|---|---|---|")
+    print(f"| vector_env | {np.median(rates['vector_env']):,.0f} | 100% | {np.median(cpu_us['vector_env']):.2f} | 100% |")
+    for name in sides:
+        wall = ", ".join(f"{value:.2f}" for value in ratios[name])
+        cpu = ", ".join(f"{value:.2f}" for value in cpu_ratios[name])
+        print(
+            f"| {name} | {np.median(rates[name]):,.0f} | {np.median(ratios[name]):.0%} ({wall}) "
+            f"| {np.median(cpu_us[name]):.2f} | {np.median(cpu_ratios[name]):.0%} ({cpu}) |"
+        )
+    print(json.dumps({"args": vars(args), "agent_steps_per_s": rates, "cpu_us_per_agent_step": cpu_us,
+                      "ratios": ratios, "cpu_ratios": cpu_ratios}))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

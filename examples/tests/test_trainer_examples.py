@@ -1,0 +1,87 @@
+"""The trainer examples run end to end, briefly (a few thousand lander steps), on an embedded
+server: each writes its learning curve, one row per rollout."""
+
+import csv
+import math
+import pathlib
+import subprocess
+import sys
+import time
+
+import pytest
+
+import multi_lunar_lander as mll
+
+EXAMPLES = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(EXAMPLES.parent / "client_py" / "tests"))  # The client's test helpers.
+
+from mll_test_helpers import listed_names  # noqa: E402
+
+SHORT = ["--envs", "4", "--landers", "3", "--total-steps", "3072", "--num-steps", "128", "--max-cycles", "200"]
+
+
+def _run(script, tmp_path, *extra):
+    curve = tmp_path / "curve.csv"
+    done = subprocess.run(
+        [sys.executable, str(EXAMPLES / script), *SHORT, "--csv", str(curve), *extra],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-3000:]
+    with open(curve) as file:
+        rows = list(csv.DictReader(file))
+    return rows, done.stdout
+
+
+@pytest.mark.parametrize("script", ["ppo_cleanrl.py", "ppo_sb3.py"])
+def test_ppo_example_trains_and_writes_its_curve(script, tmp_path):
+    extra = ("--save", str(tmp_path / "model.zip")) if script == "ppo_sb3.py" else ()
+    rows, _ = _run(script, tmp_path, *extra)
+    assert [int(row["lander_steps"]) for row in rows] == [1536, 3072]  # 4 envs x 3 landers x 128 steps.
+    # Random landers crash within 200 steps: episodes end in every rollout, with finite returns.
+    assert int(rows[-1]["episodes"]) >= 12
+    assert all(math.isfinite(float(row["mean_return"])) for row in rows)
+    if script == "ppo_cleanrl.py":  # Per env episode: the sum of its 3 landers' returns.
+        rows, _ = _run(script, tmp_path, "--episodes-csv", str(tmp_path / "episodes.csv"))
+        with open(tmp_path / "episodes.csv") as file:
+            episodes = list(csv.DictReader(file))
+        assert len(episodes) >= 4 and [int(e["episode"]) for e in episodes] == list(range(1, len(episodes) + 1))
+        scores = [float(e["score"]) for e in episodes]
+        assert float(episodes[1]["mean50"]) == pytest.approx((scores[0] + scores[1]) / 2, abs=2e-3)
+        assert all(score < 0 for score in scores)  # Untrained landers crash.
+    if script == "ppo_sb3.py":
+        from stable_baselines3 import PPO
+
+        assert PPO.load(tmp_path / "model.zip", device="cpu").num_timesteps == 3072
+
+
+def _env_count(address):
+    return len(listed_names(address))
+
+
+def test_rllib_ppo_spreads_env_runners_over_two_servers(tmp_path):
+    """RLlib PPO, one shared policy, 2 env runners (Ray actors) on a local Ray, 2 iterations;
+    runner k's env lives on server k mod 2, so both servers hold an env while it trains."""
+
+    with mll.ServerProcess(threads=1) as first, mll.ServerProcess(threads=1) as second:
+        curve = tmp_path / "curve.csv"
+        process = subprocess.Popen(
+            [sys.executable, str(EXAMPLES / "rllib_ppo.py"), "--addresses", f"{first.address},{second.address}",
+             "--env-runners", "2", "--iterations", "2", "--batch", "400", "--minibatch", "100", "--epochs", "1",
+             "--max-cycles", "100", "--num-cpus", "2", "--csv", str(curve)],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        )
+        most = [0, 0]
+        deadline = time.monotonic() + 300
+        while process.poll() is None and time.monotonic() < deadline:
+            most = [max(most[0], _env_count(first.address)), max(most[1], _env_count(second.address))]
+            time.sleep(0.2)
+        if process.poll() is None:
+            process.kill()
+        output = process.communicate()[0]
+        assert process.returncode == 0, output[-4000:]
+        assert most[0] >= 1 and most[1] >= 1, (most, output[-2000:])
+        with open(curve) as file:
+            rows = list(csv.DictReader(file))
+        assert [row["iteration"] for row in rows] == ["1", "2"]
+        assert float(rows[-1]["agent_steps"]) > float(rows[0]["agent_steps"]) > 0
+        assert math.isfinite(float(rows[-1]["episode_return_mean"]))
