@@ -357,9 +357,13 @@ Scene BusyScene(int n_landers = 8) {
   return env->scene();
 }
 
+// range(1) = 1 adds the overlay (the dashboard's frames).
 void BM_RenderScene(benchmark::State& state) {
   const Scene scene = BusyScene(static_cast<int>(state.range(0)));
-  for (auto _ : state) benchmark::DoNotOptimize(RenderScene(scene));
+  RenderOptions options;
+  options.overlay = state.range(1) != 0;
+  options.caption = "envs/0123456789abcdef  episode 1";
+  for (auto _ : state) benchmark::DoNotOptimize(RenderScene(scene, options));
   state.counters["landers"] = static_cast<double>(scene.landers.size());
   state.counters["particles"] = static_cast<double>(scene.particles.size());
 }
@@ -428,7 +432,12 @@ void BM_MemoryPerEnv(benchmark::State& state) {
 BENCHMARK(BM_FloorStep)->Arg(1)->Arg(3)->Arg(8)->Arg(32);
 BENCHMARK(BM_EnvStep)->Arg(1)->Arg(3)->Arg(8)->Arg(32);
 BENCHMARK(BM_EnvReset)->Arg(1)->Arg(3)->Arg(8)->Arg(32);
-BENCHMARK(BM_RenderScene)->Arg(8)->Arg(32)->Unit(benchmark::kMicrosecond);
+BENCHMARK(BM_RenderScene)
+    ->Args({8, 0})
+    ->Args({32, 0})
+    ->Args({8, 1})
+    ->Args({32, 1})
+    ->Unit(benchmark::kMicrosecond);
 BENCHMARK(BM_EncodePng)->Unit(benchmark::kMicrosecond);
 BENCHMARK(BM_EncodePngLibpngDefaults)->Unit(benchmark::kMicrosecond);
 BENCHMARK(BM_MemoryPerEnv)
