@@ -30,6 +30,8 @@ constexpr auto kKeepAlive = std::chrono::seconds(1);
 // Envs listed at most, per caller.
 constexpr int kMaxListed = 1000;
 constexpr char kTokenCookie[] = "mll_token";
+constexpr auto kMinFramePeriod =
+    std::chrono::microseconds(1000000 / DashboardServer::kMaxFps);
 
 // What identifies a frame: the same (episode, step) draws the same picture.
 struct Version {
@@ -85,10 +87,15 @@ std::shared_ptr<EnvSlot> FindListed(Registry& registry, absl::string_view name,
 }  // namespace
 
 // The latest frame of one env, shared by its viewers: the first viewer to
-// need a newer version draws it while the others wait on `mu`.
+// need a newer version draws it while the others wait on `mu`. Time is cut
+// in slots of 1 / kMaxFps s and a frame drawn in the current slot is served
+// even if the env has moved on, so an env is drawn at most kMaxFps times a
+// second however many viewers it has, and a viewer ticking at kMaxFps still
+// gets a new frame at each tick.
 struct DashboardServer::FrameCache {
   absl::Mutex mu;
   Version version ABSL_GUARDED_BY(mu);
+  int64_t time_slot ABSL_GUARDED_BY(mu) = -1;
   // The whole server-sent event: "event: frame", the version and the PNG.
   std::shared_ptr<const std::string> event ABSL_GUARDED_BY(mu);
 };
@@ -291,7 +298,11 @@ void DashboardServer::StreamFrames(const httplib::Request& req,
           std::shared_ptr<const std::string> event;
           if (*version != sent) {
             absl::MutexLock lock(&cache->mu);
-            if (cache->version != *version || cache->event == nullptr) {
+            const int64_t time_slot =
+                std::chrono::steady_clock::now().time_since_epoch() /
+                kMinFramePeriod;
+            if (cache->event == nullptr ||
+                (cache->version != *version && cache->time_slot != time_slot)) {
               Scene scene;
               Version drawn;
               {
@@ -310,9 +321,10 @@ void DashboardServer::StreamFrames(const httplib::Request& req,
                   "event: frame\nid: ", drawn.episode, ".", drawn.cycles,
                   "\ndata: ", absl::Base64Escape(*png), "\n\n"));
               cache->version = drawn;
+              cache->time_slot = time_slot;
               frames_rendered_.fetch_add(1);
             }
-            event = cache->event;
+            if (cache->version != sent) event = cache->event;
             sent = cache->version;
           }
           slot.reset();
