@@ -63,15 +63,6 @@ ScenePolygon LanderBody(double cx, double cy) {
   return body;
 }
 
-Vec2 Centroid(const ScenePolygon& polygon) {
-  Vec2 c;
-  for (const Vec2& v : polygon.vertices) {
-    c.x += v.x / polygon.vertices.size();
-    c.y += v.y / polygon.vertices.size();
-  }
-  return c;
-}
-
 // A level terrain at the helipad height with landers at the given centres.
 Scene MakeScene(const std::vector<Vec2>& lander_centres) {
   Scene scene;
@@ -283,7 +274,7 @@ bool IsFlame(const Pixel& p) { return p[0] > 200 && p[1] > 90 && p[2] < 160; }
 TEST(RendererTest, FlamesShowTheFiredEngines) {
   Scene scene = MakeScene({{6.0, 9.0}, {14.0, 9.0}});
   for (SceneLander& lander : scene.landers) {
-    lander.position = Centroid(lander.parts[0]);
+    lander.position = VertexMean(lander.parts[0]);
     lander.position.y = 9.0;
   }
   scene.landers[0].main_power = 1.0;
@@ -536,7 +527,7 @@ TEST(RenderEnvTest, TheSceneKeepsWhereALanderWasDestroyed) {
   ASSERT_EQ(scene.agents.size(), 2u);
   EXPECT_EQ(scene.agents[0].outcome, Outcome::kCrashed);
   ASSERT_EQ(scene.agents[0].final_parts.size(), 3u);
-  const Vec2 centre = Centroid(scene.agents[0].final_parts[0]);
+  const Vec2 centre = VertexMean(scene.agents[0].final_parts[0]);
   EXPECT_NEAR(centre.x, 10.0, 0.5);
   EXPECT_NEAR(centre.y, kHelipadY, 1.0);
   for (const SceneLander& lander : scene.landers) EXPECT_NE(lander.agent, 0);

@@ -70,6 +70,7 @@ constexpr double kSideFlameLength = 14.0;
 constexpr double kSideFlameHalfWidth = 3.5;
 constexpr Rgb kFlameOuter = {1.0, 0.45, 0.1};
 constexpr Rgb kFlameInner = {1.0, 0.93, 0.55};
+constexpr double kFlameCore = 0.6;  // The core's size relative to the flame.
 
 // Marks of removed landers.
 constexpr double kGhostAlpha = 0.3;
@@ -186,15 +187,6 @@ std::vector<Vec2> Inset(const std::vector<Vec2>& polygon, double d) {
   return inset;
 }
 
-Vec2 Centroid(const ScenePolygon& polygon) {
-  Vec2 c;
-  for (const Vec2& v : polygon.vertices) {
-    c.x += v.x / polygon.vertices.size();
-    c.y += v.y / polygon.vertices.size();
-  }
-  return c;
-}
-
 // The union of Gymnasium's sky_polys: everything between the terrain line
 // and the top of the view, as one path (no seams between chunks). The line
 // runs on level beyond the world's edges, into the shaded margins.
@@ -262,30 +254,29 @@ void DrawParticles(cairo_t* cr, const Scene& scene) {
 // Flames in the lander's own frame, in Gymnasium's pixels (1/SCALE m):
 // the main engine under the body, growing with its power, and the side
 // engine firing sideways from the upper flank (the exhaust of engine
-// direction d leaves towards -d).
-void DrawFlames(cairo_t* cr, const SceneLander& lander) {
+// direction d leaves towards -d). Adds them to the current path, scaled by
+// `size` (1 for the flame, less for its bright core).
+void FlamePath(cairo_t* cr, const SceneLander& lander, double size) {
   if (lander.main_power <= 0.0 && lander.side_power <= 0.0) return;
   cairo_save(cr);
   cairo_translate(cr, lander.position.x, lander.position.y);
   cairo_rotate(cr, lander.angle);
   cairo_scale(cr, kPixel, kPixel);
-  auto flame = [cr](double length, double half_width, const Rgb& colour) {
-    // Along -y from the origin: a rounded tongue.
+  auto tongue = [cr, size](double length, double half_width) {
+    // Along -y from the origin.
+    length *= size;
+    half_width *= size;
     cairo_move_to(cr, -half_width, 0.0);
     cairo_curve_to(cr, -half_width, -0.5 * length, -0.2 * half_width,
                    -0.8 * length, 0.0, -length);
     cairo_curve_to(cr, 0.2 * half_width, -0.8 * length, half_width,
                    -0.5 * length, half_width, 0.0);
     cairo_close_path(cr);
-    SetColor(cr, colour);
-    cairo_fill(cr);
   };
   if (lander.main_power > 0.0) {
     cairo_save(cr);
     cairo_translate(cr, 0.0, kMainFlameY);
-    const double length = kMainFlameLength * lander.main_power;
-    flame(length, kMainFlameHalfWidth, kFlameOuter);
-    flame(0.6 * length, 0.55 * kMainFlameHalfWidth, kFlameInner);
+    tongue(kMainFlameLength * lander.main_power, kMainFlameHalfWidth);
     cairo_restore(cr);
   }
   if (lander.side_power > 0.0 && lander.side_direction != 0) {
@@ -293,37 +284,34 @@ void DrawFlames(cairo_t* cr, const SceneLander& lander) {
     const double d = lander.side_direction;
     cairo_translate(cr, -d * kSideFlameX, kSideFlameY);
     cairo_rotate(cr, -d * M_PI / 2);  // -y turned towards -d x.
-    const double length = kSideFlameLength * lander.side_power;
-    flame(length, kSideFlameHalfWidth, kFlameOuter);
-    flame(0.6 * length, 0.55 * kSideFlameHalfWidth, kFlameInner);
+    tongue(kSideFlameLength * lander.side_power, kSideFlameHalfWidth);
     cairo_restore(cr);
   }
   cairo_restore(cr);
 }
 
-// A red cross on a destroyed lander.
-void DrawCross(cairo_t* cr, const Vec2& at) {
-  const double r = kCrossRadius;
-  cairo_move_to(cr, at.x - r, at.y - r);
-  cairo_line_to(cr, at.x + r, at.y + r);
-  cairo_move_to(cr, at.x - r, at.y + r);
-  cairo_line_to(cr, at.x + r, at.y - r);
-  cairo_set_line_width(cr, 3 * kPixel);
-  SetColor(cr, kCrossColor);
-  cairo_stroke(cr);
-  cairo_set_line_width(cr, kOutlineWidth);
+// Every lander's flames: two fills in all (flame, then core).
+void DrawFlames(cairo_t* cr, const Scene& scene) {
+  for (const SceneLander& lander : scene.landers) FlamePath(cr, lander, 1.0);
+  SetColor(cr, kFlameOuter);
+  cairo_fill(cr);
+  for (const SceneLander& lander : scene.landers) {
+    FlamePath(cr, lander, kFlameCore);
+  }
+  SetColor(cr, kFlameInner);
+  cairo_fill(cr);
 }
 
 // Where landers were removed: a landed one leaves a faint ghost with a
-// green check mark; a destroyed one a dark wreck with a red cross.
+// green check mark; a destroyed one a dark wreck (crossed by DrawCrosses).
 void DrawMarks(cairo_t* cr, const Scene& scene) {
   for (size_t agent = 0; agent < scene.agents.size(); ++agent) {
     const SceneAgent& status = scene.agents[agent];
     if (status.final_parts.empty()) continue;
     const Rgb colour = ToCairo(AgentColor(static_cast<int>(agent)));
-    const Vec2 centre = Centroid(status.final_parts.front());
     PartsPath(cr, status.final_parts);
     if (status.outcome == Outcome::kLanded) {
+      const Vec2 centre = VertexMean(status.final_parts.front());
       SetColor(cr, colour, kGhostAlpha);
       cairo_fill_preserve(cr);
       SetColor(cr, colour);
@@ -340,13 +328,12 @@ void DrawMarks(cairo_t* cr, const Scene& scene) {
       cairo_fill_preserve(cr);
       SetColor(cr, colour, 0.8);
       cairo_stroke(cr);
-      DrawCross(cr, centre);
     }
   }
 }
 
 void DrawLanders(cairo_t* cr, const Scene& scene) {
-  for (const SceneLander& lander : scene.landers) DrawFlames(cr, lander);
+  DrawFlames(cr, scene);
   for (const SceneLander& lander : scene.landers) {
     const std::array<uint8_t, 3> color = AgentColor(lander.agent);
     const double shade = lander.wreck ? kWreckShade : 1.0;
@@ -360,10 +347,35 @@ void DrawLanders(cairo_t* cr, const Scene& scene) {
     }
     SetColor(cr, ToCairo(color, shade));
     cairo_fill(cr);
-    if (lander.wreck && !lander.parts.empty()) {
-      DrawCross(cr, Centroid(lander.parts.front()));
+  }
+}
+
+// A red cross on every destroyed lander, wrecks in the world and marks of
+// removed ones alike, as one stroke.
+void DrawCrosses(cairo_t* cr, const Scene& scene) {
+  std::vector<Vec2> centres;
+  for (const SceneAgent& status : scene.agents) {
+    if (!status.final_parts.empty() && status.outcome != Outcome::kLanded) {
+      centres.push_back(VertexMean(status.final_parts.front()));
     }
   }
+  for (const SceneLander& lander : scene.landers) {
+    if (lander.wreck && !lander.parts.empty()) {
+      centres.push_back(VertexMean(lander.parts.front()));
+    }
+  }
+  if (centres.empty()) return;
+  const double r = kCrossRadius;
+  for (const Vec2& at : centres) {
+    cairo_move_to(cr, at.x - r, at.y - r);
+    cairo_line_to(cr, at.x + r, at.y + r);
+    cairo_move_to(cr, at.x - r, at.y + r);
+    cairo_line_to(cr, at.x + r, at.y - r);
+  }
+  cairo_set_line_width(cr, 3 * kPixel);
+  SetColor(cr, kCrossColor);
+  cairo_stroke(cr);
+  cairo_set_line_width(cr, kOutlineWidth);
 }
 
 void DrawFlags(cairo_t* cr, const Scene& scene) {
@@ -511,6 +523,15 @@ std::array<uint8_t, 3> AgentColor(int agent) {
   return HsvToRgb(hue, kLanderSaturation, kLanderValue);
 }
 
+Vec2 VertexMean(const ScenePolygon& polygon) {
+  Vec2 c;
+  for (const Vec2& v : polygon.vertices) {
+    c.x += v.x / polygon.vertices.size();
+    c.y += v.y / polygon.vertices.size();
+  }
+  return c;
+}
+
 Vec2 WorldToFrame(const Scene& scene, const Vec2& world) {
   const double scale = kFrameHeight / (scene.height + kViewTopMargin);
   return {(world.x + kViewMarginX) * scale,
@@ -544,6 +565,7 @@ Frame RenderScene(const Scene& scene, const RenderOptions& options) {
   DrawParticles(cr, scene);
   cairo_set_antialias(cr, CAIRO_ANTIALIAS_FAST);
   DrawLanders(cr, scene);
+  DrawCrosses(cr, scene);
   DrawFlags(cr, scene);
   if (options.overlay) DrawOverlay(cr, scene, options);
   cairo_restore(cr);

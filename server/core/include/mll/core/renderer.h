@@ -51,6 +51,10 @@ struct RenderOptions {
   std::string caption;
 };
 
+// The mean of a polygon's vertices: inside it, as every part is convex.
+// Marks (a wreck's cross, a landing's check) are centred on the body's.
+Vec2 VertexMean(const ScenePolygon& polygon);
+
 // RGB colour of an agent's lander, distinct for agents 0..31.
 std::array<uint8_t, 3> AgentColor(int agent);
 
