@@ -7,17 +7,18 @@ import base64
 import fcntl
 import json
 import os
-import re
 import select
 import shutil
 import subprocess
 import threading
 import time
+import urllib.error
 import urllib.request
 
 import pytest
 
 import multi_lunar_lander as mll
+from mll_test_helpers import url_in_log
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 pytestmark = pytest.mark.skipif(
@@ -125,13 +126,7 @@ class Page:
 
 
 def dashboard_url(server):
-    deadline = time.monotonic() + TIMEOUT_S
-    while time.monotonic() < deadline:
-        found = re.search(r"dashboard on (http://[\d.]+:\d+/)", server.log_tail(20000))
-        if found:
-            return found.group(1)
-        time.sleep(0.05)
-    raise AssertionError(f"mll_server printed no dashboard address: {server.log_tail()!r}")
+    return url_in_log(server, r"dashboard on (http://[\d.]+:\d+/)", TIMEOUT_S)
 
 
 @pytest.fixture
