@@ -6,10 +6,13 @@
 //   boundaries as the Env's defaults (the episode ends when any lander is
 //   damaged). The floor has no
 //   observations, rewards or rules: Env / floor is the price of those.
-// - Reset, RenderScene, EncodePng (and libpng's defaults as the peer), and
-//   heap per environment.
+// - Reset, RenderScene against a FLOOR in the same run (Cairo alone filling
+//   50 antialiased lander-sized polygons on a 600x400 surface, as DESIGN's
+//   Cairo floor), EncodePng (and libpng's defaults as the peer), and heap
+//   per environment.
 // bench/core/run.sh runs this binary and computes the ratios.
 #include <malloc.h>
+#include <cairo.h>
 #include <png.h>
 
 #include <array>
@@ -357,11 +360,45 @@ Scene BusyScene(int n_landers = 8) {
   return env->scene();
 }
 
+// range(1) = 1 adds the overlay (the dashboard's frames).
 void BM_RenderScene(benchmark::State& state) {
   const Scene scene = BusyScene(static_cast<int>(state.range(0)));
-  for (auto _ : state) benchmark::DoNotOptimize(RenderScene(scene));
+  RenderOptions options;
+  options.overlay = state.range(1) != 0;
+  options.caption = "envs/0123456789abcdef  episode 1";
+  for (auto _ : state) benchmark::DoNotOptimize(RenderScene(scene, options));
   state.counters["landers"] = static_cast<double>(scene.landers.size());
   state.counters["particles"] = static_cast<double>(scene.particles.size());
+}
+
+// The rendering floor: Cairo alone painting a 600x400 surface and filling
+// 50 antialiased lander bodies (6 vertices, 34 x 27 px) spread over it.
+void BM_CairoFloor(benchmark::State& state) {
+  cairo_surface_t* surface =
+      cairo_image_surface_create(CAIRO_FORMAT_RGB24, kFrameWidth, kFrameHeight);
+  cairo_t* cr = cairo_create(surface);
+  constexpr int kPolygons = 50;
+  constexpr double kBody[6][2] = {{-14, 17}, {-17, 0}, {-17, -10},
+                                  {17, -10}, {17, 0},  {14, 17}};
+  for (auto _ : state) {
+    cairo_set_source_rgb(cr, 1, 1, 1);
+    cairo_paint(cr);
+    cairo_set_source_rgb(cr, 0.5, 0.4, 0.9);
+    for (int i = 0; i < kPolygons; ++i) {
+      const double cx = 30 + (i % 10) * 60.0 + 0.37 * i;
+      const double cy = 40 + (i / 10) * 75.0 + 0.21 * i;
+      cairo_move_to(cr, cx + kBody[0][0], cy - kBody[0][1]);
+      for (int v = 1; v < 6; ++v) {
+        cairo_line_to(cr, cx + kBody[v][0], cy - kBody[v][1]);
+      }
+      cairo_close_path(cr);
+      cairo_fill(cr);
+    }
+    cairo_surface_flush(surface);
+    benchmark::DoNotOptimize(cairo_image_surface_get_data(surface));
+  }
+  cairo_destroy(cr);
+  cairo_surface_destroy(surface);
 }
 
 void BM_EncodePng(benchmark::State& state) {
@@ -428,7 +465,13 @@ void BM_MemoryPerEnv(benchmark::State& state) {
 BENCHMARK(BM_FloorStep)->Arg(1)->Arg(3)->Arg(8)->Arg(32);
 BENCHMARK(BM_EnvStep)->Arg(1)->Arg(3)->Arg(8)->Arg(32);
 BENCHMARK(BM_EnvReset)->Arg(1)->Arg(3)->Arg(8)->Arg(32);
-BENCHMARK(BM_RenderScene)->Arg(8)->Arg(32)->Unit(benchmark::kMicrosecond);
+BENCHMARK(BM_RenderScene)
+    ->Args({8, 0})
+    ->Args({32, 0})
+    ->Args({8, 1})
+    ->Args({32, 1})
+    ->Unit(benchmark::kMicrosecond);
+BENCHMARK(BM_CairoFloor)->Unit(benchmark::kMicrosecond);
 BENCHMARK(BM_EncodePng)->Unit(benchmark::kMicrosecond);
 BENCHMARK(BM_EncodePngLibpngDefaults)->Unit(benchmark::kMicrosecond);
 BENCHMARK(BM_MemoryPerEnv)

@@ -1,6 +1,9 @@
 """Helpers shared by the client's tests (a uniquely named module rather than conftest, since
 pytest runs this suite beside examples/dqn/tests, which has its own conftest)."""
 
+import re
+import time
+
 import grpc
 import pytest
 
@@ -55,3 +58,15 @@ def listed_names(address):
             token = page.next_page_token
             if not token:
                 return names
+
+
+def url_in_log(process, pattern, timeout_s=10):
+    """The URL a ServerProcess logged at start-up (group 1 of `pattern`), e.g. where its
+    --metrics_address or --http_address with port 0 listens."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        found = re.search(pattern, process.log_tail(100000))
+        if found:
+            return found.group(1)
+        time.sleep(0.02)
+    raise AssertionError(f"nothing matches {pattern!r} in the log: {process.log_tail()!r}")

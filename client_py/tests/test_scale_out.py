@@ -1,9 +1,7 @@
 """Several servers: envs pinned to one server each, vector_env spread over the servers (env i on
 server i mod S) with one StepBatch per server, and the same bits as on one server."""
 
-import re
 import subprocess
-import time
 import urllib.request
 
 import grpc
@@ -12,6 +10,7 @@ import pytest
 
 import multi_lunar_lander as mll
 from multi_lunar_lander._stubs import pb, pb_grpc
+from mll_test_helpers import url_in_log
 
 from mll_test_helpers import listed_names
 
@@ -24,13 +23,7 @@ def two_servers():
 
 def metrics_url(process):
     """The /metrics URL the server logged at start-up (its --metrics_address had port 0)."""
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline:
-        found = re.search(r"metrics on (http://\S+/metrics)", process.log_tail(100000))
-        if found:
-            return found.group(1)
-        time.sleep(0.02)
-    raise AssertionError(f"no metrics URL in the log: {process.log_tail()!r}")
+    return url_in_log(process, r"metrics on (http://\S+/metrics)")
 
 
 def metric(url, series):

@@ -59,6 +59,9 @@ ABSL_FLAG(std::string, auth_token_file, "",
 ABSL_FLAG(std::string, metrics_address, "",
           "host:port serving Prometheus metrics at GET /metrics, e.g. "
           "127.0.0.1:9464 (empty: off)");
+ABSL_FLAG(std::string, http_address, "",
+          "host:port serving the web dashboard (the hosted envs and live "
+          "views of them), e.g. 127.0.0.1:8080 (empty: off)");
 ABSL_FLAG(int64_t, parent_pid, 0,
           "stop (as on SIGTERM) when the process with this pid, which must be "
           "the one that started mll_server, exits (Linux; 0: off); the "
@@ -164,6 +167,7 @@ int main(int argc, char** argv) {
   options.tls_cert_file = absl::GetFlag(FLAGS_tls_cert);
   options.tls_key_file = absl::GetFlag(FLAGS_tls_key);
   options.metrics_address = absl::GetFlag(FLAGS_metrics_address);
+  options.http_address = absl::GetFlag(FLAGS_http_address);
   const std::string token_file = absl::GetFlag(FLAGS_auth_token_file);
   if (!token_file.empty()) {
     absl::StatusOr<std::vector<std::string>> tokens =
@@ -215,6 +219,11 @@ int main(int argc, char** argv) {
           : absl::StrCat("on http://", HostOf(options.metrics_address),
                          ":", (*server)->metrics_port(), "/metrics")
                 .c_str());
+
+  if ((*server)->http_port() != 0) {
+    std::fprintf(stderr, "mll_server: dashboard on http://%s:%d/\n",
+                 HostOf(options.http_address).c_str(), (*server)->http_port());
+  }
 
   int signal_number = 0;
   sigwait(&signals, &signal_number);

@@ -7,6 +7,7 @@
 #include "env_test_util.h"
 #include "gtest/gtest.h"
 #include "mll/core/env.h"
+#include "mll/core/renderer.h"
 
 namespace mll {
 namespace {
@@ -18,11 +19,13 @@ constexpr int kSteps = 500;
 
 // Runs kSteps steps of random actions drawn from `action_seed` (resetting
 // without a seed whenever the episode ends) and returns every result's bits.
-// With `render`, also takes a scene and ages particles every step, to prove
-// that decoration never feeds back into the physics.
+// With `render`, also draws a frame with the overlay (which ages particles)
+// every step, to prove that decoration never feeds back into the physics.
+// With `watch`, draws the env's scene every step as a dashboard viewer does,
+// whatever the render mode.
 std::vector<uint8_t> Trace(EnvConfig config, uint64_t seed,
                            uint32_t action_seed, bool render,
-                           int* max_particles = nullptr) {
+                           int* max_particles = nullptr, bool watch = false) {
   config.render_mode = render ? RenderMode::kRgbArray : RenderMode::kNone;
   auto env = MakeEnv(config);
   std::mt19937 actions_rng(action_seed);
@@ -49,7 +52,14 @@ std::vector<uint8_t> Trace(EnvConfig config, uint64_t seed,
       if (max_particles != nullptr && scene.particles.size() > *max_particles) {
         *max_particles = static_cast<int>(scene.particles.size());
       }
-      env->AgeParticlesForFrame();
+      RenderOptions options;
+      options.overlay = true;
+      EXPECT_TRUE(RenderEnv(*env, options).ok());
+    }
+    if (watch) {
+      RenderOptions options;
+      options.overlay = s % 2 == 0;
+      RenderScene(env->scene(), options);
     }
   }
   return bits;
@@ -79,6 +89,15 @@ TEST(EnvDeterminismTest, RenderModeDoesNotChangeTheBits) {
         Trace(config, 42, 7, true, &particles);
     EXPECT_GT(particles, 0) << "rendering made no particles to test with";
     EXPECT_EQ(rendered, Trace(config, 42, 7, false));
+  }
+}
+
+TEST(EnvDeterminismTest, DrawingTheSceneEveryStepDoesNotChangeTheBits) {
+  for (bool render : {false, true}) {
+    const EnvConfig config = ThreeLanders(false);
+    EXPECT_EQ(Trace(config, 42, 7, render, nullptr, /*watch=*/true),
+              Trace(config, 42, 7, false))
+        << "render " << render;
   }
 }
 

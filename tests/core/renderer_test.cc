@@ -2,6 +2,7 @@
 
 #include <png.h>
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <cstdint>
@@ -20,7 +21,7 @@ namespace {
 
 using ::testing::HasSubstr;
 
-constexpr double kScale = 30.0;  // Pixels per meter.
+constexpr double kScale = 30.0;  // Gymnasium's pixels per meter.
 constexpr double kW = 20.0;
 constexpr double kH = 400.0 / kScale;
 constexpr double kHelipadY = kH / 4;
@@ -32,11 +33,24 @@ Pixel PixelAt(const Frame& frame, int x, int y) {
   return {frame.rgb[i], frame.rgb[i + 1], frame.rgb[i + 2]};
 }
 
+Scene WorldOnly() {
+  Scene scene;
+  scene.width = kW;
+  scene.height = kH;
+  return scene;
+}
+
 // The pixel that shows world point (x, y): y up in the world, row 0 at the
 // top of the frame.
 Pixel WorldPixel(const Frame& frame, double x, double y) {
-  return PixelAt(frame, static_cast<int>(std::floor(x * kScale)),
-                 static_cast<int>(std::floor(kFrameHeight - y * kScale)));
+  const Vec2 at = WorldToFrame(WorldOnly(), {x, y});
+  return PixelAt(frame, static_cast<int>(std::floor(at.x)),
+                 static_cast<int>(std::floor(at.y)));
+}
+
+bool InFrame(const Vec2& world) {
+  const Vec2 at = WorldToFrame(WorldOnly(), world);
+  return at.x >= 0 && at.x <= kFrameWidth && at.y >= 0 && at.y <= kFrameHeight;
 }
 
 // Gymnasium's lander body polygon (pixels / SCALE) around (cx, cy).
@@ -77,11 +91,34 @@ TEST(RendererTest, FrameIs600x400Rgb) {
 
 TEST(RendererTest, SkyIsBlackAndGroundIsWhite) {
   const Frame frame = RenderScene(MakeScene({}));
-  EXPECT_EQ(PixelAt(frame, 30, 10), (Pixel{0, 0, 0}));   // High in the sky.
+  EXPECT_EQ(PixelAt(frame, 60, 10), (Pixel{0, 0, 0}));   // High in the sky.
   EXPECT_EQ(PixelAt(frame, 300, 395), (Pixel{255, 255, 255}));  // Ground.
-  // The terrain line at helipad_y = H/4 is 100 px above the bottom.
-  EXPECT_EQ(PixelAt(frame, 100, 400 - 105), (Pixel{0, 0, 0}));
-  EXPECT_EQ(PixelAt(frame, 100, 400 - 95), (Pixel{255, 255, 255}));
+  // The terrain line is at helipad_y = H/4.
+  EXPECT_EQ(WorldPixel(frame, 3.0, kHelipadY + 0.2), (Pixel{0, 0, 0}));
+  EXPECT_EQ(WorldPixel(frame, 3.0, kHelipadY - 0.2), (Pixel{255, 255, 255}));
+}
+
+TEST(RendererTest, TheOutOfBoundsMarginsAreShaded) {
+  const Frame frame = RenderScene(MakeScene({}));
+  for (double x : {-0.5, kW + 0.5}) {
+    const Pixel sky = WorldPixel(frame, x, 12.0);
+    const Pixel ground = WorldPixel(frame, x, 1.0);
+    EXPECT_GT(sky[0], 40) << "x = " << x;
+    EXPECT_LT(ground[0], 215) << "x = " << x;
+    EXPECT_GT(ground[0], sky[0]) << "x = " << x;
+  }
+}
+
+TEST(RendererTest, TheViewShowsTheWholeWorldAndAMarginAboveTheSpawnRow) {
+  EXPECT_TRUE(InFrame({0.0, 0.0}));
+  EXPECT_TRUE(InFrame({kW, 0.0}));
+  EXPECT_TRUE(InFrame({0.0, kH + kViewTopMargin}));
+  EXPECT_TRUE(InFrame({-kViewMarginX, kH + kViewTopMargin}));
+  EXPECT_FALSE(InFrame({kW / 2, kH + kViewTopMargin + 0.1}));
+  // The same scale on both axes.
+  const Vec2 origin = WorldToFrame(WorldOnly(), {0, 0});
+  const Vec2 one = WorldToFrame(WorldOnly(), {1, 1});
+  EXPECT_NEAR(one.x - origin.x, origin.y - one.y, 1e-9);
 }
 
 TEST(RendererTest, SkyFollowsTheTerrain) {
@@ -117,7 +154,8 @@ TEST(RendererTest, LegsAreDrawnInTheLanderColour) {
 TEST(RendererTest, WrecksAreDarker) {
   Scene scene = MakeScene({{10.0, 9.0}});
   scene.landers[0].wreck = true;
-  const Pixel wreck = WorldPixel(RenderScene(scene), 10.0, 9.0);
+  // Below the centre, between the arms of the wreck's red cross.
+  const Pixel wreck = WorldPixel(RenderScene(scene), 10.0, 8.75);
   const Pixel live = AgentColor(0);
   EXPECT_NE(wreck, live);
   for (int c = 0; c < 3; ++c) EXPECT_LT(wreck[c], live[c]) << "channel " << c;
@@ -128,19 +166,18 @@ TEST(RendererTest, HelipadFlagsAreYellowOnWhitePoles) {
   for (double x : {8.0, 12.0}) {
     // Gymnasium: flag (x, y2), (x, y2 - 10), (x + 25, y2 - 5) px, with
     // y2 = helipad_y * SCALE + 50.
-    const int px = static_cast<int>(x * kScale);
-    const int flag_y = static_cast<int>(kHelipadY * kScale) + 45;
-    EXPECT_EQ(PixelAt(frame, px + 5, kFrameHeight - flag_y),
+    EXPECT_EQ(WorldPixel(frame, x + 5 / kScale, kHelipadY + 45 / kScale),
               (Pixel{204, 204, 0}))
         << "flag at x = " << x;
-    // The pole is white against the black sky, between ground and flag.
-    const int pole_y = static_cast<int>(kHelipadY * kScale) + 20;
-    bool white = false;
+    // The pole is light against the black sky, between ground and flag.
+    const Vec2 pole = WorldToFrame(WorldOnly(), {x, kHelipadY + 20 / kScale});
+    int brightest = 0;
     for (int dx = -1; dx <= 1; ++dx) {
-      white |= PixelAt(frame, px + dx, kFrameHeight - pole_y) ==
-               Pixel{255, 255, 255};
+      brightest = std::max<int>(
+          brightest, PixelAt(frame, static_cast<int>(pole.x) + dx,
+                             static_cast<int>(pole.y))[0]);
     }
-    EXPECT_TRUE(white) << "pole at x = " << x;
+    EXPECT_GT(brightest, 200) << "pole at x = " << x;
   }
 }
 
@@ -232,6 +269,103 @@ TEST(EncodePngTest, RejectsAFrameWhoseBytesDoNotMatchItsSize) {
             absl::StatusCode::kInvalidArgument);
 }
 
+bool IsFlame(const Pixel& p) { return p[0] > 200 && p[1] > 90 && p[2] < 160; }
+
+TEST(RendererTest, FlamesShowTheFiredEngines) {
+  Scene scene = MakeScene({{6.0, 9.0}, {14.0, 9.0}});
+  for (SceneLander& lander : scene.landers) {
+    lander.position = VertexMean(lander.parts[0]);
+    lander.position.y = 9.0;
+  }
+  scene.landers[0].main_power = 1.0;
+  scene.landers[1].side_power = 1.0;
+  scene.landers[1].side_direction = -1;  // Exhaust to the right (+x).
+  const Frame frame = RenderScene(scene);
+  // Under lander 0's body (its bottom edge is 10/30 m below the centre).
+  EXPECT_TRUE(IsFlame(WorldPixel(frame, 6.0, 9.0 - 16 / kScale)));
+  EXPECT_FALSE(IsFlame(WorldPixel(frame, 14.0, 9.0 - 16 / kScale)));
+  // Right of lander 1's upper flank, none on its left.
+  const double flank = 18 / kScale, up = 9.0 + 14 / kScale;
+  EXPECT_TRUE(IsFlame(WorldPixel(frame, 14.0 + flank, up)));
+  EXPECT_FALSE(IsFlame(WorldPixel(frame, 14.0 - flank, up)));
+  EXPECT_FALSE(IsFlame(WorldPixel(frame, 6.0 + flank, up)));
+}
+
+int CountIn(const Frame& frame, const Vec2& world_centre, double radius,
+            bool (*match)(const Pixel&)) {
+  const Vec2 c = WorldToFrame(WorldOnly(), world_centre);
+  const double r = radius * kFrameHeight / (kH + kViewTopMargin);
+  int count = 0;
+  for (int y = std::max(0, static_cast<int>(c.y - r));
+       y < std::min<int>(kFrameHeight, c.y + r); ++y) {
+    for (int x = std::max(0, static_cast<int>(c.x - r));
+         x < std::min<int>(kFrameWidth, c.x + r); ++x) {
+      count += match(PixelAt(frame, x, y));
+    }
+  }
+  return count;
+}
+
+bool IsRed(const Pixel& p) { return p[0] > 180 && p[1] < 90 && p[2] < 90; }
+bool IsGreen(const Pixel& p) { return p[1] > 160 && p[0] < 120 && p[2] < 120; }
+
+TEST(RendererTest, RemovedLandersLeaveAMarkWhereTheirEpisodeEnded) {
+  Scene scene = MakeScene({});
+  scene.agents.resize(3);
+  scene.agents[0].outcome = Outcome::kCrashed;
+  scene.agents[0].final_parts = {LanderBody(4.0, 4.0)};
+  scene.agents[1].outcome = Outcome::kLanded;
+  scene.agents[1].final_parts = {LanderBody(10.0, kHelipadY + 0.5)};
+  const Frame frame = RenderScene(scene);
+  EXPECT_GT(CountIn(frame, {4.0, 4.0}, 0.6, IsRed), 20);      // A red cross.
+  EXPECT_EQ(CountIn(frame, {4.0, 4.0}, 0.6, IsGreen), 0);
+  EXPECT_GT(CountIn(frame, {10.0, kHelipadY + 0.5}, 0.6, IsGreen), 20);
+  EXPECT_EQ(CountIn(frame, {10.0, kHelipadY + 0.5}, 0.6, IsRed), 0);
+  // A wreck still in the world is crossed too.
+  Scene wreck = MakeScene({{16.0, 9.0}});
+  wreck.landers[0].wreck = true;
+  EXPECT_GT(CountIn(RenderScene(wreck), {16.0, 9.0}, 0.6, IsRed), 20);
+}
+
+TEST(RendererTest, TheOverlayIsOffByDefaultAndDrawsTextWhenOn) {
+  Scene scene = MakeScene({{4.0, 9.0}, {10.0, 7.0}});
+  scene.agents.resize(2);
+  scene.agents[1].outcome = Outcome::kLanded;
+  scene.agents[1].episode_return = 123.4;
+  scene.cycles = 17;
+  const Frame plain = RenderScene(scene);
+  EXPECT_EQ(plain.rgb, RenderScene(scene, RenderOptions()).rgb);
+  RenderOptions options;
+  options.overlay = true;
+  options.caption = "envs/abc";
+  const Frame overlay = RenderScene(scene, options);
+  // Text at the bottom left, over the white ground, on dark boxes; and a
+  // label above each lander.
+  auto light = [](const Frame& frame, int x0, int y0, int x1, int y1) {
+    int count = 0;
+    for (int y = y0; y < y1; ++y) {
+      for (int x = x0; x < x1; ++x) count += PixelAt(frame, x, y)[1] > 150;
+    }
+    return count;
+  };
+  auto dark = [](const Frame& frame, int x0, int y0, int x1, int y1) {
+    int count = 0;
+    for (int y = y0; y < y1; ++y) {
+      for (int x = x0; x < x1; ++x) count += PixelAt(frame, x, y)[1] < 140;
+    }
+    return count;
+  };
+  EXPECT_EQ(dark(plain, 35, 340, 200, 400), 0);
+  EXPECT_GT(dark(overlay, 35, 340, 200, 400), 1000);
+  const Vec2 above = WorldToFrame(WorldOnly(), {10.0, 7.0 + 17 / kScale});
+  const int x = static_cast<int>(above.x), y = static_cast<int>(above.y);
+  EXPECT_GT(light(overlay, x - 8, y - 16, x + 8, y),
+            light(plain, x - 8, y - 16, x + 8, y));
+  // The caption changes the frame.
+  options.caption = "envs/xyz";
+  EXPECT_NE(RenderScene(scene, options).rgb, overlay.rgb);
+}
+
 std::unique_ptr<Env> MakeEnv(RenderMode mode, int n_landers) {
   EnvConfig config;
   config.n_landers = n_landers;
@@ -301,11 +435,7 @@ TEST(RenderEnvTest, DrawsEveryLanderOfALiveEnvInItsColour) {
   ASSERT_NE(env, nullptr);
   StepResult result;
   env->Reset(3, &result);
-  // Landers spawn at the top edge, half out of view; let them fall in.
-  const std::vector<int32_t> noop(3, 0);
-  for (int i = 0; i < 40; ++i) {
-    ASSERT_TRUE(env->Step(Discrete(noop), &result).ok());
-  }
+  // Right after the reset: landers spawn at the top, still in view.
   absl::StatusOr<Frame> frame = RenderEnv(*env);
   ASSERT_TRUE(frame.ok()) << frame.status();
   EXPECT_EQ(PixelAt(*frame, 300, 399), (Pixel{255, 255, 255}));
@@ -321,14 +451,13 @@ TEST(RenderEnvTest, DrawsEveryLanderOfALiveEnvInItsColour) {
       centre.x += v.x / body.size();
       centre.y += v.y / body.size();
     }
-    if (centre.y * kScale > kFrameHeight - 2) continue;  // Above the view.
     EXPECT_EQ(WorldPixel(*frame, centre.x, centre.y), AgentColor(lander.agent))
         << "agent " << lander.agent;
     EXPECT_GT(CountPixels(*frame, AgentColor(lander.agent)), 200)
         << "agent " << lander.agent;
     ++checked;
   }
-  EXPECT_GE(checked, 2);
+  EXPECT_EQ(checked, 3);
 }
 
 TEST(RenderEnvTest, RenderingAgesParticlesButNotTheEpisode) {
@@ -351,6 +480,60 @@ TEST(RenderEnvTest, RenderingAgesParticlesButNotTheEpisode) {
   const Scene scene = rendered->scene();
   ASSERT_FALSE(scene.particles.empty());
   for (const SceneParticle& p : scene.particles) EXPECT_GT(p.ttl, 0.0);
+}
+
+TEST(RenderEnvTest, LandersAreInFrameFromTheFirstStep) {
+  for (int n : {1, 3, 8, 32}) {
+    for (uint64_t seed = 0; seed < 20; ++seed) {
+      std::unique_ptr<Env> env = MakeEnv(RenderMode::kNone, n);
+      ASSERT_NE(env, nullptr);
+      StepResult result;
+      env->Reset(seed, &result);
+      // The reset's frame and the next ones, engines off: the initial push
+      // lifts some landers before they fall.
+      const std::vector<int32_t> noop(n, 0);
+      for (int step = 0; step <= 25 && !env->episode_over(); ++step) {
+        for (const SceneLander& lander : env->scene().landers) {
+          for (const ScenePolygon& part : lander.parts) {
+            for (const Vec2& v : part.vertices) {
+              ASSERT_TRUE(InFrame(v)) << "n " << n << " seed " << seed
+                                      << " step " << step << " agent "
+                                      << lander.agent << " at (" << v.x
+                                      << ", " << v.y << ")";
+            }
+          }
+        }
+        ASSERT_TRUE(env->Step(Discrete(noop), &result).ok());
+      }
+    }
+  }
+}
+
+TEST(RenderEnvTest, TheSceneKeepsWhereALanderWasDestroyed) {
+  std::unique_ptr<Env> env = MakeEnv(RenderMode::kNone, 2);
+  ASSERT_NE(env, nullptr);
+  StepResult result;
+  env->Reset(5, &result);
+  // Lander 0 falls fast, upside down, onto the helipad.
+  ASSERT_TRUE(
+      env->SetLanderStateForTest(0, 10.0, kHelipadY + 0.7, M_PI, 0, -8, 0)
+          .ok());
+  const std::vector<int32_t> noop(2, 0);
+  for (int i = 0; i < 10 && env->is_active(0); ++i) {
+    ASSERT_TRUE(env->Step(Discrete(noop), &result).ok());
+  }
+  ASSERT_EQ(env->outcome(0), Outcome::kCrashed);
+  const Scene scene = env->scene();
+  ASSERT_EQ(scene.agents.size(), 2u);
+  EXPECT_EQ(scene.agents[0].outcome, Outcome::kCrashed);
+  ASSERT_EQ(scene.agents[0].final_parts.size(), 3u);
+  const Vec2 centre = VertexMean(scene.agents[0].final_parts[0]);
+  EXPECT_NEAR(centre.x, 10.0, 0.5);
+  EXPECT_NEAR(centre.y, kHelipadY, 1.0);
+  for (const SceneLander& lander : scene.landers) EXPECT_NE(lander.agent, 0);
+  EXPECT_GT(CountIn(RenderScene(scene), centre, 0.6, IsRed), 20);
+  EXPECT_EQ(scene.cycles, env->cycles());
+  EXPECT_EQ(scene.agents[1].episode_return, env->episode_return(1));
 }
 
 }  // namespace

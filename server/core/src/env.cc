@@ -120,7 +120,29 @@ struct Lander {
   double episode_return = 0.0;
   int episode_length = 0;
   std::array<float, kObservationSize> observation = {};
+  // Drawing only: the engines of the latest step, and the parts as they were
+  // when the bodies were destroyed (landed or removed on damage).
+  EngineCommand last_command;
+  std::vector<ScenePolygon> final_parts;
 };
+
+// The world polygons of a lander's body and legs (bodies must exist).
+std::vector<ScenePolygon> LanderParts(const Lander& lander) {
+  std::vector<ScenePolygon> parts;
+  parts.reserve(3);
+  for (const b2Body* body : {lander.body, lander.legs[0], lander.legs[1]}) {
+    const auto* shape =
+        static_cast<const b2PolygonShape*>(body->GetFixtureList()->GetShape());
+    ScenePolygon polygon;
+    polygon.vertices.reserve(shape->m_count);
+    for (int v = 0; v < shape->m_count; ++v) {
+      const b2Vec2 p = body->GetWorldPoint(shape->m_vertices[v]);
+      polygon.vertices.push_back({p.x, p.y});
+    }
+    parts.push_back(std::move(polygon));
+  }
+  return parts;
+}
 
 struct Particle {
   b2Body* body = nullptr;
@@ -317,6 +339,8 @@ void Env::Impl::CreateLander(int agent) {
 }
 
 void Env::Impl::DestroyLanderBodies(Lander& lander) {
+  // Reading positions changes nothing in the world.
+  if (lander.body != nullptr) lander.final_parts = LanderParts(lander);
   // Destroying a body destroys its joints and contacts (EndContact is
   // reported, which only clears flags).
   for (b2Body*& leg : lander.legs) {
@@ -580,6 +604,7 @@ absl::Status Env::Impl::Step(const ActionsView& actions, StepResult* result) {
     if (!landers_[i].active) continue;
     stepped[i] = 1;
     commands[i] = CommandFor(actions, i);
+    landers_[i].last_command = commands[i];
   }
   Advance(commands);
 
@@ -708,21 +733,24 @@ Scene Env::Impl::MakeScene() const {
   scene.helipad_y = kHelipadY;
   if (!started_) return scene;
   scene.terrain.assign(terrain_.begin(), terrain_.end());
+  scene.cycles = cycles_;
+  scene.agents.reserve(config_.n_landers);
   for (int i = 0; i < config_.n_landers; ++i) {
     const Lander& lander = landers_[i];
+    scene.agents.push_back(
+        {lander.outcome, lander.episode_return, lander.final_parts});
     if (lander.body == nullptr) continue;
     SceneLander drawn;
     drawn.agent = i;
     drawn.wreck = lander.wreck;
-    for (const b2Body* body : {lander.body, lander.legs[0], lander.legs[1]}) {
-      const auto* shape = static_cast<const b2PolygonShape*>(
-          body->GetFixtureList()->GetShape());
-      ScenePolygon polygon;
-      for (int v = 0; v < shape->m_count; ++v) {
-        const b2Vec2 p = body->GetWorldPoint(shape->m_vertices[v]);
-        polygon.vertices.push_back({p.x, p.y});
-      }
-      drawn.parts.push_back(std::move(polygon));
+    drawn.parts = LanderParts(lander);
+    const b2Vec2 position = lander.body->GetPosition();
+    drawn.position = {position.x, position.y};
+    drawn.angle = lander.body->GetAngle();
+    if (lander.active) {
+      drawn.main_power = lander.last_command.main_power;
+      drawn.side_power = lander.last_command.side_power;
+      drawn.side_direction = lander.last_command.side_direction;
     }
     scene.landers.push_back(std::move(drawn));
   }

@@ -150,6 +150,14 @@ absl::StatusOr<std::unique_ptr<Server>> Server::Start(
     if (!metrics.ok()) return metrics.status();
     server->metrics_http_ = *std::move(metrics);
   }
+  if (!options.http_address.empty()) {
+    absl::StatusOr<std::unique_ptr<DashboardServer>> dashboard =
+        DashboardServer::Start(options.http_address,
+                               &server->service_->registry(),
+                               &server->service_->authenticator());
+    if (!dashboard.ok()) return dashboard.status();
+    server->dashboard_ = *std::move(dashboard);
+  }
   return server;
 }
 
@@ -159,6 +167,10 @@ Server::~Server() {
 
 int Server::metrics_port() const {
   return metrics_http_ == nullptr ? 0 : metrics_http_->port();
+}
+
+int Server::http_port() const {
+  return dashboard_ == nullptr ? 0 : dashboard_->port();
 }
 
 std::shared_ptr<grpc::Channel> Server::InProcessChannel() {
@@ -180,6 +192,7 @@ void Server::Shutdown(absl::Duration grace) {
   absl::SleepFor(refusal);
   server_->Shutdown(ToGprDeadline(grace - refusal));
   server_->Wait();
+  dashboard_.reset();
   // Scrapes keep working while calls drain, so the last counts are seen.
   metrics_http_.reset();
 }

@@ -4,9 +4,12 @@
 #ifndef MLL_CORE_SCENE_H_
 #define MLL_CORE_SCENE_H_
 
+#include <cstdint>
 #include <vector>
 
 namespace mll {
+
+enum class Outcome : uint8_t;  // env.h
 
 struct Vec2 {
   double x = 0.0;
@@ -21,6 +24,23 @@ struct SceneLander {
   int agent = 0;                      // Agent index, picks the colour.
   bool wreck = false;                 // Damaged but kept (remove_on_damage off).
   std::vector<ScenePolygon> parts;    // Body first, then the two legs.
+  Vec2 position;                      // The body's origin.
+  double angle = 0.0;                 // The body's angle, rad.
+  // The engines fired in the latest step (0: off), drawn as flames. Powers
+  // are 0.5..1 when on; side_direction is -1 (left engine), +1 or 0.
+  double main_power = 0.0;
+  double side_power = 0.0;
+  int side_direction = 0;
+};
+
+// One per agent, in agent order: how its episode is going.
+struct SceneAgent {
+  Outcome outcome{};            // Outcome::kNone while active.
+  double episode_return = 0.0;  // Sum of its rewards so far.
+  // Where its episode ended when its bodies left the world (landed, or
+  // damaged with remove_on_damage): the parts as in its last step, so that
+  // the place stays marked. Empty otherwise.
+  std::vector<ScenePolygon> final_parts;
 };
 
 struct SceneParticle {
@@ -40,6 +60,8 @@ struct Scene {
   // Landers still in the world (landed and removed ones are absent).
   std::vector<SceneLander> landers;
   std::vector<SceneParticle> particles;
+  std::vector<SceneAgent> agents;
+  int cycles = 0;  // World steps this episode (Env::cycles()).
 };
 
 }  // namespace mll

@@ -4,17 +4,13 @@
 #ifndef MLL_SERVICE_METRICS_HTTP_H_
 #define MLL_SERVICE_METRICS_HTTP_H_
 
-#include <atomic>
 #include <functional>
 #include <memory>
 #include <string>
-#include <thread>
+#include <utility>
 
 #include "absl/status/statusor.h"
-
-namespace httplib {
-class Server;
-}  // namespace httplib
+#include "mll/service/http_listener.h"
 
 namespace mll {
 
@@ -26,21 +22,13 @@ class MetricsHttpServer {
   static absl::StatusOr<std::unique_ptr<MetricsHttpServer>> Start(
       const std::string& address, std::function<std::string()> render);
 
-  // Stops listening and waits for the serving thread.
-  ~MetricsHttpServer();
-  MetricsHttpServer(const MetricsHttpServer&) = delete;
-  MetricsHttpServer& operator=(const MetricsHttpServer&) = delete;
-
-  int port() const { return port_; }
+  int port() const { return listener_->port(); }
 
  private:
-  MetricsHttpServer();
+  explicit MetricsHttpServer(std::unique_ptr<HttpListener> listener)
+      : listener_(std::move(listener)) {}
 
-  std::unique_ptr<httplib::Server> http_;
-  std::thread thread_;
-  int port_ = 0;
-  // From the start of the serving thread until it leaves the listen loop.
-  std::atomic<bool> listening_{false};
+  std::unique_ptr<HttpListener> listener_;
 };
 
 }  // namespace mll

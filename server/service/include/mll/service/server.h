@@ -12,6 +12,7 @@
 #include "absl/status/statusor.h"
 #include "absl/time/time.h"
 #include "grpcpp/grpcpp.h"
+#include "mll/service/dashboard.h"
 #include "mll/service/metrics_http.h"
 #include "mll/service/service.h"
 
@@ -31,6 +32,9 @@ struct ServerOptions {
   // host:port of the Prometheus endpoint GET /metrics (--metrics_address);
   // port 0 picks a free port; empty: no endpoint.
   std::string metrics_address;
+  // host:port of the web dashboard (--http_address, dashboard.h); port 0
+  // picks a free port; empty: off.
+  std::string http_address;
   ServiceOptions service;
 };
 
@@ -55,6 +59,10 @@ class Server {
   int port() const { return port_; }
   // The bound port of the metrics endpoint (0 when off).
   int metrics_port() const;
+  // The bound port of the dashboard (0 when off).
+  int http_port() const;
+  // The dashboard, or nullptr when off.
+  DashboardServer* dashboard() { return dashboard_.get(); }
   bool tls() const { return tls_; }
   // A channel to this server that bypasses the network.
   std::shared_ptr<grpc::Channel> InProcessChannel();
@@ -70,6 +78,7 @@ class Server {
   std::unique_ptr<MultiLunarLanderService> service_;
   std::unique_ptr<grpc::Server> server_;
   std::unique_ptr<MetricsHttpServer> metrics_http_;
+  std::unique_ptr<DashboardServer> dashboard_;
   int port_ = 0;
   bool tls_ = false;
   bool shut_down_ = false;
