@@ -6,10 +6,9 @@ a batched vector environment, each a thin client of an `mll_server`.
     penv = mll.parallel_env(address="127.0.0.1:50051", continuous=True)
     venv = mll.vector_env(64, n_landers=3)
 
-Options (shared/ENV_SPEC.md): n_landers, continuous, max_cycles, gravity, enable_wind,
-wind_power, turbulence_power, remove_on_damage, terminate_on_damage, shared_reward,
-damage_reward, successful_reward, terminate_reward; plus address= and render_mode= (None,
-"rgb_array", "human"; not for vector_env).
+Options: the names in CONFIG_OPTIONS (the fields of the wire's EnvConfig, e.g. n_landers,
+continuous, enable_wind; an unset one takes the server's default); plus address= and
+render_mode= (None, "rgb_array", "human"; not for vector_env).
 
 address=None (the default) uses this process's embedded server: one `mll_server` child on a
 free loopback port (binary from $MLL_SERVER_BIN, else PATH, else the repository's

@@ -398,9 +398,19 @@ absl::StatusOr<std::optional<AgentAction>> ParseAgentAction(
   return std::optional<AgentAction>(action);
 }
 
+// The core's outcome codes travel as they are: they are the wire's Outcome
+// values, which the clients name.
+static_assert(sizeof(Outcome) == 1, "outcomes travel as uint8");
+static_assert(static_cast<int>(Outcome::kNone) == v1::OUTCOME_UNSPECIFIED);
+static_assert(static_cast<int>(Outcome::kLanded) == v1::OUTCOME_LANDED);
+static_assert(static_cast<int>(Outcome::kCrashed) == v1::OUTCOME_CRASHED);
+static_assert(static_cast<int>(Outcome::kOutOfBounds) ==
+              v1::OUTCOME_OUT_OF_BOUNDS);
+static_assert(static_cast<int>(Outcome::kTruncated) == v1::OUTCOME_TRUNCATED);
+static_assert(static_cast<int>(Outcome::kAborted) == v1::OUTCOME_ABORTED);
+
 void WriteStepRow(const StepResult& result, const Env& env, bool auto_reset,
                   const StepRow& row) {
-  static_assert(sizeof(Outcome) == 1, "outcomes travel as uint8");
   StoreAll(result.observations, row.observations);
   StoreAll(result.rewards, row.rewards);
   StoreAll(result.terminations, row.terminations);
