@@ -153,29 +153,27 @@ void HashCore(const StepResult& result, const Env& env, Hash* hash) {
   hash->Add(&over, 1);
 }
 
+// The per-agent columns StepData and PackedStepData share; with one env in
+// a packed batch they have the same bytes.
+template <typename Columns>
+void HashAgentColumns(const Columns& data, Hash* hash) {
+  for (const v1::Array* column :
+       {&data.observations(), &data.rewards(), &data.terminations(),
+        &data.truncations(), &data.stepped(), &data.outcomes(),
+        &data.episode_returns(), &data.episode_lengths()}) {
+    hash->Add(column->data());
+  }
+}
+
 void HashWire(const v1::StepData& data, Hash* hash) {
-  hash->Add(data.observations().data());
-  hash->Add(data.rewards().data());
-  hash->Add(data.terminations().data());
-  hash->Add(data.truncations().data());
-  hash->Add(data.stepped().data());
-  hash->Add(data.outcomes().data());
-  hash->Add(data.episode_returns().data());
-  hash->Add(data.episode_lengths().data());
+  HashAgentColumns(data, hash);
   const uint8_t over = data.episode_over() ? 1 : 0;
   hash->Add(&over, 1);
 }
 
-// The packed columns of a one-env batch have the bytes of its StepData.
+// episode_over travels as a uint8 column in a packed batch.
 void HashPacked(const v1::PackedStepData& data, Hash* hash) {
-  hash->Add(data.observations().data());
-  hash->Add(data.rewards().data());
-  hash->Add(data.terminations().data());
-  hash->Add(data.truncations().data());
-  hash->Add(data.stepped().data());
-  hash->Add(data.outcomes().data());
-  hash->Add(data.episode_returns().data());
-  hash->Add(data.episode_lengths().data());
+  HashAgentColumns(data, hash);
   hash->Add(data.episode_over().data());
 }
 
@@ -330,13 +328,11 @@ TEST_P(GoldenTrajectoryTest, EveryTransportMatchesTheRecordedBits) {
   // whole trajectory.
   grpc::ClientContext stream_context;
   auto stream = stub.Session(&stream_context);
-  uint64_t sequence = 0;
-  auto call = [&](v1::SessionRequest request) {
-    request.set_sequence(++sequence);
-    EXPECT_TRUE(stream->Write(request));
+  auto call = [&stream](const v1::SessionRequest& request) {
     v1::SessionResponse response;
-    EXPECT_TRUE(stream->Read(&response));
-    EXPECT_FALSE(response.has_error()) << response.error().message();
+    const bool answered = stream->Write(request) && stream->Read(&response);
+    EXPECT_TRUE(answered && !response.has_error())
+        << response.error().message();
     return response;
   };
   const Transport session = {
