@@ -163,19 +163,11 @@ absl::Status CheckArray(const v1::Array& array, v1::DType dtype,
   return CheckByteSize(array, dtype, shape, field);
 }
 
-// The fields that proto and core configs share, listed once: both
-// directions of the conversion expand this list.
-#define MLL_SHARED_CONFIG_FIELDS(X)                                           \
-  X(n_landers) X(continuous) X(max_cycles) X(gravity) X(enable_wind)          \
-  X(wind_power) X(turbulence_power) X(remove_on_damage)                       \
-  X(terminate_on_damage) X(shared_reward) X(damage_reward)                    \
-  X(successful_reward) X(terminate_reward)
-
 absl::StatusOr<EnvConfig> EnvConfigFromProto(const v1::EnvConfig& proto) {
   EnvConfig config;  // The core's defaults fill every unset field.
-#define MLL_COPY_IF_SET(field) \
-  if (proto.has_##field()) config.field = proto.field();
-  MLL_SHARED_CONFIG_FIELDS(MLL_COPY_IF_SET)
+#define MLL_COPY_IF_SET(type, name, default_value, range, help) \
+  if (proto.has_##name()) config.name = proto.name();
+  MLL_ENV_OPTIONS(MLL_COPY_IF_SET)
 #undef MLL_COPY_IF_SET
   switch (proto.render_mode()) {
     case v1::RENDER_MODE_UNSPECIFIED:
@@ -198,8 +190,9 @@ absl::StatusOr<EnvConfig> EnvConfigFromProto(const v1::EnvConfig& proto) {
 
 v1::EnvConfig EnvConfigToProto(const EnvConfig& config, bool auto_reset) {
   v1::EnvConfig proto;
-#define MLL_SET(field) proto.set_##field(config.field);
-  MLL_SHARED_CONFIG_FIELDS(MLL_SET)
+#define MLL_SET(type, name, default_value, range, help) \
+  proto.set_##name(config.name);
+  MLL_ENV_OPTIONS(MLL_SET)
 #undef MLL_SET
   proto.set_render_mode(config.render_mode == RenderMode::kRgbArray
                             ? v1::RENDER_MODE_RGB_ARRAY
@@ -207,8 +200,6 @@ v1::EnvConfig EnvConfigToProto(const EnvConfig& config, bool auto_reset) {
   proto.set_auto_reset(auto_reset);
   return proto;
 }
-
-#undef MLL_SHARED_CONFIG_FIELDS
 
 v1::Space ObservationSpace() {
   v1::Space space;
