@@ -1,9 +1,12 @@
 #!/usr/bin/env bash
-# Runs every test: installs what is missing, builds, then the C++ suites
-# (ctest) and the Python suites (pytest). Exit code non-zero on any failure.
+# Runs every test: installs what is missing, lints, builds, then the C++
+# suites (ctest) and the Python suites (pytest). Exit code non-zero on any
+# failure. CI passes CMAKE_ARGS=-DMLL_WERROR=ON so that a warning fails too.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh
+echo "== lint: ruff (Python)"
+.venv/bin/ruff check client_py examples bench
 scripts/build.sh
 echo "== C++ tests (ctest)"
 ctest --test-dir "${BUILD_DIR:-build}" --output-on-failure -j "$(nproc)" --timeout 600

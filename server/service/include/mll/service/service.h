@@ -40,8 +40,6 @@ class MultiLunarLanderService final
   ~MultiLunarLanderService() override;
 
   Registry& registry() { return registry_; }
-  const Authenticator& authenticator() const { return authenticator_; }
-  Metrics& metrics() { return metrics_; }
   // The Prometheus exposition of the metrics and the live env count.
   std::string MetricsText();
   // From now on new calls and Session streams get UNAVAILABLE, so clients
