@@ -60,9 +60,8 @@ AgentAction RemotePilot::RandomAction() {
     return action;
   }
   for (float& value : action.continuous) {
-    value = static_cast<float>(std::ldexp(static_cast<double>(rng_() >> 11),
-                                          -52) -
-                               1.0);
+    value = static_cast<float>(
+        std::ldexp(static_cast<double>(rng_() >> 11), -52) - 1.0);
   }
   return action;
 }

@@ -342,7 +342,8 @@ TEST_P(GoldenTrajectoryTest, EveryTransportMatchesTheRecordedBits) {
         request.mutable_reset_env()->set_seed(seed);
         const v1::SessionResponse response = call(request);
         HashWire(response.reset_env().data(), hash);
-        return response.has_error() || response.reset_env().data().episode_over();
+        return response.has_error() ||
+               response.reset_env().data().episode_over();
       },
       [&](const std::string& name, v1::Array actions, Hash* hash) {
         v1::SessionRequest request;
@@ -350,7 +351,8 @@ TEST_P(GoldenTrajectoryTest, EveryTransportMatchesTheRecordedBits) {
         *request.mutable_step_env()->mutable_actions() = std::move(actions);
         const v1::SessionResponse response = call(request);
         HashWire(response.step_env().data(), hash);
-        return response.has_error() || response.step_env().data().episode_over();
+        return response.has_error() ||
+               response.step_env().data().episode_over();
       }};
 
   const std::pair<const char*, const Transport*> transports[] = {
@@ -367,11 +369,11 @@ TEST_P(GoldenTrajectoryTest, EveryTransportMatchesTheRecordedBits) {
   EXPECT_TRUE(stream->Finish().ok());
 }
 
-INSTANTIATE_TEST_SUITE_P(
-    Scenarios, GoldenTrajectoryTest, ::testing::ValuesIn(kScenarios),
-    [](const ::testing::TestParamInfo<Scenario>& info) {
-      return std::string(info.param.label);
-    });
+INSTANTIATE_TEST_SUITE_P(Scenarios, GoldenTrajectoryTest,
+                         ::testing::ValuesIn(kScenarios),
+                         [](const ::testing::TestParamInfo<Scenario>& info) {
+                           return std::string(info.param.label);
+                         });
 
 }  // namespace
 }  // namespace mll::testing

@@ -25,10 +25,10 @@ absl::StatusOr<RenderMode> ParseRenderMode(const std::string& name) {
   for (RenderMode mode : {RenderMode::kNone, RenderMode::kRgbArray}) {
     if (name == RenderModeName(mode)) return mode;
   }
-  return absl::InvalidArgumentError(absl::StrCat(
-      "render_mode is \"", name, "\"; allowed: \"",
-      RenderModeName(RenderMode::kNone), "\", \"",
-      RenderModeName(RenderMode::kRgbArray), "\""));
+  return absl::InvalidArgumentError(
+      absl::StrCat("render_mode is \"", name, "\"; allowed: \"",
+                   RenderModeName(RenderMode::kNone), "\", \"",
+                   RenderModeName(RenderMode::kRgbArray), "\""));
 }
 
 absl::StatusOr<EnvConfig> EnvConfigFromFlags() {
