@@ -43,7 +43,11 @@ def parse_args(argv=None):
     return parser.parse_args(argv)
 
 
-def layer(inputs, outputs, std=np.sqrt(2)):
+# CleanRL's orthogonal initialisation gain for hidden layers.
+HIDDEN_GAIN = float(np.sqrt(2))
+
+
+def layer(inputs, outputs, std=HIDDEN_GAIN):
     linear = nn.Linear(inputs, outputs)
     nn.init.orthogonal_(linear.weight, std)
     nn.init.constant_(linear.bias, 0.0)
@@ -157,8 +161,9 @@ def train(args) -> tuple[list[tuple[int, int, float]], list[tuple[int, float, fl
             targets = advantages + values
 
         rows = valid.flatten().nonzero().squeeze(-1)  # Real transitions only.
-        flat = lambda t: t.reshape((-1,) + t.shape[2:])[rows]  # noqa: E731
-        b_obs, b_act, b_logp, b_adv, b_ret = map(flat, (observations, actions, logprobs, advantages, targets))
+        b_obs, b_act, b_logp, b_adv, b_ret = (
+            t.reshape((-1,) + t.shape[2:])[rows] for t in (observations, actions, logprobs, advantages, targets)
+        )
         size = max(1, len(rows) // args.minibatches)
         for _ in range(args.epochs):
             order = torch.randperm(len(rows))

@@ -8,5 +8,4 @@ if(NOT TARGET mll_fuzz_harness)
   target_include_directories(mll_fuzz_harness PUBLIC ${CMAKE_CURRENT_LIST_DIR})
   target_link_libraries(mll_fuzz_harness PUBLIC mll::core mll::service
     absl::strings absl::synchronization)
-  target_compile_options(mll_fuzz_harness PRIVATE -Wall -Wextra)
 endif()

@@ -9,7 +9,7 @@ DEBIAN_PACKAGES=(
   build-essential cmake ninja-build pkg-config git ca-certificates
   libbox2d-dev libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler
   libabsl-dev libgtest-dev libgmock-dev libbenchmark-dev libcairo2-dev libpng-dev
-  libcpp-httplib-dev openssl chromium
+  libcpp-httplib-dev openssl chromium clang-format
   python3 python3-venv python3-dev python3-torch libopenblas0-pthread
 )
 

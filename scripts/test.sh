@@ -1,9 +1,13 @@
 #!/usr/bin/env bash
-# Runs every test: installs what is missing, builds, then the C++ suites
-# (ctest) and the Python suites (pytest). Exit code non-zero on any failure.
+# Runs every test: installs what is missing, lints, builds, then the C++
+# suites (ctest) and the Python suites (pytest). Exit code non-zero on any
+# failure. CI passes CMAKE_ARGS=-DMLL_WERROR=ON so that a warning fails too.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh
+echo "== lint: ruff (Python), clang-format (the C++ files in scripts/clang-format-files.txt)"
+.venv/bin/ruff check client_py examples bench
+grep -v '^#' scripts/clang-format-files.txt | xargs clang-format --dry-run --Werror
 scripts/build.sh
 echo "== C++ tests (ctest)"
 ctest --test-dir "${BUILD_DIR:-build}" --output-on-failure -j "$(nproc)" --timeout 600

@@ -8,8 +8,8 @@
 // The raw variants build their request once and reuse it: the floor a
 // hand-written gRPC program reaches. Envs use auto_reset, so every call steps.
 //
-//   build-cppclient/bench/client_cpp/client_cpp_bench --benchmark_repetitions=3 \
-//       --benchmark_report_aggregates_only=true
+//   build-cppclient/bench/client_cpp/client_cpp_bench
+//       --benchmark_repetitions=3 --benchmark_report_aggregates_only=true
 #include <iostream>
 #include <memory>
 #include <string>

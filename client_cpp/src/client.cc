@@ -45,22 +45,18 @@ absl::Status AtServer(const Transport& transport, const absl::Status& status) {
 
 }  // namespace
 
+// The client's outcome codes are the wire's: mll.v1.Outcome.
+static_assert(static_cast<int>(LanderOutcome::kNone) == v1::OUTCOME_UNSPECIFIED);
+static_assert(static_cast<int>(LanderOutcome::kLanded) == v1::OUTCOME_LANDED);
+static_assert(static_cast<int>(LanderOutcome::kCrashed) == v1::OUTCOME_CRASHED);
+static_assert(static_cast<int>(LanderOutcome::kOutOfBounds) ==
+              v1::OUTCOME_OUT_OF_BOUNDS);
+static_assert(static_cast<int>(LanderOutcome::kTruncated) ==
+              v1::OUTCOME_TRUNCATED);
+static_assert(static_cast<int>(LanderOutcome::kAborted) == v1::OUTCOME_ABORTED);
+
 absl::string_view LanderOutcomeName(LanderOutcome outcome) {
-  switch (outcome) {
-    case LanderOutcome::kNone:
-      return "none";
-    case LanderOutcome::kLanded:
-      return "landed";
-    case LanderOutcome::kCrashed:
-      return "crashed";
-    case LanderOutcome::kOutOfBounds:
-      return "out_of_bounds";
-    case LanderOutcome::kTruncated:
-      return "truncated";
-    case LanderOutcome::kAborted:
-      return "aborted";
-  }
-  return "unknown";
+  return client_internal::OutcomeName(static_cast<int>(outcome));
 }
 
 AecTurn AecState::Last(int agent) const {

@@ -10,7 +10,9 @@
 
 #include "absl/base/config.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/ascii.h"
 #include "absl/strings/str_join.h"
+#include "absl/strings/strip.h"
 #include "google/protobuf/descriptor.h"
 #include "google/protobuf/util/json_util.h"
 
@@ -338,6 +340,29 @@ RenderedFrame DecodeFrame(const v1::Frame& proto) {
                                                         : FrameFormat::kRgb;
   frame.data = proto.data();
   return frame;
+}
+
+absl::string_view OutcomeName(int code) {
+  // Built once from the descriptor, so a value added to the proto is named
+  // without a change here.
+  static const std::vector<std::string>* const kNames = [] {
+    const google::protobuf::EnumDescriptor* outcomes = v1::Outcome_descriptor();
+    auto* names = new std::vector<std::string>();
+    for (int i = 0; i < outcomes->value_count(); ++i) {
+      const google::protobuf::EnumValueDescriptor* value = outcomes->value(i);
+      if (value->number() >= static_cast<int>(names->size())) {
+        names->resize(value->number() + 1, "unknown");
+      }
+      (*names)[value->number()] =
+          value->number() == v1::OUTCOME_UNSPECIFIED
+              ? "none"
+              : absl::AsciiStrToLower(
+                    absl::StripPrefix(value->name(), "OUTCOME_"));
+    }
+    return names;
+  }();
+  if (code < 0 || code >= static_cast<int>(kNames->size())) return "unknown";
+  return (*kNames)[code];
 }
 
 }  // namespace client_internal

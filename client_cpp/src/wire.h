@@ -33,6 +33,11 @@ absl::StatusOr<AecState> DecodeAecState(const v1::AecState& proto);
 
 RenderedFrame DecodeFrame(const v1::Frame& proto);
 
+// The name of an mll.v1.Outcome code, from the proto's enum: OUTCOME_LANDED
+// -> "landed"; OUTCOME_UNSPECIFIED (still flying) -> "none"; a code the proto
+// does not know -> "unknown".
+absl::string_view OutcomeName(int code);
+
 }  // namespace client_internal
 }  // namespace mll
 

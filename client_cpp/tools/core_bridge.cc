@@ -10,19 +10,10 @@ namespace mll {
 
 RemoteEnvConfig RemoteConfigFrom(const EnvConfig& config) {
   RemoteEnvConfig remote;
-  remote.n_landers = config.n_landers;
-  remote.continuous = config.continuous;
-  remote.max_cycles = config.max_cycles;
-  remote.gravity = config.gravity;
-  remote.enable_wind = config.enable_wind;
-  remote.wind_power = config.wind_power;
-  remote.turbulence_power = config.turbulence_power;
-  remote.remove_on_damage = config.remove_on_damage;
-  remote.terminate_on_damage = config.terminate_on_damage;
-  remote.shared_reward = config.shared_reward;
-  remote.damage_reward = config.damage_reward;
-  remote.successful_reward = config.successful_reward;
-  remote.terminate_reward = config.terminate_reward;
+#define MLL_COPY_OPTION(type, name, default_value, range, help) \
+  remote.name = config.name;
+  MLL_ENV_OPTIONS(MLL_COPY_OPTION)
+#undef MLL_COPY_OPTION
   remote.render_rgb_array = config.render_mode == RenderMode::kRgbArray;
   return remote;
 }
@@ -69,9 +60,8 @@ AgentAction RemotePilot::RandomAction() {
     return action;
   }
   for (float& value : action.continuous) {
-    value = static_cast<float>(std::ldexp(static_cast<double>(rng_() >> 11),
-                                          -52) -
-                               1.0);
+    value = static_cast<float>(
+        std::ldexp(static_cast<double>(rng_() >> 11), -52) - 1.0);
   }
   return action;
 }

@@ -377,145 +377,203 @@ Result Render(const Client& client, const std::vector<std::string>& args) {
   return std::nullopt;
 }
 
-// Flies every lander of N envs (spread over the servers) through the
-// servers, stepping them together with StepBatch; prints one line per env and
-// episode and a summary, in mll_rollout's format (with one env, the same
-// lines as mll_rollout's).
-Result Play(const Client& client, const std::vector<std::string>&) {
+// What play's flags ask for.
+struct PlayFlags {
+  PilotPolicy policy;
+  int episodes;
+  uint64_t base_seed;
+  // An existing env to fly (--name), or empty to create n_envs.
+  std::string name;
+  int n_envs;
+};
+
+absl::StatusOr<PlayFlags> ParsePlayFlags(const Client& client) {
   absl::StatusOr<PilotPolicy> policy =
       ParsePilotPolicy(absl::GetFlag(FLAGS_policy));
-  if (!policy.ok()) return Usage(policy.status());
+  if (!policy.ok()) return policy.status();
   const int episodes = absl::GetFlag(FLAGS_episodes);
   if (episodes < 1) {
-    return Usage(absl::InvalidArgumentError(
-        absl::StrCat("episodes is ", episodes, "; must be >= 1")));
+    return absl::InvalidArgumentError(
+        absl::StrCat("episodes is ", episodes, "; must be >= 1"));
   }
   absl::StatusOr<std::optional<uint64_t>> seed_flag = SeedFlag();
-  if (!seed_flag.ok()) return Usage(seed_flag.status());
-  const uint64_t base_seed = seed_flag->value_or(0);
+  if (!seed_flag.ok()) return seed_flag.status();
   const std::string name = absl::GetFlag(FLAGS_name);
   const int envs_flag = absl::GetFlag(FLAGS_envs);
   // Bounded so that a typo cannot ask the servers for millions of envs.
   constexpr int kMaxPlayEnvs = 1024;
   if (envs_flag < 0 || envs_flag > kMaxPlayEnvs ||
       (!name.empty() && envs_flag > 1)) {
-    return Usage(absl::InvalidArgumentError(absl::StrCat(
+    return absl::InvalidArgumentError(absl::StrCat(
         "envs is ", envs_flag, "; allowed: 0 (one per server) or 1..",
-        kMaxPlayEnvs, ", and only 0 or 1 with --name")));
+        kMaxPlayEnvs, ", and only 0 or 1 with --name"));
   }
-  const int n_envs =
-      !name.empty() ? 1 : (envs_flag > 0 ? envs_flag : client.server_count());
+  return PlayFlags{
+      *policy, episodes, seed_flag->value_or(0), name,
+      !name.empty() ? 1 : (envs_flag > 0 ? envs_flag : client.server_count())};
+}
 
-  std::vector<RemoteEnv> envs;
-  if (name.empty()) {
-    absl::StatusOr<EnvConfig> config = EnvConfigFromFlags();
-    if (!config.ok()) return Usage(config.status());
-    for (int j = 0; j < n_envs; ++j) {
-      // Round-robin over the servers; deleted at exit.
-      absl::StatusOr<RemoteEnv> env =
-          client.CreateEnv(RemoteConfigFrom(*config));
-      if (!env.ok()) return Server(env.status());
-      envs.push_back(*std::move(env));
-    }
-  } else {
-    absl::StatusOr<RemoteEnv> env = client.Attach(name);
+// The envs play flies: the one named, or n_envs new ones created round-robin
+// over the servers (deleted at exit).
+Result OpenPlayEnvs(const Client& client, const PlayFlags& flags,
+                    std::vector<RemoteEnv>* envs) {
+  if (!flags.name.empty()) {
+    absl::StatusOr<RemoteEnv> env = client.Attach(flags.name);
     if (!env.ok()) return Server(env.status());
-    envs.push_back(*std::move(env));
+    envs->push_back(*std::move(env));
+    return std::nullopt;
   }
+  absl::StatusOr<EnvConfig> config = EnvConfigFromFlags();
+  if (!config.ok()) return Usage(config.status());
+  for (int j = 0; j < flags.n_envs; ++j) {
+    absl::StatusOr<RemoteEnv> env = client.CreateEnv(RemoteConfigFrom(*config));
+    if (!env.ok()) return Server(env.status());
+    envs->push_back(*std::move(env));
+  }
+  return std::nullopt;
+}
+
+// One episode of every env: resets env j with seeds[j], then steps every env
+// still flying, one StepBatch call per server, until all are over (episodes
+// are bounded by max_cycles). Leaves each env's last result and step count.
+Result FlyEpisode(const Client& client, std::vector<RemoteEnv>& envs,
+                  std::vector<RemotePilot>& pilots,
+                  const std::vector<uint64_t>& seeds,
+                  std::vector<StepData>* last, std::vector<int>* steps) {
+  const int n_envs = static_cast<int>(envs.size());
+  last->assign(n_envs, StepData());
+  steps->assign(n_envs, 0);
+  std::vector<int> flying;
+  for (int j = 0; j < n_envs; ++j) {
+    absl::StatusOr<StepData> data = envs[j].Reset(seeds[j]);
+    if (!data.ok()) return Server(data.status());
+    (*last)[j] = *std::move(data);
+    if (!(*last)[j].episode_over) flying.push_back(j);
+  }
+  while (!flying.empty()) {
+    std::vector<BatchStep> batch;
+    for (int j : flying) batch.push_back({&envs[j], pilots[j].Act((*last)[j])});
+    absl::StatusOr<std::vector<absl::StatusOr<StepData>>> results =
+        client.StepBatch(batch);
+    if (!results.ok()) return Server(results.status());
+    std::vector<int> still_flying;
+    for (size_t k = 0; k < flying.size(); ++k) {
+      const int j = flying[k];
+      absl::StatusOr<StepData>& result = (*results)[k];
+      if (!result.ok()) {
+        return Server(absl::Status(
+            result.status().code(),
+            absl::StrCat(envs[j].name(), ": ", result.status().message())));
+      }
+      (*last)[j] = *std::move(result);
+      ++(*steps)[j];
+      if (!(*last)[j].episode_over) still_flying.push_back(j);
+    }
+    flying = std::move(still_flying);
+  }
+  return std::nullopt;
+}
+
+// Play's totals over every env and episode, and its output lines in
+// mll_rollout's format.
+class PlayReport {
+ public:
+  explicit PlayReport(int n_landers) : n_(n_landers), return_sums_(n_, 0.0) {}
+
+  // One line for env j's finished episode. Outcomes, returns and lengths are
+  // reported for every agent, done or not.
+  void Episode(const Client& client, const RemoteEnv& env, int episode,
+               uint64_t seed, int steps, const StepData& last) {
+    const std::vector<float>& returns = last.episode_returns;
+    const std::vector<int32_t>& lengths = last.episode_lengths;
+    const std::vector<LanderOutcome>& outcomes = last.outcomes;
+    for (int a = 0; a < n_; ++a) {
+      return_sums_[a] += returns[a];
+      landed_ += outcomes[a] == LanderOutcome::kLanded;
+      agent_steps_ += lengths[a];
+    }
+    total_steps_ += steps;
+    ++env_episodes_;
+    std::cout << absl::StrCat(
+                     "{\"episode\":", episode, ",\"seed\":", seed,
+                     ",\"steps\":", steps, ",\"returns\":",
+                     PerAgent(n_, [&](int a) { return JsonNumber(returns[a]); }),
+                     ",\"lengths\":",
+                     PerAgent(n_, [&](int a) { return lengths[a]; }),
+                     ",\"outcomes\":", PerAgent(n_, [&](int a) {
+                       return Quoted(LanderOutcomeName(outcomes[a]));
+                     }),
+                     ",\"env\":", Quoted(env.name()), ",\"server\":",
+                     Quoted(client.address(env.server())), "}")
+              << std::endl;
+  }
+
+  void Summary(int episodes, int n_envs, double seconds) const {
+    std::cout << absl::StrCat(
+                     "{\"summary\":true,\"episodes\":", episodes,
+                     ",\"envs\":", n_envs,
+                     ",\"mean_return\":", PerAgent(n_, [&](int a) {
+                       return JsonNumber(return_sums_[a] / env_episodes_);
+                     }),
+                     ",\"landing_rate\":",
+                     JsonNumber(static_cast<double>(landed_) /
+                                (env_episodes_ * n_)),
+                     ",\"mean_steps\":",
+                     JsonNumber(static_cast<double>(total_steps_) /
+                                env_episodes_),
+                     ",\"agent_steps\":", agent_steps_,
+                     ",\"agent_steps_per_second\":",
+                     JsonNumber(seconds > 0 ? agent_steps_ / seconds : 0.0),
+                     "}")
+              << std::endl;
+  }
+
+ private:
+  const int n_;
+  std::vector<double> return_sums_;
+  int64_t landed_ = 0;
+  int64_t total_steps_ = 0;
+  int64_t agent_steps_ = 0;
+  int64_t env_episodes_ = 0;
+};
+
+// Flies every lander of N envs (spread over the servers) through the
+// servers, stepping them together with StepBatch; prints one line per env and
+// episode and a summary, in mll_rollout's format (with one env, the same
+// lines as mll_rollout's).
+Result Play(const Client& client, const std::vector<std::string>&) {
+  absl::StatusOr<PlayFlags> flags = ParsePlayFlags(client);
+  if (!flags.ok()) return Usage(flags.status());
+  std::vector<RemoteEnv> envs;
+  if (Result failed = OpenPlayEnvs(client, *flags, &envs)) return failed;
+  const int n_envs = flags->n_envs;
   const int n = envs[0].n_landers();
   std::vector<RemotePilot> pilots;
   for (int j = 0; j < n_envs; ++j) {
-    pilots.emplace_back(*policy, n, envs[j].continuous(),
-                        base_seed + static_cast<uint64_t>(j));
+    pilots.emplace_back(flags->policy, n, envs[j].continuous(),
+                        flags->base_seed + static_cast<uint64_t>(j));
   }
 
-  std::vector<double> return_sums(n, 0.0);
-  int64_t landed = 0;
-  int64_t total_steps = 0;
-  int64_t agent_steps = 0;
+  PlayReport report(n);
   const auto start = std::chrono::steady_clock::now();
-  for (int episode = 0; episode < episodes; ++episode) {
-    std::vector<StepData> last(n_envs);
+  for (int episode = 0; episode < flags->episodes; ++episode) {
     std::vector<uint64_t> seeds(n_envs);
-    std::vector<int> steps(n_envs, 0);
     for (int j = 0; j < n_envs; ++j) {
-      seeds[j] = base_seed + static_cast<uint64_t>(episode) * n_envs + j;
-      absl::StatusOr<StepData> data = envs[j].Reset(seeds[j]);
-      if (!data.ok()) return Server(data.status());
-      last[j] = *std::move(data);
+      seeds[j] = flags->base_seed + static_cast<uint64_t>(episode) * n_envs + j;
     }
-    // Every env still flying, one StepBatch call per server, until all are
-    // over (episodes are bounded by max_cycles).
-    std::vector<int> flying;
-    for (int j = 0; j < n_envs; ++j) {
-      if (!last[j].episode_over) flying.push_back(j);
-    }
-    while (!flying.empty()) {
-      std::vector<BatchStep> batch;
-      for (int j : flying) batch.push_back({&envs[j], pilots[j].Act(last[j])});
-      absl::StatusOr<std::vector<absl::StatusOr<StepData>>> results =
-          client.StepBatch(batch);
-      if (!results.ok()) return Server(results.status());
-      std::vector<int> still_flying;
-      for (size_t k = 0; k < flying.size(); ++k) {
-        const int j = flying[k];
-        absl::StatusOr<StepData>& result = (*results)[k];
-        if (!result.ok()) {
-          return Server(absl::Status(
-              result.status().code(),
-              absl::StrCat(envs[j].name(), ": ", result.status().message())));
-        }
-        last[j] = *std::move(result);
-        ++steps[j];
-        if (!last[j].episode_over) still_flying.push_back(j);
-      }
-      flying = std::move(still_flying);
+    std::vector<StepData> last;
+    std::vector<int> steps;
+    if (Result failed = FlyEpisode(client, envs, pilots, seeds, &last, &steps)) {
+      return failed;
     }
     for (int j = 0; j < n_envs; ++j) {
-      // Outcomes, returns and lengths are reported for every agent, done or
-      // not.
-      const std::vector<float>& returns = last[j].episode_returns;
-      const std::vector<int32_t>& lengths = last[j].episode_lengths;
-      const std::vector<LanderOutcome>& outcomes = last[j].outcomes;
-      for (int a = 0; a < n; ++a) {
-        return_sums[a] += returns[a];
-        landed += outcomes[a] == LanderOutcome::kLanded;
-        agent_steps += lengths[a];
-      }
-      total_steps += steps[j];
-      const std::string returns_json =
-          PerAgent(n, [&](int a) { return JsonNumber(returns[a]); });
-      std::cout << absl::StrCat(
-                       "{\"episode\":", episode, ",\"seed\":", seeds[j],
-                       ",\"steps\":", steps[j], ",\"returns\":", returns_json,
-                       ",\"lengths\":",
-                       PerAgent(n, [&](int a) { return lengths[a]; }),
-                       ",\"outcomes\":", PerAgent(n, [&](int a) {
-                         return Quoted(LanderOutcomeName(outcomes[a]));
-                       }),
-                       ",\"env\":", Quoted(envs[j].name()), ",\"server\":",
-                       Quoted(client.address(envs[j].server())), "}")
-                << std::endl;
+      report.Episode(client, envs[j], episode, seeds[j], steps[j], last[j]);
     }
   }
-  const double seconds =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
-          .count();
-  const int64_t env_episodes = static_cast<int64_t>(episodes) * n_envs;
-  std::cout << absl::StrCat(
-                   "{\"summary\":true,\"episodes\":", episodes,
-                   ",\"envs\":", n_envs,
-                   ",\"mean_return\":", PerAgent(n, [&](int a) {
-                     return JsonNumber(return_sums[a] / env_episodes);
-                   }),
-                   ",\"landing_rate\":",
-                   JsonNumber(static_cast<double>(landed) / (env_episodes * n)),
-                   ",\"mean_steps\":",
-                   JsonNumber(static_cast<double>(total_steps) / env_episodes),
-                   ",\"agent_steps\":", agent_steps,
-                   ",\"agent_steps_per_second\":",
-                   JsonNumber(seconds > 0 ? agent_steps / seconds : 0.0), "}")
-            << std::endl;
+  report.Summary(flags->episodes, n_envs,
+                 std::chrono::duration<double>(
+                     std::chrono::steady_clock::now() - start)
+                     .count());
   return std::nullopt;
 }
 

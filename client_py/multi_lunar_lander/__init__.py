@@ -8,10 +8,9 @@ a batched vector environment, each a thin client of an `mll_server`.
     genv = mll.gym_vector_env(64, n_landers=3)  # gymnasium.vector.VectorEnv, one lander per row
     sb3env = mll.sb3_vec_env(64, n_landers=3)    # stable_baselines3 VecEnv, one lander per row
 
-Options (shared/ENV_SPEC.md): n_landers, continuous, max_cycles, gravity, enable_wind,
-wind_power, turbulence_power, remove_on_damage, terminate_on_damage, shared_reward,
-damage_reward, successful_reward, terminate_reward; plus address= and render_mode= (None,
-"rgb_array", "human"; not for vector_env).
+Options: the names in CONFIG_OPTIONS (the fields of the wire's EnvConfig, e.g. n_landers,
+continuous, enable_wind; an unset one takes the server's default); plus address= and
+render_mode= (None, "rgb_array", "human"; not for vector_env).
 
 address=None (the default) uses this process's embedded server: one `mll_server` child on a
 free loopback port (binary from $MLL_SERVER_BIN, else PATH, else the repository's

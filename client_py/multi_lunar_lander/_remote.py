@@ -21,25 +21,26 @@ from ._errors import MLLError, from_item_error, from_rpc_error, invalid_argument
 from ._server import acquire_embedded
 from ._stubs import pb, pb_grpc
 
-# StepData.outcomes / AecState.outcomes codes -> info["outcome"] (None while flying).
-OUTCOMES = (None, "landed", "crashed", "out_of_bounds", "truncated", "aborted")
 
-# The options of shared/ENV_SPEC.md, in EnvConfig field order.
-CONFIG_OPTIONS = (
-    "n_landers",
-    "continuous",
-    "max_cycles",
-    "gravity",
-    "enable_wind",
-    "wind_power",
-    "turbulence_power",
-    "remove_on_damage",
-    "terminate_on_damage",
-    "shared_reward",
-    "damage_reward",
-    "successful_reward",
-    "terminate_reward",
-)
+def _outcome_names() -> tuple:
+    """info["outcome"] by code, from the proto's Outcome enum (OUTCOME_LANDED -> "landed"); code
+    0, OUTCOME_UNSPECIFIED, is a lander still flying: None."""
+    values = pb.Outcome.DESCRIPTOR.values
+    names: list = [None] * (max(value.number for value in values) + 1)
+    for value in values:
+        if value.number:
+            names[value.number] = value.name.removeprefix("OUTCOME_").lower()
+    return tuple(names)
+
+
+# StepData.outcomes / AecState.outcomes codes -> info["outcome"] (None while flying).
+OUTCOMES = _outcome_names()
+
+# The options an environment takes as keyword arguments: EnvConfig's fields with presence (an
+# unset one takes the server's default), in field order. render_mode and auto_reset are set
+# by the classes themselves.
+CONFIG_OPTIONS = tuple(field.name for field in pb.EnvConfig.DESCRIPTOR.fields if field.has_presence)
+
 RENDER_MODES = ("human", "rgb_array")
 
 

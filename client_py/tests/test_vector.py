@@ -33,7 +33,7 @@ def test_episode_end_then_auto_reset(address):
     vector = mll.vector_env(3, address=address, n_landers=2, max_cycles=5)
     observations, _ = vector.reset(seed=7)
     zeros = np.zeros((3, 2), np.int32)
-    for step in range(5):
+    for _ in range(5):
         observations, rewards, terminations, truncations, active, infos = vector.step(zeros)
         assert active.all()  # Free fall: nobody lands or crashes within 5 steps.
     assert truncations.all() and not terminations.any() and infos["episode_over"].all()

@@ -1,8 +1,9 @@
 // mll_server: hosts Multi Lunar Lander environments over gRPC.
 //
 //   mll_server --address=127.0.0.1:0 --port_file=/tmp/port
-//   mll_server --address=0.0.0.0:50051 --tls_cert=cert.pem --tls_key=key.pem \
+//   mll_server --address=0.0.0.0:50051 --tls_cert=cert.pem --tls_key=key.pem
 //       --auth_token_file=tokens.txt --metrics_address=0.0.0.0:9464
+//       (one command line)
 //
 // SIGTERM or SIGINT: stop accepting calls, let in-flight calls finish (up to
 // a grace period), exit 0.
@@ -98,64 +99,44 @@ std::string HostOf(const std::string& address) {
   return address.substr(0, address.rfind(':'));
 }
 
-}  // namespace
-
-int main(int argc, char** argv) {
-  mll::tools::ParseFlagsOnly(argc, argv, "mll_server", [] {
-    return absl::StrCat(
-        "mll_server: hosts Multi Lunar Lander environments over gRPC "
-        "(mll.v1).\nUsage: mll_server [--flags]\n\nFlags:\n",
-        mll::tools::DescribeFlags(
-            mll::tools::FlagsDefinedIn("mll_server_main.cc")));
-  });
-  QuietGrpcLogsUnlessAsked();
-  // Debian's abseil is built with Mutex deadlock detection on, which puts a
-  // global graph lock on every Lock (seen in StepBatch profiles). The
-  // server's lock order is fixed (the registry's, then one env's, never two
-  // envs'); the tests run with detection on.
-  absl::SetMutexDeadlockDetectionMode(absl::OnDeadlockCycle::kIgnore);
-
-  // Blocked in every thread (gRPC's threads inherit the mask), so the
-  // signals reach only the sigwait below, outside any signal handler.
+// SIGTERM and SIGINT, blocked in every thread (gRPC's threads inherit the
+// mask), so that they reach only main's sigwait, outside any signal handler.
+sigset_t BlockStopSignals() {
   sigset_t signals;
   sigemptyset(&signals);
   sigaddset(&signals, SIGTERM);
   sigaddset(&signals, SIGINT);
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+  return signals;
+}
 
-  // Set here, not between the parent's fork and exec: a forked child of a
-  // multi-threaded parent (gRPC's threads) must do nothing before exec.
+// --parent_pid: SIGTERM when the parent dies. Set here, not between the
+// parent's fork and exec: a forked child of a multi-threaded parent (gRPC's
+// threads) must do nothing before exec. An error names the flag.
+absl::Status FollowParent() {
   const int64_t parent_pid = absl::GetFlag(FLAGS_parent_pid);
   if (parent_pid < 0) {
-    std::fprintf(stderr,
-                 "mll_server: --parent_pid: %lld is out of range: allowed 0 "
-                 "(off) or the pid of the process that started mll_server\n",
-                 static_cast<long long>(parent_pid));
-    return 1;
+    return absl::InvalidArgumentError(absl::StrCat(
+        "--parent_pid: ", parent_pid,
+        " is out of range: allowed 0 (off) or the pid of the process that "
+        "started mll_server"));
   }
 #ifdef __linux__
   if (parent_pid > 0) {
     prctl(PR_SET_PDEATHSIG, SIGTERM);
     // The parent may have exited before the line above took effect.
     if (getppid() != parent_pid) {
-      std::fprintf(stderr,
-                   "mll_server: --parent_pid=%lld has already exited; not "
-                   "starting\n",
-                   static_cast<long long>(parent_pid));
-      return 1;
+      return absl::FailedPreconditionError(
+          absl::StrCat("--parent_pid=", parent_pid,
+                       " has already exited; not starting"));
     }
   }
 #endif
+  return absl::OkStatus();
+}
 
-  const double shutdown_grace_s = absl::GetFlag(FLAGS_shutdown_grace_s);
-  if (!(shutdown_grace_s > 0 && shutdown_grace_s <= kMaxShutdownGraceS)) {
-    std::fprintf(stderr,
-                 "mll_server: --shutdown_grace_s: %g is out of range: "
-                 "allowed 0 < S <= %g seconds\n",
-                 shutdown_grace_s, kMaxShutdownGraceS);
-    return 1;
-  }
-
+// The server's options from the flags, with the auth tokens read.
+absl::StatusOr<mll::ServerOptions> ServerOptionsFromFlags() {
   mll::ServerOptions options;
   options.address = absl::GetFlag(FLAGS_address);
   options.max_message_mb = absl::GetFlag(FLAGS_max_message_mb);
@@ -172,58 +153,93 @@ int main(int argc, char** argv) {
   if (!token_file.empty()) {
     absl::StatusOr<std::vector<std::string>> tokens =
         mll::ReadTokenFile(token_file);
-    if (!tokens.ok()) {
-      std::fprintf(stderr, "mll_server: %s\n",
-                   std::string(tokens.status().message()).c_str());
-      return 1;
-    }
+    if (!tokens.ok()) return tokens.status();
     options.service.auth_tokens = *std::move(tokens);
   }
-  absl::StatusOr<std::unique_ptr<mll::Server>> server =
-      mll::Server::Start(options);
-  if (!server.ok()) {
-    std::fprintf(stderr, "mll_server: %s\n",
-                 std::string(server.status().message()).c_str());
-    return 1;
-  }
-  const std::string port_file = absl::GetFlag(FLAGS_port_file);
-  if (!port_file.empty() && !WritePortFile(port_file, (*server)->port())) {
-    std::fprintf(stderr, "mll_server: --port_file: cannot write %s\n",
-                 port_file.c_str());
-    return 1;
-  }
+  return options;
+}
+
+// What the server listens on and what protects it, in two lines on stderr;
+// never the tokens themselves.
+void PrintBanner(const mll::Server& server, const mll::ServerOptions& options,
+                 double shutdown_grace_s) {
   const std::string host = HostOf(options.address);
+  const std::string port_file = absl::GetFlag(FLAGS_port_file);
   std::fprintf(stderr,
                "mll_server: listening on %s:%d (--address=%s --port_file=%s "
                "--threads=%d --max_envs=%d --max_envs_per_token=%d "
                "--idle_timeout_s=%g --max_message_mb=%d "
                "--shutdown_grace_s=%g)\n",
-               host.c_str(), (*server)->port(), options.address.c_str(),
+               host.c_str(), server.port(), options.address.c_str(),
                port_file.c_str(), options.service.threads,
                options.service.max_envs,
                mll::EffectiveMaxEnvsPerToken(options.service),
                absl::ToDoubleSeconds(options.service.idle_timeout),
                options.max_message_mb, shutdown_grace_s);
-  // What protects the server, in one line; never the tokens themselves.
   const int n_tokens = static_cast<int>(options.service.auth_tokens.size());
   std::fprintf(
       stderr, "mll_server: TLS %s, auth %s, metrics %s\n",
-      (*server)->tls() ? "on" : "off (plaintext)",
+      server.tls() ? "on" : "off (plaintext)",
       n_tokens == 0
           ? "off (anonymous)"
           : absl::StrCat("on (", n_tokens, n_tokens == 1 ? " token" : " tokens",
-                         " from ", token_file, ")")
+                         " from ", absl::GetFlag(FLAGS_auth_token_file), ")")
                 .c_str(),
-      (*server)->metrics_port() == 0
+      server.metrics_port() == 0
           ? "off"
-          : absl::StrCat("on http://", HostOf(options.metrics_address),
-                         ":", (*server)->metrics_port(), "/metrics")
+          : absl::StrCat("on http://", HostOf(options.metrics_address), ":",
+                         server.metrics_port(), "/metrics")
                 .c_str());
-
-  if ((*server)->http_port() != 0) {
+  if (server.http_port() != 0) {
     std::fprintf(stderr, "mll_server: dashboard on http://%s:%d/\n",
-                 HostOf(options.http_address).c_str(), (*server)->http_port());
+                 HostOf(options.http_address).c_str(), server.http_port());
   }
+}
+
+// Prints "mll_server: <message>" and returns main's failure code.
+int Fail(const absl::Status& status) {
+  std::fprintf(stderr, "mll_server: %s\n",
+               std::string(status.message()).c_str());
+  return 1;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  mll::tools::ParseFlagsOnly(argc, argv, "mll_server", [] {
+    return absl::StrCat(
+        "mll_server: hosts Multi Lunar Lander environments over gRPC "
+        "(mll.v1).\nUsage: mll_server [--flags]\n\nFlags:\n",
+        mll::tools::DescribeFlags(
+            mll::tools::FlagsDefinedIn("mll_server_main.cc")));
+  });
+  QuietGrpcLogsUnlessAsked();
+  // Debian's abseil is built with Mutex deadlock detection on, which puts a
+  // global graph lock on every Lock (seen in StepBatch profiles). The
+  // server's lock order is fixed (the registry's, then one env's, never two
+  // envs'); the tests run with detection on.
+  absl::SetMutexDeadlockDetectionMode(absl::OnDeadlockCycle::kIgnore);
+  sigset_t signals = BlockStopSignals();
+  if (absl::Status status = FollowParent(); !status.ok()) return Fail(status);
+
+  const double shutdown_grace_s = absl::GetFlag(FLAGS_shutdown_grace_s);
+  if (!(shutdown_grace_s > 0 && shutdown_grace_s <= kMaxShutdownGraceS)) {
+    return Fail(absl::InvalidArgumentError(absl::StrCat(
+        "--shutdown_grace_s: ", shutdown_grace_s,
+        " is out of range: allowed 0 < S <= ", kMaxShutdownGraceS,
+        " seconds")));
+  }
+  absl::StatusOr<mll::ServerOptions> options = ServerOptionsFromFlags();
+  if (!options.ok()) return Fail(options.status());
+  absl::StatusOr<std::unique_ptr<mll::Server>> server =
+      mll::Server::Start(*options);
+  if (!server.ok()) return Fail(server.status());
+  const std::string port_file = absl::GetFlag(FLAGS_port_file);
+  if (!port_file.empty() && !WritePortFile(port_file, (*server)->port())) {
+    return Fail(absl::InternalError(
+        absl::StrCat("--port_file: cannot write ", port_file)));
+  }
+  PrintBanner(**server, *options, shutdown_grace_s);
 
   int signal_number = 0;
   sigwait(&signals, &signal_number);

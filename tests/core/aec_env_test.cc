@@ -84,7 +84,9 @@ TEST(AecEnvTest, MatchesParallelRunWithPettingZooBookkeeping) {
       if (!expected.terminations[a] && !expected.truncations[a]) live.push_back(a);
     }
     EXPECT_EQ(aec.agents(), live);
-    if (!live.empty()) EXPECT_EQ(aec.agent_selection(), live.front());
+    if (!live.empty()) {
+      EXPECT_EQ(aec.agent_selection(), live.front());
+    }
   }
   EXPECT_EQ(dead_steps, 3);
   EXPECT_EQ(aec.agent_selection(), -1);

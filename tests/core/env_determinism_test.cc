@@ -49,8 +49,9 @@ std::vector<uint8_t> Trace(EnvConfig config, uint64_t seed,
     AppendBits(result, &bits);
     if (render) {
       const Scene scene = env->scene();
-      if (max_particles != nullptr && scene.particles.size() > *max_particles) {
-        *max_particles = static_cast<int>(scene.particles.size());
+      const int particles = static_cast<int>(scene.particles.size());
+      if (max_particles != nullptr && particles > *max_particles) {
+        *max_particles = particles;
       }
       RenderOptions options;
       options.overlay = true;

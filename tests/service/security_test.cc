@@ -1,6 +1,7 @@
 // TLS with a self-signed certificate made at test time (openssl CLI), and the
 // mll_server binary with TLS, tokens and metrics together, over loopback.
 #include <signal.h>
+#include <unistd.h>
 
 #include <chrono>
 #include <cstdlib>
@@ -37,9 +38,12 @@ std::string ReadAll(const std::string& path) {
 }
 
 // A fresh self-signed P-256 certificate for localhost and 127.0.0.1.
+// The files are per process: ctest runs this file's tests as concurrent
+// processes, which must not overwrite each other's certificate.
 KeyPair MakeKeyPair(const std::string& stem) {
-  KeyPair pair{::testing::TempDir() + stem + "_cert.pem",
-               ::testing::TempDir() + stem + "_key.pem", ""};
+  const std::string prefix = ::testing::TempDir() + stem + "_" +
+                             std::to_string(getpid());
+  KeyPair pair{prefix + "_cert.pem", prefix + "_key.pem", ""};
   const std::string command =
       "openssl req -x509 -newkey ec -pkeyopt ec_paramgen_curve:prime256v1 "
       "-nodes -days 2 -subj /CN=localhost "

@@ -16,8 +16,9 @@ namespace mll {
 
 AecEnv::AecEnv(Env* env) : env_(env) {}
 
-void AecEnv::Reset(std::optional<uint64_t> seed) {
+void AecEnv::Reset(std::optional<uint64_t> seed, StepResult* result) {
   env_->Reset(seed, &step_result_);
+  if (result != nullptr) *result = step_result_;
   const int n = env_->n_landers();
   agents_.resize(n);
   for (int i = 0; i < n; ++i) agents_[i] = i;

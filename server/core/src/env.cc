@@ -193,6 +193,25 @@ class Env::Impl {
                       double ttl);
   void RemoveExpiredParticles();
   Measurement Measure(int agent, const std::vector<uint8_t>& stepped) const;
+  // The parts of Step, in the order it runs them.
+  // Each stepped lander's observation, shaped reward and contact outcome,
+  // before any rule changes the world; true when one was damaged.
+  bool ObserveLanders(const std::vector<uint8_t>& stepped,
+                      const std::vector<EngineCommand>& commands,
+                      std::vector<double>* rewards,
+                      std::vector<uint8_t>* damaged);
+  // Damage, landing and terminate_on_damage: rewards and lander removal.
+  void ApplyOutcomes(const std::vector<uint8_t>& stepped,
+                     const std::vector<uint8_t>& damaged, bool any_damaged,
+                     std::vector<double>* rewards);
+  // At max_cycles.
+  void TruncateActiveLanders();
+  // shared_reward: each stepped lander gets the mean.
+  void ShareRewards(const std::vector<uint8_t>& stepped,
+                    std::vector<double>* rewards) const;
+  // Returns, lengths and the active count.
+  void UpdateEpisodes(const std::vector<uint8_t>& stepped,
+                      const std::vector<double>& rewards);
   void FillResult(const std::vector<uint8_t>& stepped,
                   const std::vector<double>& rewards, StepResult* result) const;
 
@@ -608,25 +627,38 @@ absl::Status Env::Impl::Step(const ActionsView& actions, StepResult* result) {
   }
   Advance(commands);
 
-  // Observations and shaped rewards, before any rule changes the world.
   std::vector<double> rewards(n, 0.0);
   std::vector<uint8_t> damaged(n, 0);
+  const bool any_damaged = ObserveLanders(stepped, commands, &rewards, &damaged);
+  ApplyOutcomes(stepped, damaged, any_damaged, &rewards);
+  ++cycles_;
+  if (cycles_ >= config_.max_cycles) TruncateActiveLanders();
+  if (config_.shared_reward) ShareRewards(stepped, &rewards);
+  UpdateEpisodes(stepped, rewards);
+  FillResult(stepped, rewards, result);
+  return absl::OkStatus();
+}
+
+bool Env::Impl::ObserveLanders(const std::vector<uint8_t>& stepped,
+                               const std::vector<EngineCommand>& commands,
+                               std::vector<double>* rewards,
+                               std::vector<uint8_t>* damaged) {
   bool any_damaged = false;
-  for (int i = 0; i < n; ++i) {
+  for (int i = 0; i < config_.n_landers; ++i) {
     if (!stepped[i]) continue;
     Lander& lander = landers_[i];
     const Measurement m = Measure(i, stepped);
     for (int k = 0; k < kObservationSize; ++k) {
       lander.observation[k] = static_cast<float>(m.state[k]);
     }
-    rewards[i] = m.shaping - lander.prev_shaping -
-                 kMainFuelCost * commands[i].main_power -
-                 kSideFuelCost * commands[i].side_power;
+    (*rewards)[i] = m.shaping - lander.prev_shaping -
+                    kMainFuelCost * commands[i].main_power -
+                    kSideFuelCost * commands[i].side_power;
     lander.prev_shaping = m.shaping;
     const LanderContacts& flags = contacts_[i];
     const bool contact_damage = flags.body_touched || flags.leg_touched_other;
     if (contact_damage || std::abs(m.state[0]) >= 1.0) {
-      damaged[i] = 1;
+      (*damaged)[i] = 1;
       any_damaged = true;
       lander.outcome =
           contact_damage ? Outcome::kCrashed : Outcome::kOutOfBounds;
@@ -634,13 +666,19 @@ absl::Status Env::Impl::Step(const ActionsView& actions, StepResult* result) {
       lander.outcome = Outcome::kLanded;
     }
   }
+  return any_damaged;
+}
 
-  // Outcomes (ENV_SPEC "One step", 5), in order.
+void Env::Impl::ApplyOutcomes(const std::vector<uint8_t>& stepped,
+                              const std::vector<uint8_t>& damaged,
+                              bool any_damaged, std::vector<double>* rewards) {
+  // ENV_SPEC "One step", 5, in order.
+  const int n = config_.n_landers;
   for (int i = 0; i < n; ++i) {
     if (!stepped[i]) continue;
     Lander& lander = landers_[i];
     if (damaged[i]) {
-      rewards[i] += config_.damage_reward + config_.terminate_reward;
+      (*rewards)[i] += config_.damage_reward + config_.terminate_reward;
       lander.active = false;
       if (config_.remove_on_damage) {
         DestroyLanderBodies(lander);
@@ -648,7 +686,7 @@ absl::Status Env::Impl::Step(const ActionsView& actions, StepResult* result) {
         lander.wreck = true;
       }
     } else if (lander.outcome == Outcome::kLanded) {
-      rewards[i] += config_.successful_reward;
+      (*rewards)[i] += config_.successful_reward;
       lander.active = false;
       DestroyLanderBodies(lander);
     }
@@ -657,37 +695,41 @@ absl::Status Env::Impl::Step(const ActionsView& actions, StepResult* result) {
     for (int i = 0; i < n; ++i) {
       Lander& lander = landers_[i];
       if (!stepped[i] || !lander.active) continue;
-      rewards[i] += config_.terminate_reward;
+      (*rewards)[i] += config_.terminate_reward;
       lander.active = false;
       lander.outcome = Outcome::kAborted;
     }
   }
-  ++cycles_;
-  if (cycles_ >= config_.max_cycles) {
-    for (int i = 0; i < n; ++i) {
-      Lander& lander = landers_[i];
-      if (!lander.active) continue;
-      lander.active = false;
-      lander.outcome = Outcome::kTruncated;
-    }
-  }
+}
 
-  if (config_.shared_reward) {
-    double sum = 0.0;
-    int count = 0;
-    for (int i = 0; i < n; ++i) {
-      if (!stepped[i]) continue;
-      sum += rewards[i];
-      ++count;
-    }
-    const double mean = sum / count;
-    for (int i = 0; i < n; ++i) {
-      if (stepped[i]) rewards[i] = mean;
-    }
+void Env::Impl::TruncateActiveLanders() {
+  for (Lander& lander : landers_) {
+    if (!lander.active) continue;
+    lander.active = false;
+    lander.outcome = Outcome::kTruncated;
   }
+}
 
-  num_active_ = 0;
+void Env::Impl::ShareRewards(const std::vector<uint8_t>& stepped,
+                             std::vector<double>* rewards) const {
+  const int n = config_.n_landers;
+  double sum = 0.0;
+  int count = 0;
   for (int i = 0; i < n; ++i) {
+    if (!stepped[i]) continue;
+    sum += (*rewards)[i];
+    ++count;
+  }
+  const double mean = sum / count;
+  for (int i = 0; i < n; ++i) {
+    if (stepped[i]) (*rewards)[i] = mean;
+  }
+}
+
+void Env::Impl::UpdateEpisodes(const std::vector<uint8_t>& stepped,
+                               const std::vector<double>& rewards) {
+  num_active_ = 0;
+  for (int i = 0; i < config_.n_landers; ++i) {
     Lander& lander = landers_[i];
     if (stepped[i]) {
       lander.episode_return += rewards[i];
@@ -695,8 +737,6 @@ absl::Status Env::Impl::Step(const ActionsView& actions, StepResult* result) {
     }
     if (lander.active) ++num_active_;
   }
-  FillResult(stepped, rewards, result);
-  return absl::OkStatus();
 }
 
 void Env::Impl::FillResult(const std::vector<uint8_t>& stepped,

@@ -5,70 +5,59 @@
 #include "absl/strings/str_cat.h"
 
 namespace mll {
-namespace {
 
-// Ranges of shared/ENV_SPEC.md, "Options and defaults".
-constexpr double kMinGravity = -12.0;  // Exclusive.
-constexpr double kMaxGravity = 0.0;    // Exclusive.
-constexpr double kMaxWindPower = 20.0;
-constexpr double kMaxTurbulencePower = 2.0;
-
-absl::Status OutOfRange(absl::string_view field, double value,
-                        absl::string_view allowed) {
-  return absl::InvalidArgumentError(absl::StrCat(
-      field, " = ", value, " is out of range: allowed ", allowed));
-}
-
-absl::Status CheckClosed(absl::string_view field, double value, double low,
-                         double high) {
-  if (std::isfinite(value) && value >= low && value <= high) {
-    return absl::OkStatus();
+bool OptionRange::Contains(double value) const {
+  switch (kind_) {
+    case Kind::kAny:
+      return true;
+    case Kind::kIntegers:
+      return value >= low_ && value <= high_;
+    case Kind::kAtLeast:
+      return value >= low_;
+    case Kind::kClosed:
+      return std::isfinite(value) && value >= low_ && value <= high_;
+    case Kind::kOpen:
+      return std::isfinite(value) && value > low_ && value < high_;
+    case Kind::kFinite:
+      return std::isfinite(value);
   }
-  return OutOfRange(field, value, absl::StrCat("[", low, ", ", high, "]"));
+  return false;
 }
 
-absl::Status CheckFinite(absl::string_view field, double value) {
-  if (std::isfinite(value)) return absl::OkStatus();
-  return OutOfRange(field, value, "any finite value");
+std::string OptionRange::Describe() const {
+  switch (kind_) {
+    case Kind::kAny:
+      return "any value";
+    case Kind::kIntegers:
+      return absl::StrCat(low_, "..", high_);
+    case Kind::kAtLeast:
+      return absl::StrCat(">= ", low_);
+    case Kind::kClosed:
+      return absl::StrCat("[", low_, ", ", high_, "]");
+    case Kind::kOpen:
+      return absl::StrCat("(", low_, ", ", high_, "), exclusive");
+    case Kind::kFinite:
+      return "any finite value";
+  }
+  return "";
 }
-
-}  // namespace
 
 absl::Status ValidateEnvConfig(const EnvConfig& config) {
-  if (config.n_landers < kMinLanders || config.n_landers > kMaxLanders) {
-    return OutOfRange("n_landers", config.n_landers,
-                      absl::StrCat(kMinLanders, "..", kMaxLanders));
+  // The fields in list order: the error names the first bad one.
+#define MLL_CHECK_OPTION(type, name, default_value, range, help)        \
+  if (const double value = static_cast<double>(config.name);            \
+      !(range).Contains(value)) {                                       \
+    return absl::InvalidArgumentError(                                  \
+        absl::StrCat(#name, " = ", value, " is out of range: allowed ", \
+                     (range).Describe()));                              \
   }
-  if (config.max_cycles < 1) {
-    return OutOfRange("max_cycles", config.max_cycles, ">= 1");
-  }
-  if (!(std::isfinite(config.gravity) && config.gravity > kMinGravity &&
-        config.gravity < kMaxGravity)) {
-    return OutOfRange(
-        "gravity", config.gravity,
-        absl::StrCat("(", kMinGravity, ", ", kMaxGravity, "), exclusive"));
-  }
-  if (absl::Status s =
-          CheckClosed("wind_power", config.wind_power, 0.0, kMaxWindPower);
-      !s.ok()) {
-    return s;
-  }
-  if (absl::Status s = CheckClosed("turbulence_power", config.turbulence_power,
-                                   0.0, kMaxTurbulencePower);
-      !s.ok()) {
-    return s;
-  }
-  for (const auto& [field, value] :
-       {std::pair<absl::string_view, double>{"damage_reward",
-                                             config.damage_reward},
-        {"successful_reward", config.successful_reward},
-        {"terminate_reward", config.terminate_reward}}) {
-    if (absl::Status s = CheckFinite(field, value); !s.ok()) return s;
-  }
+  MLL_ENV_OPTIONS(MLL_CHECK_OPTION)
+#undef MLL_CHECK_OPTION
   if (config.render_mode != RenderMode::kNone &&
       config.render_mode != RenderMode::kRgbArray) {
-    return OutOfRange("render_mode", static_cast<int>(config.render_mode),
-                      "none (0) or rgb_array (1)");
+    return absl::InvalidArgumentError(
+        absl::StrCat("render_mode = ", static_cast<int>(config.render_mode),
+                     " is out of range: allowed none (0) or rgb_array (1)"));
   }
   return absl::OkStatus();
 }

@@ -1,7 +1,7 @@
-// Command-line flags for every EnvConfig field, defined once so that every
-// tool (mll_rollout, and any CLI that wants the same spelling) maps flags to an
-// EnvConfig the same way. The flags' defaults are EnvConfig's defaults; ranges
-// are checked by the core's ValidateEnvConfig, never here.
+// Command-line flags for every EnvConfig field, expanded from the one option
+// list (MLL_ENV_OPTIONS), so that every tool (mll_rollout, mll_cli) maps flags
+// to an EnvConfig the same way. Names, defaults and help come from the list;
+// ranges are checked by the core's ValidateEnvConfig, never here.
 #ifndef MLL_CORE_TOOLS_CONFIG_FLAGS_H_
 #define MLL_CORE_TOOLS_CONFIG_FLAGS_H_
 
@@ -11,19 +11,10 @@
 #include "absl/status/statusor.h"
 #include "mll/core/env_config.h"
 
-ABSL_DECLARE_FLAG(int, n_landers);
-ABSL_DECLARE_FLAG(bool, continuous);
-ABSL_DECLARE_FLAG(int, max_cycles);
-ABSL_DECLARE_FLAG(double, gravity);
-ABSL_DECLARE_FLAG(bool, enable_wind);
-ABSL_DECLARE_FLAG(double, wind_power);
-ABSL_DECLARE_FLAG(double, turbulence_power);
-ABSL_DECLARE_FLAG(bool, remove_on_damage);
-ABSL_DECLARE_FLAG(bool, terminate_on_damage);
-ABSL_DECLARE_FLAG(bool, shared_reward);
-ABSL_DECLARE_FLAG(double, damage_reward);
-ABSL_DECLARE_FLAG(double, successful_reward);
-ABSL_DECLARE_FLAG(double, terminate_reward);
+#define MLL_DECLARE_OPTION_FLAG(type, name, default_value, range, help) \
+  ABSL_DECLARE_FLAG(type, name);
+MLL_ENV_OPTIONS(MLL_DECLARE_OPTION_FLAG)
+#undef MLL_DECLARE_OPTION_FLAG
 ABSL_DECLARE_FLAG(std::string, render_mode);
 
 namespace mll {

@@ -36,30 +36,17 @@ std::vector<To> PerAgent(int n, From from) {
 }
 
 // Sets `out`'s dtype and shape and sizes its data, zero; returns the data's
-// bytes for the caller to fill.
-template <typename T>
-char* SizeArray(absl::Span<const int> shape, v1::Array* out) {
+// bytes as a column of T for the caller to fill.
+template <typename T, typename Wire = T>
+ByteColumn<T> SizeArray(absl::Span<const int> shape, v1::Array* out) {
+  static_assert(sizeof(T) == sizeof(Wire), "a column stores T as Wire");
   size_t count = 1;
   for (int dim : shape) count *= static_cast<size_t>(dim);
-  out->set_dtype(DTypeOf<T>());
+  out->set_dtype(DTypeOf<Wire>());
   out->mutable_shape()->Assign(shape.begin(), shape.end());
   std::string* data = out->mutable_data();
   data->assign(count * sizeof(T), '\0');
-  return data->data();
-}
-
-// Stores `value` at element `index` of a little-endian byte column.
-template <typename T>
-void Store(T value, size_t index, char* column) {
-  std::memcpy(column + index * sizeof(T), &value, sizeof(T));
-}
-
-// Copies a whole core column into a row of bytes.
-template <typename T>
-void StoreAll(const std::vector<T>& values, char* column) {
-  // memcpy with a null pointer is undefined even for 0 bytes (empty batch).
-  if (values.empty()) return;
-  std::memcpy(column, values.data(), values.size() * sizeof(T));
+  return ByteColumn<T>(data);
 }
 
 // Replaces `out` with the little-endian elements of `bytes` (whose size the
@@ -71,12 +58,15 @@ void LoadAll(const std::string& bytes, std::vector<T>* out) {
   std::memcpy(out->data(), bytes.data(), bytes.size());
 }
 
-// Each agent's return and length so far in this episode, into two rows of n
-// float32 and n int32.
-void WriteEpisodeColumns(const Env& env, char* returns, char* lengths) {
-  for (int i = 0; i < env.n_landers(); ++i) {
-    Store(static_cast<float>(env.episode_return(i)), i, returns);
-    Store(static_cast<int32_t>(env.episode_length(i)), i, lengths);
+// Each agent's return and length so far in this episode, into row `row` of
+// n float32 and n int32.
+void WriteEpisodeColumns(const Env& env, size_t row,
+                         const ByteColumn<float>& returns,
+                         const ByteColumn<int32_t>& lengths) {
+  const size_t n = static_cast<size_t>(env.n_landers());
+  for (size_t i = 0; i < n; ++i) {
+    returns.Store(row * n + i, static_cast<float>(env.episode_return(i)));
+    lengths.Store(row * n + i, static_cast<int32_t>(env.episode_length(i)));
   }
 }
 
@@ -84,7 +74,7 @@ void WriteEpisodeColumns(const Env& env, char* returns, char* lengths) {
 void FillEpisodeColumns(const Env& env, v1::Array* returns,
                         v1::Array* lengths) {
   const int rows[] = {env.n_landers()};
-  WriteEpisodeColumns(env, SizeArray<float>(rows, returns),
+  WriteEpisodeColumns(env, 0, SizeArray<float>(rows, returns),
                       SizeArray<int32_t>(rows, lengths));
 }
 
@@ -173,19 +163,11 @@ absl::Status CheckArray(const v1::Array& array, v1::DType dtype,
   return CheckByteSize(array, dtype, shape, field);
 }
 
-// The fields that proto and core configs share, listed once: both
-// directions of the conversion expand this list.
-#define MLL_SHARED_CONFIG_FIELDS(X)                                           \
-  X(n_landers) X(continuous) X(max_cycles) X(gravity) X(enable_wind)          \
-  X(wind_power) X(turbulence_power) X(remove_on_damage)                       \
-  X(terminate_on_damage) X(shared_reward) X(damage_reward)                    \
-  X(successful_reward) X(terminate_reward)
-
 absl::StatusOr<EnvConfig> EnvConfigFromProto(const v1::EnvConfig& proto) {
   EnvConfig config;  // The core's defaults fill every unset field.
-#define MLL_COPY_IF_SET(field) \
-  if (proto.has_##field()) config.field = proto.field();
-  MLL_SHARED_CONFIG_FIELDS(MLL_COPY_IF_SET)
+#define MLL_COPY_IF_SET(type, name, default_value, range, help) \
+  if (proto.has_##name()) config.name = proto.name();
+  MLL_ENV_OPTIONS(MLL_COPY_IF_SET)
 #undef MLL_COPY_IF_SET
   switch (proto.render_mode()) {
     case v1::RENDER_MODE_UNSPECIFIED:
@@ -208,8 +190,9 @@ absl::StatusOr<EnvConfig> EnvConfigFromProto(const v1::EnvConfig& proto) {
 
 v1::EnvConfig EnvConfigToProto(const EnvConfig& config, bool auto_reset) {
   v1::EnvConfig proto;
-#define MLL_SET(field) proto.set_##field(config.field);
-  MLL_SHARED_CONFIG_FIELDS(MLL_SET)
+#define MLL_SET(type, name, default_value, range, help) \
+  proto.set_##name(config.name);
+  MLL_ENV_OPTIONS(MLL_SET)
 #undef MLL_SET
   proto.set_render_mode(config.render_mode == RenderMode::kRgbArray
                             ? v1::RENDER_MODE_RGB_ARRAY
@@ -217,8 +200,6 @@ v1::EnvConfig EnvConfigToProto(const EnvConfig& config, bool auto_reset) {
   proto.set_auto_reset(auto_reset);
   return proto;
 }
-
-#undef MLL_SHARED_CONFIG_FIELDS
 
 v1::Space ObservationSpace() {
   v1::Space space;
@@ -398,91 +379,83 @@ absl::StatusOr<std::optional<AgentAction>> ParseAgentAction(
   return std::optional<AgentAction>(action);
 }
 
-void WriteStepRow(const StepResult& result, const Env& env, bool auto_reset,
-                  const StepRow& row) {
-  static_assert(sizeof(Outcome) == 1, "outcomes travel as uint8");
-  StoreAll(result.observations, row.observations);
-  StoreAll(result.rewards, row.rewards);
-  StoreAll(result.terminations, row.terminations);
-  StoreAll(result.truncations, row.truncations);
-  StoreAll(result.stepped, row.stepped);
-  StoreAll(result.outcomes, row.outcomes);
-  WriteEpisodeColumns(env, row.episode_returns, row.episode_lengths);
-  Store(static_cast<uint8_t>(result.episode_over), 0, row.episode_over);
-  Store(static_cast<uint8_t>(auto_reset), 0, row.auto_reset);
-  Store(static_cast<int32_t>(env.cycles()), 0, row.cycles);
+// The core's outcome codes travel as they are: they are the wire's Outcome
+// values, which the clients name.
+static_assert(sizeof(Outcome) == 1, "outcomes travel as uint8");
+static_assert(static_cast<int>(Outcome::kNone) == v1::OUTCOME_UNSPECIFIED);
+static_assert(static_cast<int>(Outcome::kLanded) == v1::OUTCOME_LANDED);
+static_assert(static_cast<int>(Outcome::kCrashed) == v1::OUTCOME_CRASHED);
+static_assert(static_cast<int>(Outcome::kOutOfBounds) ==
+              v1::OUTCOME_OUT_OF_BOUNDS);
+static_assert(static_cast<int>(Outcome::kTruncated) == v1::OUTCOME_TRUNCATED);
+static_assert(static_cast<int>(Outcome::kAborted) == v1::OUTCOME_ABORTED);
+
+void AgentColumns::Write(size_t row, const StepResult& result,
+                         const Env& env) const {
+  const size_t first = row * static_cast<size_t>(env.n_landers());
+  observations.StoreAll(first * kObservationSize, result.observations);
+  rewards.StoreAll(first, result.rewards);
+  terminations.StoreAll(first, result.terminations);
+  truncations.StoreAll(first, result.truncations);
+  stepped.StoreAll(first, result.stepped);
+  outcomes.StoreAll(first, result.outcomes);
+  WriteEpisodeColumns(env, row, episode_returns, episode_lengths);
 }
 
 namespace {
 
 // Sizes the eight per-agent columns that StepData and PackedStepData share
 // (same field names), each with `lead` (none, or num_envs) before its
-// per-agent dimensions; the per-env columns of the returned row are unset.
+// per-agent dimensions.
 template <typename Columns>
-StepRow SizeAgentColumns(absl::Span<const int> lead, int n_landers,
-                         Columns* out) {
+AgentColumns SizeAgentColumns(absl::Span<const int> lead, int n_landers,
+                              Columns* out) {
   int rows_dims[2] = {0, n_landers};
   int matrix_dims[3] = {0, n_landers, kObservationSize};
   std::copy(lead.begin(), lead.end(), rows_dims);
   std::copy(lead.begin(), lead.end(), matrix_dims);
-  const int skip = 1 - static_cast<int>(lead.size());  // 0 or 1.
-  const absl::Span<const int> rows(rows_dims + skip, lead.size() + 1);
-  const absl::Span<const int> matrix(matrix_dims + skip, lead.size() + 2);
-  return StepRow{SizeArray<float>(matrix, out->mutable_observations()),
-                 SizeArray<float>(rows, out->mutable_rewards()),
-                 SizeArray<uint8_t>(rows, out->mutable_terminations()),
-                 SizeArray<uint8_t>(rows, out->mutable_truncations()),
-                 SizeArray<uint8_t>(rows, out->mutable_stepped()),
-                 SizeArray<uint8_t>(rows, out->mutable_outcomes()),
-                 SizeArray<float>(rows, out->mutable_episode_returns()),
-                 SizeArray<int32_t>(rows, out->mutable_episode_lengths()),
-                 nullptr,
-                 nullptr,
-                 nullptr};
+  const size_t skip = 1 - lead.size();  // 0 or 1.
+  const absl::Span<const int> rows =
+      absl::MakeConstSpan(rows_dims).subspan(skip);
+  const absl::Span<const int> matrix =
+      absl::MakeConstSpan(matrix_dims).subspan(skip);
+  return AgentColumns{
+      SizeArray<float>(matrix, out->mutable_observations()),
+      SizeArray<float>(rows, out->mutable_rewards()),
+      SizeArray<uint8_t>(rows, out->mutable_terminations()),
+      SizeArray<uint8_t>(rows, out->mutable_truncations()),
+      SizeArray<uint8_t>(rows, out->mutable_stepped()),
+      SizeArray<Outcome, uint8_t>(rows, out->mutable_outcomes()),
+      SizeArray<float>(rows, out->mutable_episode_returns()),
+      SizeArray<int32_t>(rows, out->mutable_episode_lengths())};
 }
 
 }  // namespace
 
 void FillStepData(const StepResult& result, const Env& env, bool auto_reset,
                   v1::StepData* out) {
-  StepRow row = SizeAgentColumns({}, env.n_landers(), out);
-  // StepData's per-env columns are scalar fields: written here, then set.
-  uint8_t episode_over = 0;
-  uint8_t was_reset = 0;
-  int32_t cycles = 0;
-  row.episode_over = reinterpret_cast<char*>(&episode_over);
-  row.auto_reset = reinterpret_cast<char*>(&was_reset);
-  row.cycles = reinterpret_cast<char*>(&cycles);
-  WriteStepRow(result, env, auto_reset, row);
-  out->set_episode_over(episode_over != 0);
-  out->set_auto_reset(was_reset != 0);
-  out->set_cycles(cycles);
+  SizeAgentColumns({}, env.n_landers(), out).Write(0, result, env);
+  out->set_episode_over(result.episode_over);
+  out->set_auto_reset(auto_reset);
+  out->set_cycles(env.cycles());
 }
 
 PackedColumns::PackedColumns(int num_envs, int n_landers,
-                             v1::PackedStepData* out)
-    : n_landers_(n_landers) {
+                             v1::PackedStepData* out) {
   const int envs[] = {num_envs};
-  base_ = SizeAgentColumns(envs, n_landers, out);
-  base_.episode_over = SizeArray<uint8_t>(envs, out->mutable_episode_over());
-  base_.auto_reset = SizeArray<uint8_t>(envs, out->mutable_auto_reset());
-  base_.cycles = SizeArray<int32_t>(envs, out->mutable_cycles());
+  agents_ = SizeAgentColumns(envs, n_landers, out);
+  episode_over_ = SizeArray<uint8_t>(envs, out->mutable_episode_over());
+  auto_reset_ = SizeArray<uint8_t>(envs, out->mutable_auto_reset());
+  cycles_ = SizeArray<int32_t>(envs, out->mutable_cycles());
 }
 
-StepRow PackedColumns::Row(int e) const {
-  const size_t env = static_cast<size_t>(e);
-  const size_t agents = env * static_cast<size_t>(n_landers_);
-  return StepRow{base_.observations + agents * kObservationSize * sizeof(float),
-                 base_.rewards + agents * sizeof(float),
-                 base_.terminations + agents,
-                 base_.truncations + agents,
-                 base_.stepped + agents,
-                 base_.outcomes + agents,
-                 base_.episode_returns + agents * sizeof(float),
-                 base_.episode_lengths + agents * sizeof(int32_t),
-                 base_.episode_over + env,
-                 base_.auto_reset + env,
-                 base_.cycles + env * sizeof(int32_t)};
+void PackedColumns::Write(int e, const StepResult& result, const Env& env,
+                          bool auto_reset) const {
+  const size_t row = static_cast<size_t>(e);
+  agents_.Write(row, result, env);
+  episode_over_.Store(row, result.episode_over);
+  auto_reset_.Store(row, auto_reset);
+  cycles_.Store(row, static_cast<int32_t>(env.cycles()));
 }
 
 void FillAecState(const AecEnv& aec, bool world_stepped, v1::AecState* out) {
@@ -529,19 +502,6 @@ void FillAecState(const AecEnv& aec, bool world_stepped, v1::AecState* out) {
   FillEpisodeColumns(env, out->mutable_episode_returns(),
                      out->mutable_episode_lengths());
   out->set_world_stepped(world_stepped);
-}
-
-void ResultAfterReset(const Env& env, StepResult* out) {
-  const int n = env.n_landers();
-  out->observations =
-      ObservationMatrix(n, [&](int i) { return env.observation(i); });
-  out->rewards.assign(n, 0.0f);
-  out->terminations.assign(n, 0);
-  out->truncations.assign(n, 0);
-  out->stepped.assign(n, 1);
-  out->outcomes.resize(n);
-  for (int i = 0; i < n; ++i) out->outcomes[i] = env.outcome(i);
-  out->episode_over = env.episode_over();
 }
 
 }  // namespace mll

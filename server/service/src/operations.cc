@@ -21,10 +21,9 @@ namespace {
 // turn order together, so both step APIs can follow.
 void ResetLocked(EnvSlot& slot, std::optional<uint64_t> seed)
     ABSL_EXCLUSIVE_LOCKS_REQUIRED(slot.mu) {
-  slot.aec->Reset(seed);
+  slot.aec->Reset(seed, &slot.scratch);
   slot.mode = StepMode::kUnset;
   ++slot.episodes;
-  ResultAfterReset(*slot.env, &slot.scratch);
 }
 
 absl::Status CheckStarted(const EnvSlot& slot)
@@ -399,8 +398,7 @@ void Operations::StepPacked(const v1::PackedSteps& request,
           return StepSlot(slot, batch->actions.Row(e),
                           [&](const StepResult& result, const Env& env,
                               bool auto_reset) {
-                            WriteStepRow(result, env, auto_reset,
-                                         batch->columns.Row(e));
+                            batch->columns.Write(e, result, env, auto_reset);
                           });
         }();
       },

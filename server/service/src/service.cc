@@ -46,14 +46,90 @@ class CallTimer {
   int64_t start_ns_;
 };
 
+// THE way each operation runs, whether it came as a unary call or on a
+// Session stream: the operation itself (Operations), then, on success, its
+// step and episode metrics, filed under `via` (the unary method, or
+// kSession). Per-call latency and error counts are the caller's (CallTimer).
+class Dispatch {
+ public:
+  Dispatch(Operations* operations, Metrics* metrics, Method via,
+           absl::string_view owner)
+      : operations_(operations), metrics_(metrics), via_(via), owner_(owner) {}
+
+  absl::Status CreateEnv(const v1::CreateEnvRequest& request,
+                         bool session_bound, v1::Env* out) const {
+    return operations_->CreateEnv(request, session_bound, out, owner_);
+  }
+  absl::Status GetEnv(const v1::GetEnvRequest& request, v1::Env* out) const {
+    return operations_->GetEnv(request, out, owner_);
+  }
+  absl::Status ListEnvs(const v1::ListEnvsRequest& request,
+                        v1::ListEnvsResponse* out) const {
+    return operations_->ListEnvs(request, out, owner_);
+  }
+  absl::Status DeleteEnv(const v1::DeleteEnvRequest& request) const {
+    return operations_->DeleteEnv(request, owner_);
+  }
+  absl::Status ResetEnv(const v1::ResetEnvRequest& request,
+                        v1::ResetEnvResponse* out) const {
+    absl::Status status = operations_->ResetEnv(request, out, owner_);
+    if (status.ok()) metrics_->RecordReset();
+    return status;
+  }
+  // `field` prefixes the request's field names in errors.
+  absl::Status StepEnv(const v1::StepEnvRequest& request,
+                       absl::string_view field, v1::StepData* out) const {
+    absl::Status status = operations_->StepEnv(request, field, out, owner_);
+    if (status.ok()) metrics_->RecordStepData(via_, *out);
+    return status;
+  }
+  absl::Status StepAgent(const v1::StepAgentRequest& request,
+                         v1::StepAgentResponse* out) const {
+    absl::Status status = operations_->StepAgent(request, out, owner_);
+    if (status.ok()) metrics_->RecordStepAgent(via_, request.has_action());
+    return status;
+  }
+  absl::Status RenderEnv(const v1::RenderEnvRequest& request,
+                         v1::Frame* out) const {
+    return operations_->RenderEnv(request, out, owner_);
+  }
+  absl::Status KeepAlive(const v1::KeepAliveRequest& request,
+                         v1::KeepAliveResponse* out) const {
+    return operations_->KeepAlive(request, out, owner_);
+  }
+  // Completes on the worker pool: done(status) runs once every item has its
+  // result (see Operations::StepBatch).
+  template <typename Done>
+  void StepBatch(const v1::StepBatchRequest& request,
+                 v1::StepBatchResponse* out, Done done) const {
+    operations_->StepBatch(
+        request, out,
+        [metrics = metrics_, via = via_, out,
+         done = std::move(done)](absl::Status status) {
+          if (status.ok()) metrics->RecordStepBatch(via, *out);
+          done(status);
+        },
+        owner_);
+  }
+
+ private:
+  Operations* const operations_;
+  Metrics* const metrics_;
+  const Method via_;
+  const absl::string_view owner_;
+};
+
 // Runs a unary call that completes in the handler, admitted as `owner`: runs
-// op(owner) -> absl::Status, records and finishes.
+// op(dispatch) -> absl::Status, records and finishes.
 template <typename Op>
 grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context,
                                    absl::StatusOr<absl::string_view> owner,
-                                   Metrics* metrics, Method method, Op op) {
+                                   Operations* operations, Metrics* metrics,
+                                   Method method, Op op) {
   const CallTimer timer(metrics, method);
-  const absl::Status status = owner.ok() ? op(*owner) : owner.status();
+  const absl::Status status =
+      owner.ok() ? op(Dispatch(operations, metrics, method, *owner))
+                 : owner.status();
   timer.Record(status);
   grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
   reactor->Finish(ToGrpcStatus(status));
@@ -93,16 +169,9 @@ class SessionReactor final
     response_.set_sequence(request_.sequence());
     if (request_.op_case() == v1::SessionRequest::kStepBatch) {
       // Runs on the worker pool; the write starts when the batch is done.
-      operations_->StepBatch(
-          request_.step_batch(), response_.mutable_step_batch(),
-          [this](absl::Status status) {
-            if (status.ok()) {
-              metrics_->RecordStepBatch(Method::kSession,
-                                        response_.step_batch());
-            }
-            Respond(status);
-          },
-          owner_);
+      dispatch().StepBatch(request_.step_batch(),
+                           response_.mutable_step_batch(),
+                           [this](absl::Status status) { Respond(status); });
       return;
     }
     Respond(Run());
@@ -139,51 +208,41 @@ class SessionReactor final
     bound_envs_.clear();
   }
 
+  Dispatch dispatch() const {
+    return Dispatch(operations_, metrics_, Method::kSession, owner_);
+  }
+
   absl::Status Run() {
-    absl::Status status;
+    const Dispatch run = dispatch();
     switch (request_.op_case()) {
       case v1::SessionRequest::kCreateEnv: {
         const bool bound = !request_.create_env().detached();
-        status = operations_->CreateEnv(request_.create_env(), bound,
-                                        response_.mutable_env(), owner_);
+        absl::Status status = run.CreateEnv(request_.create_env(), bound,
+                                            response_.mutable_env());
         if (status.ok() && bound) bound_envs_.insert(response_.env().name());
         return status;
       }
       case v1::SessionRequest::kGetEnv:
-        return operations_->GetEnv(request_.get_env(), response_.mutable_env(),
-                                   owner_);
+        return run.GetEnv(request_.get_env(), response_.mutable_env());
       case v1::SessionRequest::kResetEnv:
-        status = operations_->ResetEnv(request_.reset_env(),
-                                       response_.mutable_reset_env(), owner_);
-        if (status.ok()) metrics_->RecordReset();
-        return status;
+        return run.ResetEnv(request_.reset_env(),
+                            response_.mutable_reset_env());
       case v1::SessionRequest::kStepEnv:
-        status = operations_->StepEnv(
-            request_.step_env(), "step_env.",
-            response_.mutable_step_env()->mutable_data(), owner_);
-        if (status.ok()) {
-          metrics_->RecordStepData(Method::kSession,
-                                   response_.step_env().data());
-        }
-        return status;
+        return run.StepEnv(request_.step_env(), "step_env.",
+                           response_.mutable_step_env()->mutable_data());
       case v1::SessionRequest::kStepAgent:
-        status = operations_->StepAgent(request_.step_agent(),
-                                        response_.mutable_step_agent(), owner_);
-        if (status.ok()) {
-          metrics_->RecordStepAgent(Method::kSession,
-                                    request_.step_agent().has_action());
-        }
-        return status;
+        return run.StepAgent(request_.step_agent(),
+                             response_.mutable_step_agent());
       case v1::SessionRequest::kRenderEnv:
-        return operations_->RenderEnv(request_.render_env(),
-                                      response_.mutable_frame(), owner_);
-      case v1::SessionRequest::kDeleteEnv:
+        return run.RenderEnv(request_.render_env(), response_.mutable_frame());
+      case v1::SessionRequest::kDeleteEnv: {
         response_.mutable_delete_env();
-        status = operations_->DeleteEnv(request_.delete_env(), owner_);
+        absl::Status status = run.DeleteEnv(request_.delete_env());
         // Forgotten at once: a long session creating and deleting envs
         // must not grow (found by bench/load soak, +39 MB per 1M cycles).
         if (status.ok()) bound_envs_.erase(request_.delete_env().name());
         return status;
+      }
       default:
         return absl::InvalidArgumentError(absl::StrCat(
             "op: not set (sequence ", request_.sequence(),
@@ -280,81 +339,61 @@ absl::StatusOr<absl::string_view> MultiLunarLanderService::Admit(
 grpc::ServerUnaryReactor* MultiLunarLanderService::CreateEnv(
     grpc::CallbackServerContext* context, const v1::CreateEnvRequest* request,
     v1::Env* response) {
-  return RunUnary(context, Admit(*context), &metrics_, Method::kCreateEnv,
-                  [&](absl::string_view owner) {
-                    return operations_.CreateEnv(
-                        *request, /*session_bound=*/false, response, owner);
+  return RunUnary(context, Admit(*context), &operations_, &metrics_,
+                  Method::kCreateEnv, [&](const Dispatch& run) {
+                    return run.CreateEnv(*request, /*session_bound=*/false,
+                                         response);
                   });
 }
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::GetEnv(
     grpc::CallbackServerContext* context, const v1::GetEnvRequest* request,
     v1::Env* response) {
-  return RunUnary(context, Admit(*context), &metrics_, Method::kGetEnv,
-                  [&](absl::string_view owner) {
-                    return operations_.GetEnv(*request, response, owner);
-                  });
+  return RunUnary(
+      context, Admit(*context), &operations_, &metrics_, Method::kGetEnv,
+      [&](const Dispatch& run) { return run.GetEnv(*request, response); });
 }
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::ListEnvs(
     grpc::CallbackServerContext* context, const v1::ListEnvsRequest* request,
     v1::ListEnvsResponse* response) {
-  return RunUnary(context, Admit(*context), &metrics_, Method::kListEnvs,
-                  [&](absl::string_view owner) {
-                    return operations_.ListEnvs(*request, response, owner);
-                  });
+  return RunUnary(
+      context, Admit(*context), &operations_, &metrics_, Method::kListEnvs,
+      [&](const Dispatch& run) { return run.ListEnvs(*request, response); });
 }
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::DeleteEnv(
     grpc::CallbackServerContext* context, const v1::DeleteEnvRequest* request,
     v1::DeleteEnvResponse* /*response*/) {
-  return RunUnary(context, Admit(*context), &metrics_, Method::kDeleteEnv,
-                  [&](absl::string_view owner) {
-                    return operations_.DeleteEnv(*request, owner);
-                  });
+  return RunUnary(
+      context, Admit(*context), &operations_, &metrics_, Method::kDeleteEnv,
+      [&](const Dispatch& run) { return run.DeleteEnv(*request); });
 }
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::ResetEnv(
     grpc::CallbackServerContext* context, const v1::ResetEnvRequest* request,
     v1::ResetEnvResponse* response) {
-  return RunUnary(context, Admit(*context), &metrics_, Method::kResetEnv,
-                  [&](absl::string_view owner) {
-                    absl::Status status =
-                        operations_.ResetEnv(*request, response, owner);
-                    if (status.ok()) metrics_.RecordReset();
-                    return status;
-                  });
+  return RunUnary(
+      context, Admit(*context), &operations_, &metrics_, Method::kResetEnv,
+      [&](const Dispatch& run) { return run.ResetEnv(*request, response); });
 }
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::StepEnv(
     grpc::CallbackServerContext* context, const v1::StepEnvRequest* request,
     v1::StepEnvResponse* response) {
-  return RunUnary(context, Admit(*context), &metrics_, Method::kStepEnv,
-                  [&](absl::string_view owner) {
-                    absl::Status status = operations_.StepEnv(
-                        *request, /*field=*/"", response->mutable_data(),
-                        owner);
-                    if (status.ok()) {
-                      metrics_.RecordStepData(Method::kStepEnv,
-                                              response->data());
-                    }
-                    return status;
+  return RunUnary(context, Admit(*context), &operations_, &metrics_,
+                  Method::kStepEnv, [&](const Dispatch& run) {
+                    return run.StepEnv(*request, /*field=*/"",
+                                       response->mutable_data());
                   });
 }
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::StepAgent(
     grpc::CallbackServerContext* context, const v1::StepAgentRequest* request,
     v1::StepAgentResponse* response) {
-  return RunUnary(context, Admit(*context), &metrics_, Method::kStepAgent,
-                  [&](absl::string_view owner) {
-                    absl::Status status =
-                        operations_.StepAgent(*request, response, owner);
-                    if (status.ok()) {
-                      metrics_.RecordStepAgent(Method::kStepAgent,
-                                               request->has_action());
-                    }
-                    return status;
-                  });
+  return RunUnary(
+      context, Admit(*context), &operations_, &metrics_, Method::kStepAgent,
+      [&](const Dispatch& run) { return run.StepAgent(*request, response); });
 }
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::StepBatch(
@@ -362,40 +401,34 @@ grpc::ServerUnaryReactor* MultiLunarLanderService::StepBatch(
     v1::StepBatchResponse* response) {
   grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
   const CallTimer timer(&metrics_, Method::kStepBatch);
-  absl::StatusOr<absl::string_view> owner =
-      Admit(*context);
+  absl::StatusOr<absl::string_view> owner = Admit(*context);
   if (!owner.ok()) {
     timer.Record(owner.status());
     reactor->Finish(ToGrpcStatus(owner.status()));
     return reactor;
   }
-  operations_.StepBatch(
-      *request, response,
-      [this, reactor, response, timer](absl::Status status) {
-        if (status.ok()) metrics_.RecordStepBatch(Method::kStepBatch, *response);
+  Dispatch(&operations_, &metrics_, Method::kStepBatch, *owner)
+      .StepBatch(*request, response, [reactor, timer](absl::Status status) {
         timer.Record(status);
         reactor->Finish(ToGrpcStatus(status));
-      },
-      *owner);
+      });
   return reactor;
 }
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::RenderEnv(
     grpc::CallbackServerContext* context, const v1::RenderEnvRequest* request,
     v1::Frame* response) {
-  return RunUnary(context, Admit(*context), &metrics_, Method::kRenderEnv,
-                  [&](absl::string_view owner) {
-                    return operations_.RenderEnv(*request, response, owner);
-                  });
+  return RunUnary(
+      context, Admit(*context), &operations_, &metrics_, Method::kRenderEnv,
+      [&](const Dispatch& run) { return run.RenderEnv(*request, response); });
 }
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::KeepAlive(
     grpc::CallbackServerContext* context, const v1::KeepAliveRequest* request,
     v1::KeepAliveResponse* response) {
-  return RunUnary(context, Admit(*context), &metrics_, Method::kKeepAlive,
-                  [&](absl::string_view owner) {
-                    return operations_.KeepAlive(*request, response, owner);
-                  });
+  return RunUnary(
+      context, Admit(*context), &operations_, &metrics_, Method::kKeepAlive,
+      [&](const Dispatch& run) { return run.KeepAlive(*request, response); });
 }
 
 grpc::ServerBidiReactor<v1::SessionRequest, v1::SessionResponse>*

@@ -23,7 +23,8 @@ class AecEnv {
   explicit AecEnv(Env* env);
 
   // Resets the underlying Env and the turn order (agent_selection = lander_0).
-  void Reset(std::optional<uint64_t> seed);
+  // `result`, when given, receives the reset's result as Env::Reset gives it.
+  void Reset(std::optional<uint64_t> seed, StepResult* result = nullptr);
 
   // Acts for agent_selection. `action` must be absent exactly when
   // agent_selection is terminated or truncated (PettingZoo's dead step),

@@ -144,57 +144,75 @@ class PackedActions {
 absl::StatusOr<std::optional<AgentAction>> ParseAgentAction(
     const v1::StepAgentRequest& request, const EnvConfig& config);
 
-// Where one env's step result goes: the arrays of a StepData, or row e of a
-// packed batch's columns (PackedColumns). Each pointer addresses the row's
-// little-endian bytes: n_landers elements per per-agent column (n_landers *
-// 12 for observations), one element for the three per-env columns. Bytes,
-// not typed pointers, because the storage is a proto `bytes` field.
-struct StepRow {
-  char* observations;     // float32
-  char* rewards;          // float32
-  char* terminations;     // uint8
-  char* truncations;      // uint8
-  char* stepped;          // uint8
-  char* outcomes;         // uint8
-  char* episode_returns;  // float32
-  char* episode_lengths;  // int32
-  char* episode_over;     // uint8
-  char* auto_reset;       // uint8
-  char* cycles;           // int32
+// A column of T elements kept as the little-endian bytes of a proto `bytes`
+// field. Elements go in with memcpy, by element index, never through a T*
+// cast of the bytes (the storage holds chars). Copies share the storage;
+// writes to different elements may come from different threads.
+template <typename T>
+class ByteColumn {
+ public:
+  ByteColumn() = default;
+  explicit ByteColumn(std::string* bytes) : bytes_(bytes) {}
+
+  void Store(size_t index, T value) const {
+    std::memcpy(&(*bytes_)[index * sizeof(T)], &value, sizeof(T));
+  }
+  // `values` at elements [first, first + values.size()).
+  void StoreAll(size_t first, absl::Span<const T> values) const {
+    // memcpy with a null pointer is undefined even for 0 bytes.
+    if (values.empty()) return;
+    std::memcpy(&(*bytes_)[first * sizeof(T)], values.data(),
+                values.size() * sizeof(T));
+  }
+
+ private:
+  std::string* bytes_ = nullptr;
 };
 
-// THE conversion of a step (or reset) result to the wire's columns, for both
-// StepData and packed batches: writes `result` into `row`; the episode
-// bookkeeping (returns, lengths, cycles) comes from `env`.
-void WriteStepRow(const StepResult& result, const Env& env, bool auto_reset,
-                  const StepRow& row);
+// The per-agent result columns that StepData and PackedStepData share, in
+// the wire's types; row r holds one env's n_landers elements (n_landers * 12
+// for observations): row 0 of a StepData, row e of a packed batch.
+struct AgentColumns {
+  ByteColumn<float> observations;
+  ByteColumn<float> rewards;
+  ByteColumn<uint8_t> terminations;
+  ByteColumn<uint8_t> truncations;
+  ByteColumn<uint8_t> stepped;
+  ByteColumn<Outcome> outcomes;  // The codes of mll.v1.Outcome.
+  ByteColumn<float> episode_returns;
+  ByteColumn<int32_t> episode_lengths;
 
-// Step (or reset) results as a StepData: sizes its arrays, then
-// WriteStepRow.
+  // THE conversion of a step (or reset) result to the wire's per-agent
+  // columns: writes `result` into row `row`; the episode bookkeeping
+  // (returns, lengths) comes from `env`.
+  void Write(size_t row, const StepResult& result, const Env& env) const;
+};
+
+// Step (or reset) results as a StepData: sizes its arrays, writes row 0 and
+// the per-env fields.
 void FillStepData(const StepResult& result, const Env& env, bool auto_reset,
                   v1::StepData* out);
 
 // The result columns of a packed batch of `num_envs` envs with `n_landers`
 // landers each, every column sized once (one allocation per column) and
-// zero; Row(e) is where env e's result goes. Rows are disjoint, so threads
-// may write different rows at once. `out` must outlive this object and not
-// be modified while rows are written.
+// zero. Rows are disjoint, so threads may write different rows at once.
+// `out` must outlive this object and not be modified while rows are written.
 class PackedColumns {
  public:
   PackedColumns(int num_envs, int n_landers, v1::PackedStepData* out);
-  StepRow Row(int e) const;
+  // Env e's result, as FillStepData writes a StepData.
+  void Write(int e, const StepResult& result, const Env& env,
+             bool auto_reset) const;
 
  private:
-  int n_landers_;
-  StepRow base_;  // Row 0.
+  AgentColumns agents_;
+  ByteColumn<uint8_t> episode_over_;
+  ByteColumn<uint8_t> auto_reset_;
+  ByteColumn<int32_t> cycles_;
 };
 
 // The state of a PettingZoo AECEnv, as `aec` holds it.
 void FillAecState(const AecEnv& aec, bool world_stepped, v1::AecState* out);
-
-// What a step result looks like right after Env/AecEnv reset: the env's
-// observations, zero rewards, every agent stepped.
-void ResultAfterReset(const Env& env, StepResult* out);
 
 }  // namespace mll
 

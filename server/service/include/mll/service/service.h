@@ -50,8 +50,8 @@ class MultiLunarLanderService final
   ~MultiLunarLanderService() override;
 
   Registry& registry() { return registry_; }
+  // Who a caller is, for the dashboard's own token check.
   const Authenticator& authenticator() const { return authenticator_; }
-  Metrics& metrics() { return metrics_; }
   // The Prometheus exposition of the metrics and the live env count.
   std::string MetricsText();
   // From now on new calls and Session streams get UNAVAILABLE, so clients
