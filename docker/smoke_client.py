@@ -15,7 +15,7 @@ import tempfile
 
 import numpy as np
 
-OBS_SIZE = 12  # ENV_SPEC.md: 12 floats per lander.
+OBS_SIZE = 12  # docs/environment.md: 12 floats per lander.
 
 
 def scripted_action(step, agent_index):

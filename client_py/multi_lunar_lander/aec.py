@@ -19,7 +19,7 @@ from ._stubs import pb
 class MultiLunarLanderEnv(RemoteEnvBase, AECEnv):
     """N landers taking turns (`lander_0` first); the world steps once the last live lander has
     acted. Observations Box(-inf, inf, (12,), float32); actions Discrete(4) or, with
-    continuous=True, Box(-1, 1, (2,), float32). Options: shared/ENV_SPEC.md.
+    continuous=True, Box(-1, 1, (2,), float32). Options: docs/environment.md.
 
     infos[agent] holds "outcome" ("landed", "crashed", "out_of_bounds", "truncated", "aborted")
     once the lander is done, with "episode_return" and "episode_length".

@@ -1,4 +1,4 @@
-"""Gymnasium's LunarLander heuristic pilot (shared/ENV_SPEC.md, "Heuristic pilot") in numpy,
+"""Gymnasium's LunarLander heuristic pilot (docs/environment.md, "Actions") in numpy,
 vectorised over any leading dimensions of the observation."""
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ independent. Each statistic must agree within
     allowance = |known Box2D 2.4.1-vs-2.3 offset| + 4 * standard error of the difference,
 
 the standard error coming from the seed-to-seed spread measured in this run (a two-sample
-z-test at 4 sigma: a false alarm about 1 in 16,000). The offsets are ENV_SPEC's figures for a
+z-test at 4 sigma: a false alarm about 1 in 16,000). The offsets are the figures of a
 faithful C++ port built against each Box2D (200 seeds): discrete return 237 vs 241, landing
 88.5% vs 92%, length 272 vs 240; continuous 286 vs 286, 100% vs 100%, 215 vs 200.
 
@@ -24,7 +24,7 @@ import pytest
 import multi_lunar_lander as mll
 
 EPISODES = 100
-# (return, landing rate, length) offsets of Box2D 2.4.1 against 2.3 (ENV_SPEC).
+# (return, landing rate, length) offsets of Box2D 2.4.1 against 2.3 (200 seeds each).
 BOX2D_OFFSET = {False: (-4.0, -0.035, 32.0), True: (0.0, 0.0, 15.0)}
 
 

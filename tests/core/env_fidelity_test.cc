@@ -1,6 +1,6 @@
 // Fidelity with Gymnasium's LunarLander-v3 at n_landers = 1: Gymnasium's own
 // heuristic pilot must fly our lander as well as it flies Gymnasium's
-// (shared/ENV_SPEC.md: a faithful port on Box2D 2.4.1 scores about 237 / 88.5%
+// (a faithful port on Box2D 2.4.1 scores about 237 / 88.5%
 // landed discrete and 286 / 100% continuous; our crash adds terminate_reward).
 #include <cstdio>
 

@@ -1,4 +1,4 @@
-// The rules of one step (shared/ENV_SPEC.md "One step"): damage, leg contact,
+// The rules of one step (docs/environment.md): damage, leg contact,
 // landing, outcomes and terminal rewards, set up with exact placements.
 #include <cmath>
 #include <vector>

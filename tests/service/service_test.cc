@@ -1,5 +1,5 @@
 // Every method of mll.v1.MultiLunarLander and every error code of the
-// DESIGN.md table, through an in-process channel to a real server.
+// table in docs/server.md, through an in-process channel to a real server.
 #include <cmath>
 #include <limits>
 #include <set>

@@ -106,7 +106,7 @@ struct SpaceSpec {
   int64_t n = 0;
 };
 
-// Options of a new environment (shared/ENV_SPEC.md). An unset field takes the
+// Options of a new environment (docs/environment.md). An unset field takes the
 // server's default; the server validates every value (INVALID_ARGUMENT naming
 // the field, the value and the range).
 struct RemoteEnvConfig {

@@ -1,7 +1,7 @@
 """Training configuration: one dataclass, and the named presets.
 
 `paper` is the algorithm of the paper's train_lunar.py as it is (table IV and
-shared/ENV_SPEC.md): one Q-network 12-256-64-4 shared by every lander, one
+docs/dqn.md): one Q-network 12-256-64-4 shared by every lander, one
 replay buffer of 1e5 transitions, Adam lr 5e-4, batch 128, gamma 0.99, one
 gradient step every 4 lander transitions followed by a soft target update with
 tau 1e-3, MSE loss, epsilon 1.0 -> 0.01 decayed by 0.995 per episode, 1000
@@ -17,7 +17,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Dict, Optional
 
-# The environment of the paper's DQN experiment (shared/ENV_SPEC.md).
+# The environment of the paper's DQN experiment (docs/dqn.md).
 PAPER_ENV_CONFIG: Dict[str, Any] = dict(
         n_landers=3,
         continuous=False,

@@ -1,7 +1,7 @@
 // The numbers of one Multi Lunar Lander world, named once. They reproduce
 // Gymnasium's LunarLander-v3 (gymnasium/envs/box2d/lunar_lander.py, Gymnasium
 // 1.x): same names, same values, so that a single lander behaves like it
-// (shared/ENV_SPEC.md, "World" and "A lander"). Lengths in pixels are divided
+// (docs/environment.md). Lengths in pixels are divided
 // by kScale to get meters, as Gymnasium does.
 #ifndef MLL_CORE_SRC_CONSTANTS_H_
 #define MLL_CORE_SRC_CONSTANTS_H_

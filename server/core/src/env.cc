@@ -1,4 +1,4 @@
-// One Multi Lunar Lander environment (shared/ENV_SPEC.md).
+// One Multi Lunar Lander environment (docs/environment.md).
 //
 // Draw order of the environment's generator (fixed; changing it changes every
 // episode):
@@ -77,7 +77,7 @@ using namespace internal;  // NOLINT: the constants of this one file's world.
 // than the 0.23 m that the largest pushes (1000 N) close in the reset step and
 // the first step; the lowest of 5 rows (y = 7.33 m, feet at 6.8 m) stays above
 // the highest terrain (0.99 * H/2 = 6.6 m).
-// ENV_SPEC keeps the paper's single row up to n = 8, but that row leaves only
+// The paper keeps its single row up to n = 8, but that row leaves only
 // 0.1 m between neighbours: their legs touch while swinging out (seed 0 damages
 // landers 0 and 1 at once), breaking the rule that spawn damages nobody. So the
 // single row stops at 7 and n = 8 spawns as two rows of 4.
@@ -672,7 +672,7 @@ bool Env::Impl::ObserveLanders(const std::vector<uint8_t>& stepped,
 void Env::Impl::ApplyOutcomes(const std::vector<uint8_t>& stepped,
                               const std::vector<uint8_t>& damaged,
                               bool any_damaged, std::vector<double>* rewards) {
-  // ENV_SPEC "One step", 5, in order.
+  // The outcomes, in order (docs/environment.md, "Outcomes and episode end").
   const int n = config_.n_landers;
   for (int i = 0; i < n; ++i) {
     if (!stepped[i]) continue;

@@ -1,6 +1,6 @@
 // One Multi Lunar Lander environment: N landers in one Box2D world, with the
 // physics of Gymnasium's LunarLander-v3 and the paper's collision, damage,
-// landing and reward rules. shared/ENV_SPEC.md is the specification; this
+// landing and reward rules. docs/environment.md is the reference; this
 // header is the only way into it (no Box2D type appears here).
 //
 // Threading: an Env is not thread-safe; callers serialise access to one Env.
@@ -38,7 +38,7 @@ inline constexpr int kContinuousActionSize = 2;
 enum class Outcome : uint8_t {
   kNone = 0,
   kLanded = 1,
-  kCrashed = 2,      // Damaged by a contact (ENV_SPEC "One step", 3).
+  kCrashed = 2,      // Damaged by a contact (docs/environment.md, "Outcomes").
   kOutOfBounds = 3,  // abs(observation[0]) >= 1.
   kTruncated = 4,    // Reached max_cycles.
   kAborted = 5,      // Terminated because another lander was damaged

@@ -1,5 +1,5 @@
 // Gymnasium's LunarLander heuristic pilot, applied to observation[0:8] of one
-// lander (shared/ENV_SPEC.md, "Heuristic pilot"). For baselines, tests and
+// lander (docs/environment.md). For baselines, tests and
 // demos.
 #ifndef MLL_CORE_HEURISTIC_H_
 #define MLL_CORE_HEURISTIC_H_
