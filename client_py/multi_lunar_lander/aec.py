@@ -17,12 +17,44 @@ from ._stubs import pb
 
 
 class MultiLunarLanderEnv(RemoteEnvBase, AECEnv):
-    """N landers taking turns (`lander_0` first); the world steps once the last live lander has
-    acted. Observations Box(-inf, inf, (12,), float32); actions Discrete(4) or, with
-    continuous=True, Box(-1, 1, (2,), float32). Options: docs/environment.md.
+    """Multi Lunar Lander, PettingZoo AEC: N landers (`lander_0` .. `lander_{N-1}`) in one
+    Box2D world with Gymnasium's LunarLander-v3 physics. Agents take turns (`lander_0` first);
+    the world steps once the last live lander has acted. The full reference, with every
+    constant, is docs/environment.md in the repository.
 
-    infos[agent] holds "outcome" ("landed", "crashed", "out_of_bounds", "truncated", "aborted")
-    once the lander is done, with "episode_return" and "episode_length".
+    ## Action space
+    Discrete(4): 0 nothing, 1 left orientation engine, 2 main engine, 3 right orientation
+    engine. With continuous=True, Box(-1, 1, (2,), float32): [main, lateral]; main > 0 fires the
+    main engine at 50-100%, |lateral| > 0.5 a side engine at 50-100%.
+
+    ## Observation space
+    Box(-inf, inf, (12,), float32): [0] x and [1] y relative to the pad, [2] [3] velocities,
+    [4] angle, [5] angular velocity, [6] [7] leg contacts (1.0/0.0), [8] [9] and [10] [11] this
+    lander's position relative to its nearest and second-nearest active neighbours ((0, 0) when
+    there is none). All scaled as Gymnasium's LunarLander.
+
+    ## Rewards
+    Gymnasium's shaping (distance, speed, tilt, legs) plus 30 x the distance to each of the two
+    nearest neighbours, minus 0.30 per frame of main engine and 0.03 of side engine; a damaged
+    lander adds damage_reward + terminate_reward, a landed one successful_reward; with
+    terminate_on_damage the others add terminate_reward; with shared_reward every lander
+    stepped gets the mean.
+
+    ## Episode end
+    A lander terminates when it lands (body at rest on the ground, undamaged), crashes (its body
+    touches anything, or a leg touches anything but the moon), leaves the screen
+    (|x| >= 1), or, with terminate_on_damage, when another lander is damaged; every active
+    lander is truncated after max_cycles steps. infos[agent] then holds "outcome" ("landed",
+    "crashed", "out_of_bounds", "truncated", "aborted") with "episode_return" and
+    "episode_length".
+
+    ## Arguments
+    n_landers (1..32, default 3), continuous (False), max_cycles (500), gravity (-10, in
+    (-12, 0)), enable_wind (False), wind_power (15, [0, 20]), turbulence_power (1.5, [0, 2]),
+    remove_on_damage, terminate_on_damage, shared_reward (True), damage_reward (-100),
+    successful_reward (+100), terminate_reward (-100), render_mode (None, "rgb_array",
+    "human"), and address (None: an embedded local mll_server), tls_root_cert,
+    tls_server_name, token.
     """
 
     def _init_state(self) -> None:
