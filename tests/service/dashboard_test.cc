@@ -341,26 +341,8 @@ TEST(DashboardTest, ViewersNeverChangeATrajectoryAndShareFrames) {
 }
 
 TEST(DashboardAddressTest, BadOrBusyAddressIsAnErrorNamingTheFlag) {
-  ServerOptions options;
-  options.address = "";
-  for (const char* address : {"8080", "127.0.0.1:http", "127.0.0.1:70000"}) {
-    options.http_address = address;
-    absl::StatusOr<std::unique_ptr<Server>> server = Server::Start(options);
-    EXPECT_EQ(server.status().code(), absl::StatusCode::kInvalidArgument)
-        << address;
-    EXPECT_THAT(server.status().message(),
-                HasSubstr(absl::StrCat("--http_address: \"", address,
-                                       "\" is not host:port")));
-  }
-  options.http_address = "127.0.0.1:0";
-  absl::StatusOr<std::unique_ptr<Server>> first = Server::Start(options);
-  ASSERT_TRUE(first.ok()) << first.status();
-  EXPECT_GT((*first)->http_port(), 0);
-  options.http_address = absl::StrCat("127.0.0.1:", (*first)->http_port());
-  absl::StatusOr<std::unique_ptr<Server>> second = Server::Start(options);
-  EXPECT_EQ(second.status().code(), absl::StatusCode::kUnavailable);
-  EXPECT_THAT(second.status().message(),
-              HasSubstr("--http_address: cannot listen on"));
+  ExpectListenerRefusesBadAndBusyAddresses(
+      "--http_address", &ServerOptions::http_address, &Server::http_port);
 }
 
 TEST(DashboardBinaryTest, BadOrBusyHttpAddressExitsWithOneLine) {

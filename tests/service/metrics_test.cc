@@ -288,26 +288,8 @@ TEST_F(MetricsServerTest, OnlyMetricsIsServed) {
 }
 
 TEST(MetricsAddressTest, BadOrBusyAddressIsAnErrorNamingTheFlag) {
-  ServerOptions options;
-  options.address = "";
-  for (const char* address : {"9464", "127.0.0.1:http", "127.0.0.1:70000"}) {
-    options.metrics_address = address;
-    absl::StatusOr<std::unique_ptr<Server>> server = Server::Start(options);
-    EXPECT_EQ(server.status().code(), absl::StatusCode::kInvalidArgument)
-        << address;
-    EXPECT_THAT(server.status().message(),
-                HasSubstr(absl::StrCat("--metrics_address: \"", address,
-                                       "\" is not host:port")));
-  }
-  options.metrics_address = "127.0.0.1:0";
-  absl::StatusOr<std::unique_ptr<Server>> first = Server::Start(options);
-  ASSERT_TRUE(first.ok()) << first.status();
-  options.metrics_address =
-      absl::StrCat("127.0.0.1:", (*first)->metrics_port());
-  absl::StatusOr<std::unique_ptr<Server>> second = Server::Start(options);
-  EXPECT_EQ(second.status().code(), absl::StatusCode::kUnavailable);
-  EXPECT_THAT(second.status().message(),
-              HasSubstr("--metrics_address: cannot listen on"));
+  ExpectListenerRefusesBadAndBusyAddresses(
+      "--metrics_address", &ServerOptions::metrics_address, &Server::metrics_port);
 }
 
 }  // namespace

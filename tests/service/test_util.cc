@@ -3,6 +3,8 @@
 #include <random>
 #include <utility>
 
+#include "absl/strings/str_cat.h"
+#include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "mll/service/convert.h"
 
@@ -99,6 +101,31 @@ std::vector<std::vector<int32_t>> ActionTable(int cycles, int n_landers,
     for (int32_t& action : row) action = kChoices[pick(generator)];
   }
   return table;
+}
+
+void ExpectListenerRefusesBadAndBusyAddresses(
+    const std::string& flag, std::string ServerOptions::*address,
+    int (Server::*port)() const) {
+  ServerOptions options;
+  options.address = "";
+  for (const char* bad : {"8080", "127.0.0.1:http", "127.0.0.1:70000"}) {
+    options.*address = bad;
+    absl::StatusOr<std::unique_ptr<Server>> server = Server::Start(options);
+    EXPECT_EQ(server.status().code(), absl::StatusCode::kInvalidArgument)
+        << flag << "=" << bad;
+    EXPECT_THAT(server.status().message(),
+                ::testing::HasSubstr(
+                    absl::StrCat(flag, ": \"", bad, "\" is not host:port")));
+  }
+  options.*address = "127.0.0.1:0";
+  absl::StatusOr<std::unique_ptr<Server>> first = Server::Start(options);
+  ASSERT_TRUE(first.ok()) << first.status();
+  EXPECT_GT(((**first).*port)(), 0);
+  options.*address = absl::StrCat("127.0.0.1:", ((**first).*port)());
+  absl::StatusOr<std::unique_ptr<Server>> second = Server::Start(options);
+  EXPECT_EQ(second.status().code(), absl::StatusCode::kUnavailable);
+  EXPECT_THAT(second.status().message(),
+              ::testing::HasSubstr(absl::StrCat(flag, ": cannot listen on")));
 }
 
 }  // namespace mll::testing

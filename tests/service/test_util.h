@@ -49,6 +49,14 @@ std::string ResultBits(const v1::StepData& data);
 std::vector<std::vector<int32_t>> ActionTable(int cycles, int n_landers,
                                               uint32_t seed);
 
+// Checks an HTTP listener of Server::Start (its address in options.*address,
+// its bound port from server.*port, its flag `flag`): malformed addresses
+// are INVALID_ARGUMENT naming the flag and the value, and a port in use is
+// UNAVAILABLE naming the flag.
+void ExpectListenerRefusesBadAndBusyAddresses(
+    const std::string& flag, std::string ServerOptions::*address,
+    int (Server::*port)() const);
+
 }  // namespace mll::testing
 
 #endif  // MLL_TESTS_SERVICE_TEST_UTIL_H_
