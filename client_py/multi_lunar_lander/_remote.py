@@ -271,8 +271,7 @@ class SessionStream:
     """One `Session` stream to a connection's server, carrying one operation at a time: send()
     puts a SessionRequest on the stream, receive() waits for its answer. An operation on an open
     stream skips a unary call's set-up on both sides (no new call, HTTP/2 stream, headers or
-    trailers): a 64-env packed StepBatch round trip takes about 80-100 us less (docs/benchmarks.md,
-    "Session 3"). Opened by the first send(); a stream that breaks raises MLLError from receive()
+    trailers): a 64-env packed StepBatch round trip takes about 80-100 us less. Opened by the first send(); a stream that breaks raises MLLError from receive()
     and is opened anew by the next send(). Envs are not created on it, so its end deletes none."""
 
     def __init__(self, connection: "Connection"):

@@ -2,8 +2,8 @@
 in StepBatch's packed form (one actions array in, one array per result column out; no
 per-environment messages to build or parse, no per-environment Python loop). Each StepBatch
 travels as one request on a Session stream kept open to its server (SessionStream), which saves
-a unary call's set-up on both sides: 69-71% of the in-process core against 67% with unary
-StepBatch calls (docs/benchmarks.md, "Session 3").
+a unary call's set-up on both sides: 70% of the in-process core against 67% with unary
+StepBatch calls (docs/benchmarks.md).
 
 Several servers (address= a list or "host:port,host:port"): env i lives on server i mod S for
 its whole life (creation, reset, steps, deletion). Each step sends one StepBatch to every server

@@ -1,5 +1,5 @@
 """Speed of the trainer's parts against the paper's way of doing the same,
-measured in the same run (docs/dqn.md, "Speed"). Not a test: prints a
+measured in the same run (docs/benchmarks.md, run F). Not a test: prints a
 Markdown table. Each measurement is bounded in time.
 
     OMP_NUM_THREADS=1 ../../.venv/bin/python bench.py [--seconds 2]

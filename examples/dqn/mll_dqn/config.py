@@ -156,8 +156,7 @@ def _paper() -> TrainConfig:
 
 def _fast() -> TrainConfig:
     # The paper's network, buffer and environment, collected from many
-    # environments per call, with the options below (docs/dqn.md reports the
-    # runs that chose them). Same target-network lag per transition as the
+    # environments per call, with the options below (docs/dqn.md: results). Same target-network lag per transition as the
     # paper (tau 1e-3 per 4 transitions = 4e-3 per 16), half its gradient
     # samples per transition (256 per 16 against 128 per 4).
     return dataclasses.replace(
