@@ -18,6 +18,11 @@ class MLLError(Exception):
         self.code = code
         self.message = message
 
+    def __reduce__(self):
+        # Picklable, so an error raised in a worker process (SuperSuit, Gymnasium's AsyncVectorEnv,
+        # Ray) reaches the parent as itself, with its code and message.
+        return (type(self), (self.code, self.message))
+
 
 def from_rpc_error(error: grpc.RpcError, context: str = "") -> MLLError:
     """The MLLError for a failed call; `context` (e.g. the address) is prepended when the server
