@@ -152,7 +152,9 @@ class Security:
 
 def open_channel(address: str, security: Security) -> grpc.Channel:
     """A channel to `address`: TLS with the root certificates when set, else plaintext."""
-    options = list(CHANNEL_OPTIONS)
+    # The process id is a channel argument so that a forked child's channels never share a
+    # connection (gRPC's subchannel pool is keyed by address and arguments) with its parent's.
+    options = [*CHANNEL_OPTIONS, ("mll.client_pid", os.getpid())]
     if not security.tls:
         return grpc.insecure_channel(address, options=options)
     if security.server_name:

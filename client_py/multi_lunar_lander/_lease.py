@@ -9,6 +9,7 @@ garbage collected; names the server no longer knows are dropped too."""
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 import weakref
@@ -54,7 +55,7 @@ class _Keeper:
             lease.period_s = min(lease.period_s, period_s)
             lease.due = min(lease.due, time.monotonic() + lease.period_s)
             lease.names[name] = None
-            if self._thread is None or not self._thread.is_alive():  # Also after a fork.
+            if self._thread is None or not self._thread.is_alive():
                 self._thread = threading.Thread(target=self._run, name="mll-keepalive", daemon=True)
                 self._thread.start()
             self._wake.notify()
@@ -102,3 +103,13 @@ def hold(connection, name: str, idle_timeout_s: float) -> None:
     """Keeps the environment `name` on `connection`'s server alive for as long as `connection`
     is open (idle_timeout_s: the server's, from Env.idle_timeout_s; 0 does nothing)."""
     _KEEPER.hold(connection, name, idle_timeout_s)
+
+
+def _forget_leases_after_fork() -> None:
+    """A forked child renews none of its parent's leases (their connections are the parent's),
+    and must not wait on a lock the parent's renewal thread may have held at the fork."""
+    global _KEEPER
+    _KEEPER = _Keeper()
+
+
+os.register_at_fork(after_in_child=_forget_leases_after_fork)

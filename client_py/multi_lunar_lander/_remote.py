@@ -5,6 +5,7 @@ encoding and the per-agent info dicts."""
 from __future__ import annotations
 
 import numbers
+import os
 import queue
 import weakref
 import threading
@@ -227,11 +228,24 @@ class Connection:
         self.channel = open_channel(address, security)
         self.stub = pb_grpc.MultiLunarLanderStub(self.channel)
         self._metadata = security.metadata
+        self._pid = os.getpid()
         # Closing on garbage collection too, without referencing self.
-        self._finalizer = weakref.finalize(self, Connection._close, self.channel, self._lease)
+        self._finalizer = weakref.finalize(self, Connection._close, self.channel, self._lease, self._pid)
+
+    def check_process(self) -> None:
+        """A forked child inherits its parent's objects but must not use their connections: the
+        socket is the parent's. Raises FAILED_PRECONDITION there, before any byte is sent."""
+        if os.getpid() != self._pid:
+            raise MLLError(
+                grpc.StatusCode.FAILED_PRECONDITION,
+                f"this environment's connection to {self.address} was opened by process {self._pid}, "
+                f"not this one ({os.getpid()}); a forked process must make its own environments "
+                "(pickle the environment object, as SuperSuit and multiprocessing do, or create a new one)",
+            )
 
     def call(self, method: str, request, timeout: float | None = None):
         """Calls a unary method; a failure raises MLLError with the server's code and message."""
+        self.check_process()
         try:
             return getattr(self.stub, method)(request, timeout=timeout, metadata=self._metadata)
         except grpc.RpcError as error:
@@ -239,6 +253,7 @@ class Connection:
 
     def future(self, method: str, request) -> Callable[[], Any]:
         """Starts a unary call; the returned function waits for it (raising MLLError)."""
+        self.check_process()
         call = getattr(self.stub, method).future(request, metadata=self._metadata)
 
         def result():
@@ -250,7 +265,9 @@ class Connection:
         return result
 
     @staticmethod
-    def _close(channel, lease) -> None:
+    def _close(channel, lease, pid: int) -> None:
+        if os.getpid() != pid:  # A forked child's copy: the channel and the lease are the parent's.
+            return
         channel.close()
         if lease is not None:
             lease.release()
@@ -284,6 +301,7 @@ class SessionStream:
     def send(self, request: "pb.SessionRequest") -> None:
         """Puts `request` (its sequence number set here) on the stream; the caller must not change
         it until receive() has returned."""
+        self._connection.check_process()
         if self._responses is None:
             self._requests = queue.SimpleQueue()
             self._responses = self._connection.stub.Session(

@@ -4,6 +4,7 @@ own environment on the same server (address=None: the unpickling process's embed
 SuperSuit's PettingZoo -> Stable-Baselines3 recipe, which clones the env with cloudpickle and,
 with num_cpus > 0, sends it to forked worker processes, runs on it."""
 
+import gc
 import json
 import pickle
 import subprocess
@@ -182,3 +183,52 @@ def _reset_and_report(data):
     address = env.address
     env.close()
     return address
+
+
+# The parent's env, inherited by a forked child through memory (an argument would be pickled).
+_INHERITED = []
+
+
+def _use_inherited_then_own(address):
+    """In a forked child: the parent's env object, then a new env on the same server."""
+    try:
+        _INHERITED[0].step({"lander_0": 0})
+        refused = None
+    except mll.MLLError as error:
+        refused = (error.code.name, error.message)
+    _INHERITED.clear()  # The child's copy goes: it must not delete the parent's env on the server.
+    gc.collect()
+    own = mll.parallel_env(address=address, n_landers=1)
+    own.reset(seed=2)
+    own.step({"lander_0": 1})
+    own.close()
+    return refused
+
+
+def test_a_forked_child_refuses_the_parents_connection_and_leaves_its_env_alone(own_server):
+    """A forked child inherits the parent's env objects (and a renewal thread's state) but not
+    their sockets: using them is refused with FAILED_PRECONDITION naming both processes, dropping
+    them deletes nothing, and the child's own envs work. Errors cross the process boundary as
+    MLLError (they pickle)."""
+    import multiprocessing
+
+    env = mll.parallel_env(address=own_server, n_landers=1)
+    env.reset(seed=1)
+    _INHERITED[:] = [env]
+    context = multiprocessing.get_context("fork")
+    with context.Pool(1) as pool:
+        code, message = pool.apply(_use_inherited_then_own, (own_server,))
+    _INHERITED.clear()
+    with context.Pool(1) as pool:
+        # An MLLError raised in the worker arrives as itself.
+        with pytest.raises(mll.MLLError) as raised:
+            pool.apply(_raise_invalid_argument)
+    assert code == "FAILED_PRECONDITION" and "forked process must make its own environments" in message
+    assert raised.value.code == grpc.StatusCode.INVALID_ARGUMENT and raised.value.message == "n_landers is 0"
+    assert env.name in listed_names(own_server)
+    env.step({"lander_0": 0})  # The parent's env still works on the parent's connection.
+    env.close()
+
+
+def _raise_invalid_argument():
+    raise mll.MLLError(grpc.StatusCode.INVALID_ARGUMENT, "n_landers is 0")
