@@ -32,7 +32,7 @@
 #include "mll/core/renderer.h"
 #include "rng.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 using internal::Rng;
@@ -482,6 +482,6 @@ BENCHMARK(BM_MemoryPerEnv)
     ->Unit(benchmark::kMillisecond);
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core
 
 BENCHMARK_MAIN();

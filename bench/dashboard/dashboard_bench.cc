@@ -32,7 +32,7 @@
 #include "mll/service/server.h"
 #include "mll/v1/multi_lunar_lander.grpc.pb.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 constexpr int kLanders = 3;
@@ -260,6 +260,6 @@ int Run(const Flags& flags) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::service
 
-int main(int argc, char** argv) { return mll::Run(mll::ParseFlags(argc, argv)); }
+int main(int argc, char** argv) { return mll::service::Run(mll::service::ParseFlags(argc, argv)); }

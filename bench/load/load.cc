@@ -31,7 +31,7 @@ ABSL_FLAG(double, time_limit_s, 600, "the run stops after this long");
 ABSL_FLAG(int32_t, server_pid, 0,
           "if set, the server's RSS and open fds are reported before/after");
 
-namespace mll::load {
+namespace mll::client::load {
 namespace {
 
 enum Op { kCreate, kReset, kStep, kBatch, kRender, kDelete, kOps };
@@ -209,12 +209,12 @@ int Main() {
 }
 
 }  // namespace
-}  // namespace mll::load
+}  // namespace mll::client::load
 
 int main(int argc, char** argv) {
   absl::SetProgramUsageMessage(
       "Load test: concurrent clients mixing create/reset/step/batch/render/"
       "delete against a running mll_server.");
   absl::ParseCommandLine(argc, argv);
-  return mll::load::Main();
+  return mll::client::load::Main();
 }

@@ -34,7 +34,7 @@ ABSL_FLAG(double, max_drift_percent, 2, "allowed RSS drift, first to last tenth"
 ABSL_FLAG(double, progress_s, 60,
           "period of the progress line on stderr (0: none)");
 
-namespace mll::load {
+namespace mll::client::load {
 namespace {
 
 struct Sample {
@@ -176,12 +176,12 @@ int Main() {
 }
 
 }  // namespace
-}  // namespace mll::load
+}  // namespace mll::client::load
 
 int main(int argc, char** argv) {
   absl::SetProgramUsageMessage(
       "Soak test: create/reset/step/delete cycles against a running "
       "mll_server, checking its memory and descriptors.");
   absl::ParseCommandLine(argc, argv);
-  return mll::load::Main();
+  return mll::client::load::Main();
 }

@@ -30,7 +30,7 @@ ABSL_FLAG(int, steps, 2000, "Steps per environment at most.");
 ABSL_FLAG(double, seconds, 20.0, "Wall-time bound in seconds.");
 ABSL_FLAG(uint64_t, seed, 0, "Env i is first reset with seed + i.");
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 using Clock = std::chrono::steady_clock;
@@ -114,9 +114,9 @@ int Run() {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core
 
 int main(int argc, char** argv) {
   absl::ParseCommandLine(argc, argv);
-  return mll::Run();
+  return mll::core::Run();
 }

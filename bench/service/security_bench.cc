@@ -22,7 +22,7 @@
 #include "mll/service/metrics.h"
 #include "mll/service/server.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 constexpr int kLanders = 3;
@@ -191,6 +191,6 @@ void BM_StepEnvTcp(benchmark::State& state) {
 BENCHMARK(BM_StepEnvTcp)->Arg(0)->Arg(1)->UseRealTime();
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::service
 
 BENCHMARK_MAIN();

@@ -9,9 +9,9 @@
 #include "transport.h"
 #include "wire.h"
 
-namespace mll {
+namespace mll::client {
 
-using client_internal::Transport;
+using internal::Transport;
 
 namespace {
 
@@ -23,7 +23,7 @@ absl::StatusOr<EnvInfo> GetEnvOn(Transport& transport, absl::string_view name,
   v1::SessionResponse response;
   absl::Status status = transport.Call(request, &response);
   if (!status.ok()) return status;
-  EnvInfo info = client_internal::DecodeEnv(response.env());
+  EnvInfo info = internal::DecodeEnv(response.env());
   info.server = server;
   return info;
 }
@@ -56,7 +56,7 @@ static_assert(static_cast<int>(LanderOutcome::kTruncated) ==
 static_assert(static_cast<int>(LanderOutcome::kAborted) == v1::OUTCOME_ABORTED);
 
 absl::string_view LanderOutcomeName(LanderOutcome outcome) {
-  return client_internal::OutcomeName(static_cast<int>(outcome));
+  return internal::OutcomeName(static_cast<int>(outcome));
 }
 
 AecTurn AecState::Last(int agent) const {
@@ -117,10 +117,10 @@ absl::StatusOr<StepData> RemoteEnv::Reset(std::optional<uint64_t> seed) {
   absl::Status status = transport_->Call(request, &response);
   if (!status.ok()) return status;
   absl::StatusOr<AecState> aec =
-      client_internal::DecodeAecState(response.reset_env().aec());
+      internal::DecodeAecState(response.reset_env().aec());
   if (!aec.ok()) return aec.status();
   absl::StatusOr<StepData> data =
-      client_internal::DecodeStepData(response.reset_env().data());
+      internal::DecodeStepData(response.reset_env().data());
   if (!data.ok()) return data.status();
   if (response.reset_env().has_seed()) data->seed = response.reset_env().seed();
   aec_ = *std::move(aec);
@@ -135,12 +135,12 @@ absl::StatusOr<StepData> RemoteEnv::Step(const Actions& actions) {
   v1::StepEnvRequest& step = *request.mutable_step_env();
   step.set_name(info_.name);
   absl::Status status =
-      client_internal::EncodeActions(actions, step.mutable_actions());
+      internal::EncodeActions(actions, step.mutable_actions());
   if (!status.ok()) return status;
   v1::SessionResponse response;
   status = transport_->Call(request, &response);
   if (!status.ok()) return status;
-  return client_internal::DecodeStepData(response.step_env().data());
+  return internal::DecodeStepData(response.step_env().data());
 }
 
 absl::Status RemoteEnv::StepAgent(int32_t discrete_action) {
@@ -176,7 +176,7 @@ absl::Status RemoteEnv::StepAgentImpl(const AgentMove& move) {
       step.mutable_action()->set_discrete(move.discrete);
       break;
     case AgentMove::Kind::kContinuous:
-      client_internal::EncodeAgentAction(
+      internal::EncodeAgentAction(
           move.continuous, step.mutable_action()->mutable_continuous());
       break;
   }
@@ -184,7 +184,7 @@ absl::Status RemoteEnv::StepAgentImpl(const AgentMove& move) {
   absl::Status status = transport_->Call(request, &response);
   if (!status.ok()) return status;
   absl::StatusOr<AecState> aec =
-      client_internal::DecodeAecState(response.step_agent().aec());
+      internal::DecodeAecState(response.step_agent().aec());
   if (!aec.ok()) return aec.status();
   aec_ = *std::move(aec);
   return absl::OkStatus();
@@ -212,7 +212,7 @@ absl::StatusOr<RenderedFrame> RemoteEnv::Render(FrameFormat format) {
   v1::SessionResponse response;
   absl::Status status = transport_->Call(request, &response);
   if (!status.ok()) return status;
-  return client_internal::DecodeFrame(response.frame());
+  return internal::DecodeFrame(response.frame());
 }
 
 absl::StatusOr<EnvInfo> RemoteEnv::Refresh() {
@@ -273,7 +273,7 @@ absl::StatusOr<Client> Client::Create(const std::vector<std::string>& addresses,
                        "\", which appears earlier; each server once"));
     }
     absl::StatusOr<std::shared_ptr<Transport>> transport =
-        client_internal::MakeUnaryTransport(addresses[i], options);
+        internal::MakeUnaryTransport(addresses[i], options);
     if (!transport.ok()) {
       if (addresses.size() == 1) return transport.status();
       return absl::Status(transport.status().code(),
@@ -335,12 +335,12 @@ absl::StatusOr<RemoteEnv> Client::CreateEnvAt(size_t server,
                                               bool detached) const {
   v1::SessionRequest request;
   v1::CreateEnvRequest& create = *request.mutable_create_env();
-  client_internal::EncodeConfig(config, create.mutable_config());
+  internal::EncodeConfig(config, create.mutable_config());
   create.set_detached(detached);
   v1::SessionResponse response;
   absl::Status status = transports_[server]->Call(request, &response);
   if (!status.ok()) return status;
-  EnvInfo info = client_internal::DecodeEnv(response.env());
+  EnvInfo info = internal::DecodeEnv(response.env());
   info.server = static_cast<int>(server);
   return RemoteEnv(transports_[server], std::move(info), /*owned=*/true);
 }
@@ -374,7 +374,7 @@ absl::StatusOr<std::vector<EnvInfo>> Client::ListEnvs() const {
                                        : AtServer(*transports_[server], status);
       }
       for (const v1::Env& env : response.envs()) {
-        envs.push_back(client_internal::DecodeEnv(env));
+        envs.push_back(internal::DecodeEnv(env));
         envs.back().server = static_cast<int>(server);
       }
       request.set_page_token(response.next_page_token());
@@ -427,7 +427,7 @@ absl::StatusOr<std::vector<absl::StatusOr<StepData>>> Client::StepBatch(
     ServerCall& call = calls[*server];
     v1::StepEnvRequest& step = *call.request.mutable_step_batch()->add_steps();
     step.set_name(steps[i].env->name());
-    absl::Status status = client_internal::EncodeActions(
+    absl::Status status = internal::EncodeActions(
         steps[i].actions, step.mutable_actions());
     if (!status.ok()) {
       return absl::InvalidArgumentError(
@@ -486,12 +486,12 @@ absl::StatusOr<std::vector<absl::StatusOr<StepData>>> Client::StepBatch(
       out[call.items[k]] =
           result.has_error()
               ? absl::StatusOr<StepData>(
-                    client_internal::FromItemError(result.error()))
-              : client_internal::DecodeStepData(result.data());
+                    internal::FromItemError(result.error()))
+              : internal::DecodeStepData(result.data());
     }
   }
   if (!any_answered) return first_failure;
   return out;
 }
 
-}  // namespace mll
+}  // namespace mll::client

@@ -22,8 +22,8 @@
 #include "grpcpp/support/byte_buffer.h"
 #include "grpcpp/support/channel_arguments.h"
 
-namespace mll {
-namespace client_internal {
+namespace mll::client {
+namespace internal {
 namespace {
 
 using ::google::protobuf::internal::WireFormatLite;
@@ -473,5 +473,5 @@ absl::StatusOr<std::shared_ptr<Transport>> MakeUnaryTransport(
       std::string(address), std::move(channel), options));
 }
 
-}  // namespace client_internal
-}  // namespace mll
+}  // namespace internal
+}  // namespace mll::client

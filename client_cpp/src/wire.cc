@@ -16,8 +16,8 @@
 #include "google/protobuf/descriptor.h"
 #include "google/protobuf/util/json_util.h"
 
-namespace mll {
-namespace client_internal {
+namespace mll::client {
+namespace internal {
 namespace {
 
 // Arrays travel little-endian and are copied as they are.
@@ -365,5 +365,5 @@ absl::string_view OutcomeName(int code) {
   return (*kNames)[code];
 }
 
-}  // namespace client_internal
-}  // namespace mll
+}  // namespace internal
+}  // namespace mll::client

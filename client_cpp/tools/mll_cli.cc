@@ -91,7 +91,7 @@ ABSL_FLAG(int, episodes, 1, "play: number of episodes, >= 1.");
 ABSL_FLAG(bool, auto_reset, false,
           "create: the step after an episode ends starts a new one.");
 
-namespace mll {
+namespace mll::client {
 namespace {
 
 constexpr int kExitServerError = 1;
@@ -267,7 +267,7 @@ Result List(const Client& client, const std::vector<std::string>&) {
 }
 
 Result Create(const Client& client, const std::vector<std::string>&) {
-  absl::StatusOr<EnvConfig> config = EnvConfigFromFlags();
+  absl::StatusOr<core::EnvConfig> config = core::EnvConfigFromFlags();
   if (!config.ok()) return Usage(config.status());
   RemoteEnvConfig remote = RemoteConfigFrom(*config);
   remote.auto_reset = absl::GetFlag(FLAGS_auto_reset);
@@ -423,7 +423,7 @@ Result OpenPlayEnvs(const Client& client, const PlayFlags& flags,
     envs->push_back(*std::move(env));
     return std::nullopt;
   }
-  absl::StatusOr<EnvConfig> config = EnvConfigFromFlags();
+  absl::StatusOr<core::EnvConfig> config = core::EnvConfigFromFlags();
   if (!config.ok()) return Usage(config.status());
   for (int j = 0; j < flags.n_envs; ++j) {
     absl::StatusOr<RemoteEnv> env = client.CreateEnv(RemoteConfigFrom(*config));
@@ -630,7 +630,7 @@ constexpr absl::string_view kConnectionFlags[] = {
 // `mll_cli --help`, or `mll_cli COMMAND --help` for one command's flags.
 std::string Help(const std::vector<std::string>& words) {
   const std::vector<const absl::CommandLineFlag*> connection =
-      tools::FlagsNamed({std::begin(kConnectionFlags),
+      core::tools::FlagsNamed({std::begin(kConnectionFlags),
                          std::end(kConnectionFlags)});
   for (const std::string& word : words) {
     const auto command = Commands().find(word);
@@ -640,15 +640,15 @@ std::string Help(const std::vector<std::string>& words) {
                                      " [--flags]: ", spec.summary, "\n");
     if (!spec.flags.empty()) {
       absl::StrAppend(&text, "\nFlags:\n",
-                      tools::DescribeFlags(tools::FlagsNamed(spec.flags)));
+                      core::tools::DescribeFlags(core::tools::FlagsNamed(spec.flags)));
     }
     if (spec.takes_env_options) {
       absl::StrAppend(&text, "\nEnvironment options:\n",
-                      tools::DescribeFlags(
-                          tools::FlagsDefinedIn("config_flags.cc")));
+                      core::tools::DescribeFlags(
+                          core::tools::FlagsDefinedIn("config_flags.cc")));
     }
     absl::StrAppend(&text, "\nConnection flags:\n",
-                    tools::DescribeFlags(connection));
+                    core::tools::DescribeFlags(connection));
     return text;
   }
   std::string text =
@@ -661,7 +661,7 @@ std::string Help(const std::vector<std::string>& words) {
                     "\n");
   }
   absl::StrAppend(&text, "\nConnection flags (every command):\n",
-                  tools::DescribeFlags(connection));
+                  core::tools::DescribeFlags(connection));
   return text;
 }
 
@@ -709,15 +709,15 @@ int Run(const std::vector<std::string>& positional) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::client
 
 int main(int argc, char** argv) {
   const std::vector<std::string> positional =
-      mll::tools::ParseCommandLine(argc, argv, mll::Help);
+      mll::core::tools::ParseCommandLine(argc, argv, mll::client::Help);
   // gRPC's own log lines (e.g. "E1125 ... Failed to parse [::1") repeat the
   // error mll_cli prints; GRPC_VERBOSITY (DEBUG, INFO, ERROR) turns them on.
   if (std::getenv("GRPC_VERBOSITY") == nullptr) {
     gpr_set_log_function([](gpr_log_func_args*) {});
   }
-  return mll::Run(positional);
+  return mll::client::Run(positional);
 }

@@ -14,7 +14,7 @@
 #include "gtest/gtest.h"
 #include "server_process.h"
 
-namespace mll {
+namespace mll::client {
 namespace {
 
 using ::testing::HasSubstr;
@@ -262,4 +262,4 @@ TEST_F(CliTest, PlayMatchesInProcessRollout) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::client

@@ -14,7 +14,7 @@
 #include "gtest/gtest.h"
 #include "server_process.h"
 
-namespace mll {
+namespace mll::client {
 namespace {
 
 using ::testing::ElementsAre;
@@ -498,10 +498,10 @@ TEST(ServerGoneTest, NoServerAtAll) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::client
 
 int main(int argc, char** argv) {
   ::testing::InitGoogleTest(&argc, argv);
-  ::testing::AddGlobalTestEnvironment(new mll::ServerEnvironment);
+  ::testing::AddGlobalTestEnvironment(new mll::client::ServerEnvironment);
   return RUN_ALL_TESTS();
 }

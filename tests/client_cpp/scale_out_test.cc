@@ -20,7 +20,7 @@
 #include "mll/client.h"
 #include "server_process.h"
 
-namespace mll {
+namespace mll::client {
 namespace {
 
 using ::testing::HasSubstr;
@@ -459,10 +459,10 @@ TEST(ScaleOutCliTest, PlayOverTwoServersFliesAsOneServer) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::client
 
 int main(int argc, char** argv) {
   ::testing::InitGoogleTest(&argc, argv);
-  ::testing::AddGlobalTestEnvironment(new mll::TwoServers());
+  ::testing::AddGlobalTestEnvironment(new mll::client::TwoServers());
   return RUN_ALL_TESTS();
 }

@@ -16,7 +16,7 @@
 #include "mll/client.h"
 #include "server_process.h"
 
-namespace mll {
+namespace mll::client {
 namespace {
 
 using ::testing::HasSubstr;
@@ -357,10 +357,10 @@ TEST(SecureCliTest, TokenFromFlagFileOrEnvironmentInThatOrder) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::client
 
 int main(int argc, char** argv) {
   ::testing::InitGoogleTest(&argc, argv);
-  ::testing::AddGlobalTestEnvironment(new mll::SecureServers());
+  ::testing::AddGlobalTestEnvironment(new mll::client::SecureServers());
   return RUN_ALL_TESTS();
 }

@@ -17,7 +17,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/strip.h"
 
-namespace mll {
+namespace mll::client {
 namespace {
 
 using Clock = std::chrono::steady_clock;
@@ -226,4 +226,4 @@ absl::StatusOr<Certificate> MakeSelfSignedCertificate(
   return certificate;
 }
 
-}  // namespace mll
+}  // namespace mll::client

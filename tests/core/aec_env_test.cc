@@ -9,7 +9,7 @@
 #include "mll/core/aec_env.h"
 #include "mll/core/env.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 EnvConfig Config() {
@@ -138,4 +138,4 @@ TEST(AecEnvTest, Errors) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core

@@ -10,7 +10,7 @@
 #include "gtest/gtest.h"
 #include "mll/core/env.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 using internal::LanderBodyFilter;
@@ -149,4 +149,4 @@ TEST(CollisionTest, ParticlesRestOnTheMoonAndNeverTouchLanders) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core

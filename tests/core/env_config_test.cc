@@ -11,7 +11,7 @@
 #include "gtest/gtest.h"
 #include "mll/core/env.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 using ::testing::AllOf;
@@ -146,4 +146,4 @@ TEST(EnvConfigTest, BadActionsAreRejectedBeforeAnyPhysics) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core

@@ -6,7 +6,7 @@
 #include "gtest/gtest.h"
 #include "mll/core/env.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 using testing::MakeEnv;
@@ -117,4 +117,4 @@ TEST(EnvOptionsTest, RewardOptionsDoNotChangeThePhysics) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core

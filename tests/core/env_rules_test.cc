@@ -7,7 +7,7 @@
 #include "gtest/gtest.h"
 #include "mll/core/env.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 using testing::HoldHigh;
@@ -318,4 +318,4 @@ TEST(EnvRulesTest, EpisodeReturnIsTheSumOfRewards) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core

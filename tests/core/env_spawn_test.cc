@@ -8,7 +8,7 @@
 #include "gtest/gtest.h"
 #include "mll/core/env.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 // Box2D reports a touching contact once two polygons come within their skins
@@ -112,4 +112,4 @@ TEST(EnvSpawnTest, EveryLanderCountSpawnsApartAndUndamaged) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core

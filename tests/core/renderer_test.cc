@@ -16,7 +16,7 @@
 #include "gtest/gtest.h"
 #include "mll/core/env.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 using ::testing::HasSubstr;
@@ -537,4 +537,4 @@ TEST(RenderEnvTest, TheSceneKeepsWhereALanderWasDestroyed) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core

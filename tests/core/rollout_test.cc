@@ -15,7 +15,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 using ::google::protobuf::Struct;
@@ -185,4 +185,4 @@ TEST(RolloutTest, BadValuesExitNonZeroNamingTheField) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core

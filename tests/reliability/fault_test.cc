@@ -28,7 +28,7 @@
 #include "subprocess.h"
 #include "test_util.h"  // tests/service: action arrays.
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 using ::testing::HasSubstr;
@@ -154,12 +154,12 @@ bool WaitUntilGone(MultiLunarLander::Stub& stub,
 struct HeavyBatch {
   HeavyBatch(MultiLunarLander::Stub& stub, int envs) {
     for (int i = 0; i < envs; ++i) {
-      const std::string name = Create(stub, Landers(kMaxLanders));
+      const std::string name = Create(stub, Landers(core::kMaxLanders));
       EXPECT_TRUE(Reset(stub, name).ok());
       v1::StepEnvRequest* step = request.add_steps();
       step->set_name(name);
       *step->mutable_actions() =
-          DiscreteActions(std::vector<int32_t>(kMaxLanders, 0));
+          DiscreteActions(std::vector<int32_t>(core::kMaxLanders, 0));
       names.push_back(name);
     }
   }
@@ -616,4 +616,4 @@ TEST(FaultTest, StepsAfterTheEpisodeEndedAreRefusedUntilReset) {
 }
 
 }  // namespace
-}  // namespace mll::testing
+}  // namespace mll::service::testing

@@ -19,7 +19,7 @@
 
 extern char** environ;
 
-namespace mll::testing {
+namespace mll::service::testing {
 
 absl::StatusOr<std::unique_ptr<Subprocess>> Subprocess::Start(
     const std::vector<std::string>& argv) {
@@ -137,4 +137,4 @@ absl::Duration Scaled(absl::Duration duration) {
   return sanitizer != nullptr && *sanitizer != '\0' ? duration * 5 : duration;
 }
 
-}  // namespace mll::testing
+}  // namespace mll::service::testing

@@ -17,7 +17,7 @@
 #include "server_process.h"
 #include "test_util.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 using ::testing::AllOf;
@@ -432,4 +432,4 @@ TEST(AuthOffTest, EveryCallerIsTheAnonymousOwner) {
 }
 
 }  // namespace
-}  // namespace mll::testing
+}  // namespace mll::service::testing

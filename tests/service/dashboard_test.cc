@@ -26,7 +26,7 @@
 #include "server_process.h"
 #include "test_util.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 using ::testing::HasSubstr;
@@ -378,4 +378,4 @@ TEST(DashboardBinaryTest, BadOrBusyHttpAddressExitsWithOneLine) {
 }
 
 }  // namespace
-}  // namespace mll::testing
+}  // namespace mll::service::testing

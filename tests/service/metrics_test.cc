@@ -15,7 +15,7 @@
 #include "mll/service/metrics.h"
 #include "test_util.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 using ::testing::HasSubstr;
@@ -293,4 +293,4 @@ TEST(MetricsAddressTest, BadOrBusyAddressIsAnErrorNamingTheFlag) {
 }
 
 }  // namespace
-}  // namespace mll::testing
+}  // namespace mll::service::testing

@@ -14,7 +14,7 @@
 #include "mll/service/convert.h"
 #include "test_util.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 using ::testing::HasSubstr;
@@ -33,8 +33,8 @@ v1::StepData RowAsStepData(const v1::PackedStepData& packed, int e, int n) {
   };
   v1::StepData data;
   const size_t agents = static_cast<size_t>(n);
-  cut(packed.observations(), agents * kObservationSize * 4, e,
-      {n, kObservationSize}, data.mutable_observations());
+  cut(packed.observations(), agents * core::kObservationSize * 4, e,
+      {n, core::kObservationSize}, data.mutable_observations());
   cut(packed.rewards(), agents * 4, e, {n}, data.mutable_rewards());
   cut(packed.terminations(), agents, e, {n}, data.mutable_terminations());
   cut(packed.truncations(), agents, e, {n}, data.mutable_truncations());
@@ -125,9 +125,9 @@ struct CycleActions {
     return continuous.empty() ? DiscreteActions(discrete[e])
                               : ContinuousActions(continuous[e]);
   }
-  ActionsView View(int e) const {
-    return continuous.empty() ? ActionsView{discrete[e], {}}
-                              : ActionsView{{}, continuous[e]};
+  core::ActionsView View(int e) const {
+    return continuous.empty() ? core::ActionsView{discrete[e], {}}
+                              : core::ActionsView{{}, continuous[e]};
   }
   v1::Array Packed(int n) const {
     v1::Array array;
@@ -185,13 +185,13 @@ TEST_P(PackedEquivalenceTest, MatchesStepsFormAndCoreOnOneAndTwoThreads) {
   const int num_envs = static_cast<int>(seeds.size());
   constexpr int kCycles = 130;
 
-  absl::StatusOr<EnvConfig> config =
+  absl::StatusOr<core::EnvConfig> config =
       EnvConfigFromProto(Config(continuous).config());
   ASSERT_TRUE(config.ok());
-  std::vector<std::unique_ptr<Env>> core;
-  StepResult result;
+  std::vector<std::unique_ptr<core::Env>> core;
+  core::StepResult result;
   for (uint64_t seed : seeds) {
-    core.push_back(*Env::Create(*config));
+    core.push_back(*core::Env::Create(*config));
     core.back()->Reset(seed, &result);
   }
 
@@ -257,7 +257,7 @@ TEST_P(PackedEquivalenceTest, MatchesStepsFormAndCoreOnOneAndTwoThreads) {
       const v1::PackedStepData& packed = packed_response.packed();
       ASSERT_EQ(packed.errors_size(), 0) << packed.errors(0).error().message();
       EXPECT_THAT(packed.observations().shape(),
-                  ::testing::ElementsAre(num_envs, kLanders, kObservationSize));
+                  ::testing::ElementsAre(num_envs, kLanders, core::kObservationSize));
       EXPECT_THAT(packed.cycles().shape(), ::testing::ElementsAre(num_envs));
       for (int e = 0; e < num_envs; ++e) {
         ASSERT_TRUE(steps_response.results(e).has_data());
@@ -375,7 +375,7 @@ TEST_F(PackedErrorsTest, RequestLevelErrorsStepNothing) {
   ASSERT_TRUE(Batch(PackedRequest({}, Int32Array({0, 3}, 0)), &response).ok());
   EXPECT_TRUE(response.has_packed());
   EXPECT_THAT(response.packed().observations().shape(),
-              ::testing::ElementsAre(0, 3, kObservationSize));
+              ::testing::ElementsAre(0, 3, core::kObservationSize));
 }
 
 // Each failing env gets StepEnv's code and message (its field names moved
@@ -538,4 +538,4 @@ TEST(PackedSessionTest, SessionCarriesAPackedBatch) {
 }
 
 }  // namespace
-}  // namespace mll::testing
+}  // namespace mll::service::testing

@@ -17,7 +17,7 @@
 #include "server_process.h"
 #include "test_util.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 using ::testing::AllOf;
@@ -235,4 +235,4 @@ TEST(SecurityFlagsTest, BinaryRejectsBadSecurityFlags) {
 }
 
 }  // namespace
-}  // namespace mll::testing
+}  // namespace mll::service::testing

@@ -12,7 +12,7 @@
 #include "server_process.h"
 #include "test_util.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 using ::testing::HasSubstr;
@@ -157,4 +157,4 @@ TEST(ServerBinaryTest, HelpListsEveryFlagAndExitsZero) {
 }
 
 }  // namespace
-}  // namespace mll::testing
+}  // namespace mll::service::testing

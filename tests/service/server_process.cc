@@ -16,7 +16,7 @@
 
 extern char** environ;
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 constexpr char kServerPath[] = MLL_SERVER_PATH;
@@ -123,4 +123,4 @@ std::string HealthCheck(const std::shared_ptr<grpc::Channel>& channel,
   return bytes;
 }
 
-}  // namespace mll::testing
+}  // namespace mll::service::testing

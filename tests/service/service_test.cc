@@ -10,7 +10,7 @@
 #include "mll/service/convert.h"
 #include "test_util.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 using ::testing::HasSubstr;
@@ -451,4 +451,4 @@ TEST(StatusMappingTest, CanonicalCodesKeepTheirNumberOthersAreInternal) {
 }
 
 }  // namespace
-}  // namespace mll::testing
+}  // namespace mll::service::testing

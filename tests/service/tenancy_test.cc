@@ -11,7 +11,7 @@
 #include "gtest/gtest.h"
 #include "test_util.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 using ::testing::AllOf;
@@ -197,4 +197,4 @@ TEST(TenancyTest, EnvReportsTheIdleTimeoutAndKeepAliveIsBounded) {
 }
 
 }  // namespace
-}  // namespace mll::testing
+}  // namespace mll::service::testing

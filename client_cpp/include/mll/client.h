@@ -28,8 +28,8 @@
 // (one RemoteEnv at a time per env, as the server serialises each env anyway).
 // A session client serialises its calls on its one stream.
 //
-// Names do not clash with the core (mll::Env, mll::StepResult, mll::Outcome,
-// mll::Frame): a program may link both, as the equivalence test does.
+// Everything here is in namespace mll::client; the simulation core's types
+// are in mll::core, so a program may link both, as the equivalence test does.
 #ifndef MLL_CLIENT_H_
 #define MLL_CLIENT_H_
 
@@ -47,11 +47,11 @@
 #include "absl/strings/string_view.h"
 #include "absl/types/span.h"
 
-namespace mll {
+namespace mll::client {
 
-namespace client_internal {
+namespace internal {
 class Transport;
-}  // namespace client_internal
+}  // namespace internal
 
 // How the client reaches the server.
 struct ClientOptions {
@@ -314,7 +314,7 @@ class RemoteEnv {
 
  private:
   friend class Client;
-  RemoteEnv(std::shared_ptr<client_internal::Transport> transport,
+  RemoteEnv(std::shared_ptr<internal::Transport> transport,
             EnvInfo info, bool owned);
   // The action of one AEC step: none (dead step), discrete or continuous.
   struct AgentMove {
@@ -325,7 +325,7 @@ class RemoteEnv {
   };
   absl::Status StepAgentImpl(const AgentMove& move);
 
-  std::shared_ptr<client_internal::Transport> transport_;
+  std::shared_ptr<internal::Transport> transport_;
   EnvInfo info_;
   bool owned_ = false;
   AecState aec_;
@@ -405,7 +405,7 @@ class Client {
  private:
   friend class RemoteEnv;
   explicit Client(
-      std::vector<std::shared_ptr<client_internal::Transport>> transports);
+      std::vector<std::shared_ptr<internal::Transport>> transports);
   absl::StatusOr<RemoteEnv> CreateEnvAt(size_t server,
                                          const RemoteEnvConfig& config,
                                          bool detached) const;
@@ -415,11 +415,11 @@ class Client {
   absl::StatusOr<size_t> ServerOf(const RemoteEnv* env,
                                   absl::string_view what) const;
 
-  std::vector<std::shared_ptr<client_internal::Transport>> transports_;
+  std::vector<std::shared_ptr<internal::Transport>> transports_;
   // Round-robin placement counter; on the heap because atomics cannot move.
   std::shared_ptr<std::atomic<uint64_t>> next_server_;
 };
 
-}  // namespace mll
+}  // namespace mll::client
 
 #endif  // MLL_CLIENT_H_

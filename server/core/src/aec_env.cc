@@ -6,7 +6,7 @@
 #include "absl/strings/str_cat.h"
 #include "engine_command.h"
 
-namespace mll {
+namespace mll::core {
 
 // The step and its helpers follow pettingzoo.AECEnv (utils/env.py) and the
 // buffered-action pattern of pettingzoo's sisl/multiwalker step() line by
@@ -169,4 +169,4 @@ absl::Span<const float> AecEnv::observe(int agent) const {
 
 const Env& AecEnv::env() const { return *env_; }
 
-}  // namespace mll
+}  // namespace mll::core

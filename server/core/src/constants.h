@@ -8,7 +8,7 @@
 
 #include <array>
 
-namespace mll {
+namespace mll::core {
 namespace internal {
 
 inline constexpr int kFps = 50;
@@ -76,6 +76,6 @@ inline constexpr double kMainFuelCost = 0.30;
 inline constexpr double kSideFuelCost = 0.03;
 
 }  // namespace internal
-}  // namespace mll
+}  // namespace mll::core
 
 #endif  // MLL_CORE_SRC_CONSTANTS_H_

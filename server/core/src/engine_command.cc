@@ -5,7 +5,7 @@
 
 #include "absl/strings/str_cat.h"
 
-namespace mll {
+namespace mll::core {
 namespace internal {
 
 EngineCommand DecodeDiscrete(int32_t action) {
@@ -60,4 +60,4 @@ absl::Status ValidateAgentAction(bool continuous, int agent,
 }
 
 }  // namespace internal
-}  // namespace mll
+}  // namespace mll::core

@@ -36,7 +36,7 @@
 #include "engine_command.h"
 #include "rng.h"
 
-namespace mll {
+namespace mll::core {
 
 using internal::EngineCommand;
 using internal::FixtureTag;
@@ -900,4 +900,4 @@ absl::Status Env::SetLanderStateForTest(int agent, double x, double y,
   return impl_->SetLanderState(agent, x, y, angle, vx, vy, omega);
 }
 
-}  // namespace mll
+}  // namespace mll::core

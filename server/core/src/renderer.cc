@@ -22,7 +22,7 @@
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 struct Rgb {
@@ -642,4 +642,4 @@ absl::StatusOr<std::string> EncodePng(const Frame& frame) {
   return out;
 }
 
-}  // namespace mll
+}  // namespace mll::core

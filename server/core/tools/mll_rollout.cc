@@ -38,7 +38,7 @@ ABSL_FLAG(std::string, frames_dir, "",
           "If set, writes <episode>_<step>.png per step there (created if "
           "missing); implies render_mode=rgb_array.");
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 enum class Policy { kHeuristic, kRandom };
@@ -260,25 +260,25 @@ absl::Status Run(const Options& options) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core
 
 int main(int argc, char** argv) {
-  mll::tools::ParseFlagsOnly(argc, argv, "mll_rollout", [] {
+  mll::core::tools::ParseFlagsOnly(argc, argv, "mll_rollout", [] {
     return absl::StrCat(
         "mll_rollout: runs Multi Lunar Lander episodes in-process; prints one "
         "JSON line per episode and a summary line.\n"
         "Usage: mll_rollout [--flags]\n\nFlags:\n",
-        mll::tools::DescribeFlags(mll::tools::FlagsDefinedIn("mll_rollout.cc")),
+        mll::core::tools::DescribeFlags(mll::core::tools::FlagsDefinedIn("mll_rollout.cc")),
         "\nEnvironment options:\n",
-        mll::tools::DescribeFlags(
-            mll::tools::FlagsDefinedIn("config_flags.cc")));
+        mll::core::tools::DescribeFlags(
+            mll::core::tools::FlagsDefinedIn("config_flags.cc")));
   });
-  absl::StatusOr<mll::Options> options = mll::OptionsFromFlags();
+  absl::StatusOr<mll::core::Options> options = mll::core::OptionsFromFlags();
   if (!options.ok()) {
     std::cerr << "mll_rollout: " << options.status().message() << std::endl;
     return 2;
   }
-  absl::Status status = mll::Run(*options);
+  absl::Status status = mll::core::Run(*options);
   if (!status.ok()) {
     std::cerr << "mll_rollout: " << status.ToString() << std::endl;
     // The core re-validates the config in Env::Create: still a usage error.

@@ -12,7 +12,7 @@
 #include "absl/functional/function_ref.h"
 #include "absl/strings/string_view.h"
 
-namespace mll::tools {
+namespace mll::core::tools {
 
 // The flags defined in the source file with this base name (e.g.
 // "config_flags.cc"), sorted by name.
@@ -40,6 +40,6 @@ std::vector<std::string> ParseCommandLine(
 void ParseFlagsOnly(int argc, char** argv, absl::string_view program,
                     absl::FunctionRef<std::string()> help);
 
-}  // namespace mll::tools
+}  // namespace mll::core::tools
 
 #endif  // MLL_CORE_TOOLS_PROGRAM_USAGE_H_

@@ -11,7 +11,7 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 constexpr absl::string_view kScheme = "Bearer ";
@@ -103,4 +103,4 @@ absl::StatusOr<absl::string_view> Authenticator::Authenticate(
   return absl::string_view(owners_[match]);
 }
 
-}  // namespace mll
+}  // namespace mll::service

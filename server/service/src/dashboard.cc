@@ -19,7 +19,7 @@
 #include "httplib.h"
 #include "mll/core/renderer.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 // The port the address error's examples show.
@@ -187,7 +187,7 @@ void DashboardServer::ListEnvs(const httplib::Request& req,
     {
       absl::MutexLock lock(&slot->mu);
       if (slot->env == nullptr) continue;
-      const Env& env = *slot->env;
+      const core::Env& env = *slot->env;
       const bool started = env.episode_started();
       absl::StrAppend(&entry, "{\"name\":", JsonString(slot->name),
                       ",\"landers\":", slot->config.n_landers,
@@ -207,7 +207,7 @@ void DashboardServer::ListEnvs(const httplib::Request& req,
       for (int i = 0; i < slot->config.n_landers; ++i) {
         absl::StrAppend(
             &entry, i > 0 ? "," : "",
-            JsonString(started ? OutcomeName(env.outcome(i)) : "none"));
+            JsonString(started ? core::OutcomeName(env.outcome(i)) : "none"));
       }
       absl::StrAppend(&entry, "]}");
     }
@@ -306,7 +306,7 @@ void DashboardServer::StreamFrames(const httplib::Request& req,
                 kMinFramePeriod;
             if (cache->event == nullptr ||
                 (cache->version != *version && cache->time_slot != time_slot)) {
-              Scene scene;
+              core::Scene scene;
               Version drawn;
               {
                 absl::MutexLock env_lock(&slot->mu);
@@ -314,11 +314,11 @@ void DashboardServer::StreamFrames(const httplib::Request& req,
                 scene = slot->env->scene();
                 drawn = {slot->episodes, slot->env->cycles()};
               }
-              RenderOptions options;
+              core::RenderOptions options;
               options.overlay = true;
               options.caption = absl::StrCat(name, "  episode ", drawn.episode);
               absl::StatusOr<std::string> png =
-                  EncodePng(RenderScene(scene, options));
+                  core::EncodePng(core::RenderScene(scene, options));
               if (!png.ok()) return false;
               cache->event = std::make_shared<const std::string>(absl::StrCat(
                   "event: frame\nid: ", drawn.episode, ".", drawn.cycles,
@@ -346,4 +346,4 @@ void DashboardServer::StreamFrames(const httplib::Request& req,
       });
 }
 
-}  // namespace mll
+}  // namespace mll::service

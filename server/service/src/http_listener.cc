@@ -10,7 +10,7 @@
 #include "httplib.h"
 #include "mll/service/listen_address.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 constexpr int kIoTimeoutS = 5;
@@ -69,4 +69,4 @@ HttpListener::~HttpListener() {
   if (thread_.joinable()) thread_.join();
 }
 
-}  // namespace mll
+}  // namespace mll::service

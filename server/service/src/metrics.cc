@@ -7,7 +7,7 @@
 
 #include "absl/strings/str_cat.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 constexpr std::memory_order kRelaxed = std::memory_order_relaxed;
@@ -190,4 +190,4 @@ std::string Metrics::Render(
   return out;
 }
 
-}  // namespace mll
+}  // namespace mll::service

@@ -4,7 +4,7 @@
 
 #include "httplib.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 // The port the address error's examples show.
@@ -32,4 +32,4 @@ absl::StatusOr<std::unique_ptr<MetricsHttpServer>> MetricsHttpServer::Start(
       new MetricsHttpServer(*std::move(listener)));
 }
 
-}  // namespace mll
+}  // namespace mll::service

@@ -14,7 +14,7 @@
 #include "mll/core/renderer.h"
 #include "mll/service/convert.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 // Starts a new episode through the AEC adapter, which resets the Env and the
@@ -52,8 +52,8 @@ absl::Status CheckMode(const EnvSlot& slot, StepMode mode)
 // emit(result, env, auto_reset) while the env is still locked. The one step
 // of StepEnv and of both StepBatch forms.
 absl::Status StepSlot(
-    EnvSlot& slot, const ActionsView& actions,
-    absl::FunctionRef<void(const StepResult&, const Env&, bool)> emit) {
+    EnvSlot& slot, const core::ActionsView& actions,
+    absl::FunctionRef<void(const core::StepResult&, const core::Env&, bool)> emit) {
   absl::MutexLock lock(&slot.mu);
   absl::Status status = CheckStarted(slot);
   if (!status.ok()) return status;
@@ -127,7 +127,7 @@ void FillEnvLocked(const EnvSlot& slot, absl::Duration idle_timeout,
   out->set_name(slot.name);
   *out->mutable_config() = EnvConfigToProto(slot.config, slot.auto_reset);
   for (int i = 0; i < slot.config.n_landers; ++i) {
-    out->add_possible_agents(AgentName(i));
+    out->add_possible_agents(core::AgentName(i));
   }
   *out->mutable_observation_space() = ObservationSpace();
   *out->mutable_action_space() = ActionSpace(slot.config);
@@ -148,7 +148,7 @@ Operations::Operations(Registry* registry, WorkerPool* pool)
 absl::Status Operations::CreateEnv(const v1::CreateEnvRequest& request,
                                    bool session_bound, v1::Env* out,
                                    absl::string_view owner) {
-  absl::StatusOr<EnvConfig> config = EnvConfigFromProto(request.config());
+  absl::StatusOr<core::EnvConfig> config = EnvConfigFromProto(request.config());
   if (!config.ok()) return config.status();
   absl::StatusOr<std::shared_ptr<EnvSlot>> slot = registry_->Create(
       *config, request.config().auto_reset(), session_bound, owner);
@@ -245,7 +245,7 @@ absl::Status Operations::StepEnv(const v1::StepEnvRequest& request,
                                      absl::StrCat(field, "actions"), &actions);
   if (!status.ok()) return status;
   return StepSlot(slot, actions.view(),
-                  [out](const StepResult& result, const Env& env,
+                  [out](const core::StepResult& result, const core::Env& env,
                         bool auto_reset) {
                     FillStepData(result, env, auto_reset, out);
                   });
@@ -258,7 +258,7 @@ absl::Status Operations::StepAgent(const v1::StepAgentRequest& request,
       registry_->Find(request.name(), "name", owner);
   if (!found.ok()) return found.status();
   EnvSlot& slot = **found;
-  absl::StatusOr<std::optional<AgentAction>> action =
+  absl::StatusOr<std::optional<core::AgentAction>> action =
       ParseAgentAction(request, slot.config);
   if (!action.ok()) return action.status();
 
@@ -293,17 +293,17 @@ absl::Status Operations::RenderEnv(const v1::RenderEnvRequest& request,
   absl::StatusOr<std::shared_ptr<EnvSlot>> found =
       registry_->Find(request.name(), "name", owner);
   if (!found.ok()) return found.status();
-  absl::StatusOr<Frame> frame;
+  absl::StatusOr<core::Frame> frame;
   {
     absl::MutexLock lock(&(*found)->mu);
-    frame = mll::RenderEnv(*(*found)->env);
+    frame = mll::core::RenderEnv(*(*found)->env);
   }
   if (!frame.ok()) return frame.status();
   out->set_width(frame->width);
   out->set_height(frame->height);
   if (request.format() == v1::FRAME_FORMAT_PNG) {
     // Encoding is pure and slow: done after the env is released.
-    absl::StatusOr<std::string> png = EncodePng(*frame);
+    absl::StatusOr<std::string> png = core::EncodePng(*frame);
     if (!png.ok()) return png.status();
     out->set_format(v1::FRAME_FORMAT_PNG);
     out->set_data(*std::move(png));
@@ -396,7 +396,7 @@ void Operations::StepPacked(const v1::PackedSteps& request,
           absl::Status status = batch->actions.CheckFits(e, slot.config);
           if (!status.ok()) return status;
           return StepSlot(slot, batch->actions.Row(e),
-                          [&](const StepResult& result, const Env& env,
+                          [&](const core::StepResult& result, const core::Env& env,
                               bool auto_reset) {
                             batch->columns.Write(e, result, env, auto_reset);
                           });
@@ -414,4 +414,4 @@ void Operations::StepPacked(const v1::PackedSteps& request,
       });
 }
 
-}  // namespace mll
+}  // namespace mll::service

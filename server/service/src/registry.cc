@@ -9,7 +9,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 constexpr absl::string_view kNamePrefix = "envs/";
@@ -42,7 +42,7 @@ std::mt19937_64 SeededFromEntropy() {
 
 }  // namespace
 
-EnvSlot::EnvSlot(std::string name, uint64_t serial, std::unique_ptr<Env> env,
+EnvSlot::EnvSlot(std::string name, uint64_t serial, std::unique_ptr<core::Env> env,
                  bool auto_reset, bool session_bound, std::string owner)
     : name(std::move(name)),
       serial(serial),
@@ -51,7 +51,7 @@ EnvSlot::EnvSlot(std::string name, uint64_t serial, std::unique_ptr<Env> env,
       session_bound(session_bound),
       owner(std::move(owner)),
       env(std::move(env)) {
-  aec = std::make_unique<AecEnv>(this->env.get());
+  aec = std::make_unique<core::AecEnv>(this->env.get());
   Touch(*this);
 }
 
@@ -84,7 +84,7 @@ std::string Registry::NewNameLocked() {
 }
 
 absl::StatusOr<std::shared_ptr<EnvSlot>> Registry::Create(
-    const EnvConfig& config, bool auto_reset, bool session_bound,
+    const core::EnvConfig& config, bool auto_reset, bool session_bound,
     absl::string_view owner) {
   {
     absl::MutexLock lock(&mu_);
@@ -110,7 +110,7 @@ absl::StatusOr<std::shared_ptr<EnvSlot>> Registry::Create(
     ++pending_;
   }
   // Building a Box2D world takes a while: not under the registry's lock.
-  absl::StatusOr<std::unique_ptr<Env>> env = Env::Create(config);
+  absl::StatusOr<std::unique_ptr<core::Env>> env = core::Env::Create(config);
   absl::MutexLock lock(&mu_);
   --pending_;
   if (!env.ok()) {
@@ -287,4 +287,4 @@ void Registry::ReapLoop() {
   }
 }
 
-}  // namespace mll
+}  // namespace mll::service

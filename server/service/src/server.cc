@@ -11,7 +11,7 @@
 #include "grpcpp/health_check_service_interface.h"
 #include "mll/service/listen_address.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 constexpr int kMaxMessageMb = 2047;  // gRPC sizes messages in an int.
@@ -197,4 +197,4 @@ void Server::Shutdown(absl::Duration grace) {
   metrics_http_.reset();
 }
 
-}  // namespace mll
+}  // namespace mll::service

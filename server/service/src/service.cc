@@ -11,7 +11,7 @@
 #include "absl/strings/str_cat.h"
 #include "mll/service/convert.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 int64_t SteadyNowNs() {
@@ -437,4 +437,4 @@ MultiLunarLanderService::Session(grpc::CallbackServerContext* context) {
                             Admit(*context));
 }
 
-}  // namespace mll
+}  // namespace mll::service

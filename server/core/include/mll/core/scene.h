@@ -7,7 +7,7 @@
 #include <cstdint>
 #include <vector>
 
-namespace mll {
+namespace mll::core {
 
 enum class Outcome : uint8_t;  // env.h
 
@@ -64,6 +64,6 @@ struct Scene {
   int cycles = 0;  // World steps this episode (Env::cycles()).
 };
 
-}  // namespace mll
+}  // namespace mll::core
 
 #endif  // MLL_CORE_SCENE_H_

@@ -15,7 +15,7 @@
 #include "absl/status/statusor.h"
 #include "absl/strings/string_view.h"
 
-namespace mll {
+namespace mll::service {
 
 // The owner of every env on a server without tokens.
 inline constexpr absl::string_view kAnonymousOwner = "";
@@ -57,6 +57,6 @@ class Authenticator {
   std::vector<std::string> owners_;
 };
 
-}  // namespace mll
+}  // namespace mll::service
 
 #endif  // MLL_SERVICE_AUTH_H_

@@ -35,7 +35,7 @@ struct Request;
 struct Response;
 }  // namespace httplib
 
-namespace mll {
+namespace mll::service {
 
 class DashboardServer {
  public:
@@ -92,6 +92,6 @@ class DashboardServer {
 // The dashboard's single page (dashboard_page.cc).
 const char* DashboardPage();
 
-}  // namespace mll
+}  // namespace mll::service
 
 #endif  // MLL_SERVICE_DASHBOARD_H_

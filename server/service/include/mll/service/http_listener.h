@@ -18,7 +18,7 @@ namespace httplib {
 class Server;
 }  // namespace httplib
 
-namespace mll {
+namespace mll::service {
 
 class HttpListener {
  public:
@@ -49,6 +49,6 @@ class HttpListener {
   std::atomic<bool> listening_{false};
 };
 
-}  // namespace mll
+}  // namespace mll::service
 
 #endif  // MLL_SERVICE_HTTP_LISTENER_H_

@@ -9,7 +9,7 @@
 #include "absl/status/statusor.h"
 #include "absl/strings/string_view.h"
 
-namespace mll {
+namespace mll::service {
 
 struct ListenAddress {
   // As written, IPv6 brackets included ("[::1]"); never empty.
@@ -25,6 +25,6 @@ absl::StatusOr<ListenAddress> ParseListenAddress(absl::string_view flag,
                                                  absl::string_view address,
                                                  int example_port);
 
-}  // namespace mll
+}  // namespace mll::service
 
 #endif  // MLL_SERVICE_LISTEN_ADDRESS_H_

@@ -16,7 +16,7 @@
 #include "absl/strings/string_view.h"
 #include "mll/v1/multi_lunar_lander.pb.h"
 
-namespace mll {
+namespace mll::service {
 
 // The RPC methods of mll.v1.MultiLunarLander, as metric labels.
 enum class Method {
@@ -97,6 +97,6 @@ class Metrics {
   std::atomic<uint64_t> episodes_{0};
 };
 
-}  // namespace mll
+}  // namespace mll::service
 
 #endif  // MLL_SERVICE_METRICS_H_

@@ -12,7 +12,7 @@
 #include "absl/status/statusor.h"
 #include "mll/service/http_listener.h"
 
-namespace mll {
+namespace mll::service {
 
 class MetricsHttpServer {
  public:
@@ -31,6 +31,6 @@ class MetricsHttpServer {
   std::unique_ptr<HttpListener> listener_;
 };
 
-}  // namespace mll
+}  // namespace mll::service
 
 #endif  // MLL_SERVICE_METRICS_HTTP_H_

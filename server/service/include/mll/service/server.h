@@ -16,7 +16,7 @@
 #include "mll/service/metrics_http.h"
 #include "mll/service/service.h"
 
-namespace mll {
+namespace mll::service {
 
 struct ServerOptions {
   // host:port to listen on (--address); port 0 picks a free port; empty
@@ -84,6 +84,6 @@ class Server {
   bool shut_down_ = false;
 };
 
-}  // namespace mll
+}  // namespace mll::service
 
 #endif  // MLL_SERVICE_SERVER_H_
