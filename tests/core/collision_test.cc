@@ -4,7 +4,7 @@
 #include <string>
 #include <vector>
 
-#include "../../server/core/src/collision.h"
+#include "collision.h"
 #include "box2d/box2d.h"
 #include "env_test_util.h"
 #include "gtest/gtest.h"

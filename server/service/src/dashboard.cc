@@ -16,6 +16,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
 #include "absl/strings/strip.h"
+#include "http_listener.h"
 #include "httplib.h"
 #include "mll/core/renderer.h"
 
@@ -128,6 +129,8 @@ DashboardServer::~DashboardServer() {
   stopping_ = true;  // Streams return within one frame period.
   listener_.reset();
 }
+
+int DashboardServer::port() const { return listener_->port(); }
 
 void DashboardServer::AddRoutes(httplib::Server& http) {
   http.Get("/", [](const httplib::Request&, httplib::Response& res) {

@@ -1,4 +1,4 @@
-#include "mll/service/http_listener.h"
+#include "http_listener.h"
 
 #include <sys/socket.h>
 
@@ -8,7 +8,7 @@
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
 #include "httplib.h"
-#include "mll/service/listen_address.h"
+#include "listen_address.h"
 
 namespace mll::service {
 namespace {

@@ -1,4 +1,4 @@
-#include "mll/service/listen_address.h"
+#include "listen_address.h"
 
 #include "absl/status/status.h"
 #include "absl/strings/ascii.h"

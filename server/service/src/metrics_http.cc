@@ -1,4 +1,4 @@
-#include "mll/service/metrics_http.h"
+#include "metrics_http.h"
 
 #include <utility>
 

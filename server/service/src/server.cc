@@ -9,7 +9,8 @@
 #include "absl/time/clock.h"
 #include "grpcpp/ext/proto_server_reflection_plugin.h"
 #include "grpcpp/health_check_service_interface.h"
-#include "mll/service/listen_address.h"
+#include "listen_address.h"
+#include "metrics_http.h"
 
 namespace mll::service {
 namespace {

@@ -13,10 +13,11 @@
 #include "absl/time/time.h"
 #include "grpcpp/grpcpp.h"
 #include "mll/service/dashboard.h"
-#include "mll/service/metrics_http.h"
 #include "mll/service/service.h"
 
 namespace mll::service {
+
+class MetricsHttpServer;
 
 struct ServerOptions {
   // host:port to listen on (--address); port 0 picks a free port; empty

@@ -1,8 +1,8 @@
 // The host:port of a listening flag (--address, --metrics_address), checked
 // before anything binds: gRPC would otherwise listen on a random port for
 // an out-of-range one, and cpp-httplib would wrap it around.
-#ifndef MLL_SERVICE_LISTEN_ADDRESS_H_
-#define MLL_SERVICE_LISTEN_ADDRESS_H_
+#ifndef MLL_SERVICE_SRC_LISTEN_ADDRESS_H_
+#define MLL_SERVICE_SRC_LISTEN_ADDRESS_H_
 
 #include <string>
 
@@ -27,4 +27,4 @@ absl::StatusOr<ListenAddress> ParseListenAddress(absl::string_view flag,
 
 }  // namespace mll::service
 
-#endif  // MLL_SERVICE_LISTEN_ADDRESS_H_
+#endif  // MLL_SERVICE_SRC_LISTEN_ADDRESS_H_
