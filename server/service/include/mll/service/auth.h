@@ -38,7 +38,6 @@ class Authenticator {
   explicit Authenticator(const std::vector<std::string>& tokens);
 
   bool enabled() const { return !digests_.empty(); }
-  int token_count() const { return static_cast<int>(digests_.size()); }
 
   // The owner that the `authorization` metadata value (nullopt: absent)
   // authenticates, valid as long as this object. UNAUTHENTICATED, saying

@@ -114,7 +114,6 @@ class Registry {
   int size();
   // Live envs of each owner that has any, sorted by owner.
   std::vector<std::pair<std::string, int>> SizeByOwner();
-  int max_envs() const { return max_envs_; }
   absl::Duration idle_timeout() const { return idle_timeout_; }
 
  private:
