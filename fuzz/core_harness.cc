@@ -137,7 +137,8 @@ void CheckStepCode(const absl::Status& status, const char* call) {
 void RunCoreInput(const uint8_t* data, size_t size) {
   ByteReader in(data, size);
   const core::EnvConfig config = TakeConfig(in);
-  absl::StatusOr<std::unique_ptr<core::Env>> created = core::Env::Create(config);
+  absl::StatusOr<std::unique_ptr<core::Env>> created =
+      core::Env::Create(config);
   const absl::Status valid = core::ValidateEnvConfig(config);
   if (created.ok() != valid.ok()) {
     Fail(absl::StrCat("Env::Create and ValidateEnvConfig disagree: ",
@@ -170,7 +171,8 @@ void RunCoreInput(const uint8_t* data, size_t size) {
       mode = kUnset;
       for (int i = 0; i < n; ++i) CheckFinite(env.observation(i), "reset");
     } else if (op == 1) {
-      if (config.render_mode == core::RenderMode::kNone || renders >= kMaxRenders) {
+      if (config.render_mode == core::RenderMode::kNone ||
+          renders >= kMaxRenders) {
         continue;
       }
       ++renders;

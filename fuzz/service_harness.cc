@@ -1,5 +1,5 @@
-// RunServiceInput: arbitrary request bytes through mll::service::Operations, the code
-// every unary handler and Session operation of the service calls.
+// RunServiceInput: arbitrary request bytes through mll::service::Operations,
+// the code every unary handler and Session operation of the service calls.
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
@@ -43,8 +43,8 @@ void CheckCode(const absl::Status& status,
   for (absl::StatusCode code : allowed) {
     if (status.code() == code) {
       if (status.message().empty()) {
-        Fail(absl::StrCat(call, ": error without a message: ",
-                          status.ToString()));
+        Fail(absl::StrCat(call,
+                          ": error without a message: ", status.ToString()));
       }
       return;
     }
@@ -56,8 +56,7 @@ void CheckFloats(const v1::Array& array, size_t count, const char* what) {
   if (array.dtype() != v1::DTYPE_FLOAT32 ||
       array.data().size() != count * sizeof(float)) {
     Fail(absl::StrCat(what, ": dtype ", array.dtype(), ", ",
-                      array.data().size(), " bytes, want ", count,
-                      " float32"));
+                      array.data().size(), " bytes, want ", count, " float32"));
   }
   std::vector<float> values(count);
   std::memcpy(values.data(), array.data().data(), array.data().size());
@@ -150,8 +149,8 @@ void RunOp(Service& service, service::Method method, const std::string& bytes,
 
 // A Session request runs its operation as the RPC it stands for: the one
 // whose request message the operation is (found by name, so the harness keeps
-// one list of the RPCs, mll::service::Method). A request without an operation never
-// reaches Operations (the stream answers it itself).
+// one list of the RPCs, mll::service::Method). A request without an operation
+// never reaches Operations (the stream answers it itself).
 void RunSessionOp(Service& service, const std::string& bytes,
                   std::vector<std::string>* created) {
   v1::SessionRequest request;
@@ -285,10 +284,10 @@ void RunOp(Service& service, service::Method method, const std::string& bytes,
       for (int i = 0; i < response.results_size(); ++i) {
         const v1::StepBatchResult& result = response.results(i);
         if (result.has_error()) {
-          CheckCode(absl::Status(static_cast<absl::StatusCode>(
-                                     result.error().code()),
-                                 result.error().message()),
-                    kStepCodes, "StepBatch item");
+          CheckCode(
+              absl::Status(static_cast<absl::StatusCode>(result.error().code()),
+                           result.error().message()),
+              kStepCodes, "StepBatch item");
         } else {
           CheckStepData(result.data(),
                         LandersOf(service, request.steps(i).name()));
@@ -354,7 +353,8 @@ void RunServiceInput(const uint8_t* data, size_t size) {
   std::vector<std::string> created;
   size_t offset = 0;
   for (int op = 0; op < kMaxOps && offset + 3 <= size; ++op) {
-    const auto method = static_cast<service::Method>(data[offset] % service::kMethodCount);
+    const auto method =
+        static_cast<service::Method>(data[offset] % service::kMethodCount);
     size_t length = data[offset + 1] | (size_t{data[offset + 2]} << 8);
     offset += 3;
     if (length > size - offset) length = size - offset;

@@ -42,8 +42,8 @@ struct Slot {
 };
 
 // Steps `slots` until `steps` or `deadline`; returns the agent-steps taken.
-int64_t StepSlots(std::vector<Slot*> slots, int steps, Clock::time_point deadline,
-                  uint64_t seed) {
+int64_t StepSlots(std::vector<Slot*> slots, int steps,
+                  Clock::time_point deadline, uint64_t seed) {
   std::mt19937_64 rng(seed);
   int64_t agent_steps = 0;
   for (int step = 0; step < steps && Clock::now() < deadline; ++step) {
@@ -106,7 +106,8 @@ int Run() {
   int64_t agent_steps = 0;
   for (int64_t count : counts) agent_steps += count;
   std::printf(
-      "{\"envs\": %d, \"n_landers\": %d, \"threads\": %d, \"agent_steps\": %lld, "
+      "{\"envs\": %d, \"n_landers\": %d, \"threads\": %d, \"agent_steps\": "
+      "%lld, "
       "\"seconds\": %.6f, \"agent_steps_per_s\": %.1f}\n",
       envs, config.n_landers, threads, static_cast<long long>(agent_steps),
       seconds, agent_steps / seconds);

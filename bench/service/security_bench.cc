@@ -184,8 +184,8 @@ void BM_StepEnvTcp(benchmark::State& state) {
     return;
   }
   StepLoop(state,
-           grpc::CreateChannel(
-               "127.0.0.1:" + std::to_string((*server)->port()), credentials),
+           grpc::CreateChannel("127.0.0.1:" + std::to_string((*server)->port()),
+                               credentials),
            "");
 }
 BENCHMARK(BM_StepEnvTcp)->Arg(0)->Arg(1)->UseRealTime();

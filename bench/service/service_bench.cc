@@ -307,7 +307,8 @@ Throughput RunCoreFloor() {
           continue;
         }
         count += env.num_active();
-        if (!env.Step(core::ActionsView{actions, {}}, &result).ok()) std::abort();
+        if (!env.Step(core::ActionsView{actions, {}}, &result).ok())
+          std::abort();
       }
     }
     agent_steps += count;
@@ -317,9 +318,9 @@ Throughput RunCoreFloor() {
   std::thread other(run, 0, kBatchEnvs / 2);
   run(kBatchEnvs / 2, kBatchEnvs);
   other.join();
-  const double seconds = std::chrono::duration<double>(
-                             std::chrono::steady_clock::now() - start)
-                             .count();
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
+          .count();
   return {agent_steps.load() / seconds,
           1e6 * (ProcessCpuSeconds() - cpu_before) / agent_steps.load()};
 }
@@ -328,8 +329,7 @@ void BM_CoreFloor64x3TwoThreads(benchmark::State& state) {
   Throughput floor;
   for (auto _ : state) floor = RunCoreFloor();
   state.counters["agent_steps_per_s"] = floor.agent_steps_per_s;
-  state.counters["process_cpu_us_per_agent_step"] =
-      floor.cpu_us_per_agent_step;
+  state.counters["process_cpu_us_per_agent_step"] = floor.cpu_us_per_agent_step;
 }
 
 // Times kBatchRounds StepBatch calls over 64 envs on a --threads=2 server,
@@ -443,8 +443,7 @@ int64_t ResidentBytes() {
 }
 
 double SecondsSince(std::chrono::steady_clock::time_point start) {
-  return std::chrono::duration<double>(std::chrono::steady_clock::now() -
-                                       start)
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
       .count();
 }
 

@@ -38,15 +38,16 @@ absl::Status DeleteEnvOn(Transport& transport, absl::string_view name) {
 // `status` with the server's address in front, so that a failure among
 // several servers says which one.
 absl::Status AtServer(const Transport& transport, const absl::Status& status) {
-  return absl::Status(status.code(),
-                      absl::StrCat("server ", transport.address(), ": ",
-                                   status.message()));
+  return absl::Status(
+      status.code(),
+      absl::StrCat("server ", transport.address(), ": ", status.message()));
 }
 
 }  // namespace
 
 // The client's outcome codes are the wire's: mll.v1.Outcome.
-static_assert(static_cast<int>(LanderOutcome::kNone) == v1::OUTCOME_UNSPECIFIED);
+static_assert(static_cast<int>(LanderOutcome::kNone) ==
+              v1::OUTCOME_UNSPECIFIED);
 static_assert(static_cast<int>(LanderOutcome::kLanded) == v1::OUTCOME_LANDED);
 static_assert(static_cast<int>(LanderOutcome::kCrashed) == v1::OUTCOME_CRASHED);
 static_assert(static_cast<int>(LanderOutcome::kOutOfBounds) ==
@@ -176,8 +177,8 @@ absl::Status RemoteEnv::StepAgentImpl(const AgentMove& move) {
       step.mutable_action()->set_discrete(move.discrete);
       break;
     case AgentMove::Kind::kContinuous:
-      internal::EncodeAgentAction(
-          move.continuous, step.mutable_action()->mutable_continuous());
+      internal::EncodeAgentAction(move.continuous,
+                                  step.mutable_action()->mutable_continuous());
       break;
   }
   v1::SessionResponse response;
@@ -276,9 +277,9 @@ absl::StatusOr<Client> Client::Create(const std::vector<std::string>& addresses,
         internal::MakeUnaryTransport(addresses[i], options);
     if (!transport.ok()) {
       if (addresses.size() == 1) return transport.status();
-      return absl::Status(transport.status().code(),
-                          absl::StrCat("addresses[", i, "]: ",
-                                       transport.status().message()));
+      return absl::Status(
+          transport.status().code(),
+          absl::StrCat("addresses[", i, "]: ", transport.status().message()));
     }
     transports.push_back(*std::move(transport));
   }
@@ -324,8 +325,8 @@ absl::StatusOr<RemoteEnv> Client::CreateEnvOn(int server,
                                               bool detached) const {
   if (server < 0 || server >= server_count()) {
     return absl::InvalidArgumentError(
-        absl::StrCat("server is ", server, "; allowed: 0..",
-                     server_count() - 1, " (one per address)"));
+        absl::StrCat("server is ", server, "; allowed: 0..", server_count() - 1,
+                     " (one per address)"));
   }
   return CreateEnvAt(static_cast<size_t>(server), config, detached);
 }
@@ -427,12 +428,11 @@ absl::StatusOr<std::vector<absl::StatusOr<StepData>>> Client::StepBatch(
     ServerCall& call = calls[*server];
     v1::StepEnvRequest& step = *call.request.mutable_step_batch()->add_steps();
     step.set_name(steps[i].env->name());
-    absl::Status status = internal::EncodeActions(
-        steps[i].actions, step.mutable_actions());
+    absl::Status status =
+        internal::EncodeActions(steps[i].actions, step.mutable_actions());
     if (!status.ok()) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("steps[", i, "] (", steps[i].env->name(),
-                       "): ", status.message()));
+      return absl::InvalidArgumentError(absl::StrCat(
+          "steps[", i, "] (", steps[i].env->name(), "): ", status.message()));
     }
     call.items.push_back(i);
   }
@@ -476,18 +476,17 @@ absl::StatusOr<std::vector<absl::StatusOr<StepData>>> Client::StepBatch(
     any_answered = true;
     const auto& results = call.response.step_batch().results();
     if (results.size() != static_cast<int>(call.items.size())) {
-      return absl::InternalError(absl::StrCat(
-          "StepBatch sent ", call.items.size(), " steps to ",
-          transports_[server]->address(), " and received ", results.size(),
-          " results"));
+      return absl::InternalError(
+          absl::StrCat("StepBatch sent ", call.items.size(), " steps to ",
+                       transports_[server]->address(), " and received ",
+                       results.size(), " results"));
     }
     for (size_t k = 0; k < call.items.size(); ++k) {
       const v1::StepBatchResult& result = results[static_cast<int>(k)];
-      out[call.items[k]] =
-          result.has_error()
-              ? absl::StatusOr<StepData>(
-                    internal::FromItemError(result.error()))
-              : internal::DecodeStepData(result.data());
+      out[call.items[k]] = result.has_error()
+                               ? absl::StatusOr<StepData>(
+                                     internal::FromItemError(result.error()))
+                               : internal::DecodeStepData(result.data());
     }
   }
   if (!any_answered) return first_failure;

@@ -44,8 +44,9 @@ Actions RemotePilot::Act(const StepData& last) {
             ? core::HeuristicAction(last.observation(agent), continuous_)
             : RandomAction();
     discrete_[agent] = action.discrete;
-    std::copy(action.continuous.begin(), action.continuous.end(),
-              continuous_actions_.begin() + core::kContinuousActionSize * agent);
+    std::copy(
+        action.continuous.begin(), action.continuous.end(),
+        continuous_actions_.begin() + core::kContinuousActionSize * agent);
   }
   return continuous_ ? Actions::Continuous(continuous_actions_)
                      : Actions::Discrete(discrete_);

@@ -22,7 +22,8 @@ int main(int argc, char** argv) {
   const uint64_t seed = argc > 3 ? std::strtoull(argv[3], nullptr, 10) : 0;
   const bool continuous = argc > 4 && std::string(argv[4]) == "1";
 
-  absl::StatusOr<mll::client::Client> client = mll::client::Client::Create(argv[1]);
+  absl::StatusOr<mll::client::Client> client =
+      mll::client::Client::Create(argv[1]);
   if (!client.ok()) {
     std::cerr << client.status() << std::endl;
     return 1;
@@ -64,8 +65,8 @@ int main(int argc, char** argv) {
             << std::endl;
   for (int agent = 0; agent < n_landers; ++agent) {
     std::cout << "  " << env->info().possible_agents[agent] << " "
-              << mll::client::LanderOutcomeName(data->outcomes[agent]) << " after "
-              << data->episode_lengths[agent] << " steps, return "
+              << mll::client::LanderOutcomeName(data->outcomes[agent])
+              << " after " << data->episode_lengths[agent] << " steps, return "
               << data->episode_returns[agent] << std::endl;
   }
   return 0;

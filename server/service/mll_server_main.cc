@@ -126,9 +126,8 @@ absl::Status FollowParent() {
     prctl(PR_SET_PDEATHSIG, SIGTERM);
     // The parent may have exited before the line above took effect.
     if (getppid() != parent_pid) {
-      return absl::FailedPreconditionError(
-          absl::StrCat("--parent_pid=", parent_pid,
-                       " has already exited; not starting"));
+      return absl::FailedPreconditionError(absl::StrCat(
+          "--parent_pid=", parent_pid, " has already exited; not starting"));
     }
   }
 #endif
@@ -161,7 +160,8 @@ absl::StatusOr<mll::service::ServerOptions> ServerOptionsFromFlags() {
 
 // What the server listens on and what protects it, in two lines on stderr;
 // never the tokens themselves.
-void PrintBanner(const mll::service::Server& server, const mll::service::ServerOptions& options,
+void PrintBanner(const mll::service::Server& server,
+                 const mll::service::ServerOptions& options,
                  double shutdown_grace_s) {
   const std::string host = HostOf(options.address);
   const std::string port_file = absl::GetFlag(FLAGS_port_file);
@@ -224,12 +224,13 @@ int main(int argc, char** argv) {
 
   const double shutdown_grace_s = absl::GetFlag(FLAGS_shutdown_grace_s);
   if (!(shutdown_grace_s > 0 && shutdown_grace_s <= kMaxShutdownGraceS)) {
-    return Fail(absl::InvalidArgumentError(absl::StrCat(
-        "--shutdown_grace_s: ", shutdown_grace_s,
-        " is out of range: allowed 0 < S <= ", kMaxShutdownGraceS,
-        " seconds")));
+    return Fail(absl::InvalidArgumentError(
+        absl::StrCat("--shutdown_grace_s: ", shutdown_grace_s,
+                     " is out of range: allowed 0 < S <= ", kMaxShutdownGraceS,
+                     " seconds")));
   }
-  absl::StatusOr<mll::service::ServerOptions> options = ServerOptionsFromFlags();
+  absl::StatusOr<mll::service::ServerOptions> options =
+      ServerOptionsFromFlags();
   if (!options.ok()) return Fail(options.status());
   absl::StatusOr<std::unique_ptr<mll::service::Server>> server =
       mll::service::Server::Start(*options);

@@ -36,7 +36,8 @@ bool SameBits(const std::vector<T>& a, const std::vector<T>& b) {
 }
 
 // Every column of a remote result equals the core's, bit for bit.
-void ExpectSameBits(const core::StepResult& core, const StepData& remote, int step) {
+void ExpectSameBits(const core::StepResult& core, const StepData& remote,
+                    int step) {
   SCOPED_TRACE(testing::Message() << "step " << step);
   EXPECT_TRUE(SameBits(core.observations, remote.observations));
   EXPECT_TRUE(SameBits(core.rewards, remote.rewards));
@@ -162,7 +163,8 @@ TEST_P(AecEquivalenceTest, AecEpisodeIsBitIdentical) {
       ASSERT_TRUE(core_aec.Step(std::nullopt).ok());
       ASSERT_TRUE(remote->StepAgentDead().ok());
     } else {
-      const core::AgentAction action = core::HeuristicAction(core_obs, c.config.continuous);
+      const core::AgentAction action =
+          core::HeuristicAction(core_obs, c.config.continuous);
       ASSERT_TRUE(core_aec.Step(action).ok());
       ASSERT_TRUE((c.config.continuous ? remote->StepAgent(action.continuous)
                                        : remote->StepAgent(action.discrete))
@@ -200,13 +202,11 @@ std::string Label(const ::testing::TestParamInfo<Case>& info) {
   return info.param.label;
 }
 
-INSTANTIATE_TEST_SUITE_P(Transports, EquivalenceTest,
-                         ::testing::Values(kUnaryDiscrete3,
-                                           kUnaryContinuousWind4,
-                                           kSessionDiscrete3,
-                                           kSessionContinuous2,
-                                           kBatchDiscreteWind9),
-                         Label);
+INSTANTIATE_TEST_SUITE_P(
+    Transports, EquivalenceTest,
+    ::testing::Values(kUnaryDiscrete3, kUnaryContinuousWind4, kSessionDiscrete3,
+                      kSessionContinuous2, kBatchDiscreteWind9),
+    Label);
 INSTANTIATE_TEST_SUITE_P(Transports, AecEquivalenceTest,
                          ::testing::Values(kUnaryDiscrete3,
                                            kUnaryContinuousWind4,

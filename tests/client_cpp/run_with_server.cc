@@ -20,7 +20,8 @@ int main(int argc, char** argv) {
   }
   std::vector<std::string> command(argv + 2, argv + argc);
   command.push_back((*server)->address());
-  absl::StatusOr<mll::client::CommandResult> result = mll::client::RunCommand(command);
+  absl::StatusOr<mll::client::CommandResult> result =
+      mll::client::RunCommand(command);
   if (!result.ok()) {
     std::cerr << "run_with_server: " << result.status() << std::endl;
     return 1;

@@ -140,9 +140,9 @@ TEST(EnvConfigTest, BadActionsAreRejectedBeforeAnyPhysics) {
   std::vector<float> not_finite = {0, 0, 0, std::nanf(""), 0, 0};
   status = cont->Step(ActionsView{{}, not_finite}, &result);
   EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
-  EXPECT_THAT(std::string(status.message()),
-              AllOf(HasSubstr("lander_1"), HasSubstr("nan"),
-                    HasSubstr("finite")));
+  EXPECT_THAT(
+      std::string(status.message()),
+      AllOf(HasSubstr("lander_1"), HasSubstr("nan"), HasSubstr("finite")));
 }
 
 }  // namespace

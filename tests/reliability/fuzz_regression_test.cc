@@ -63,10 +63,12 @@ TEST(FuzzRegressionTest, ServiceInputsRunCleanly) {
 // input goes (ASan checks the reads), envs made by an input are gone after it.
 TEST(FuzzRegressionTest, ServiceFramesAreBoundedByTheInput) {
   std::vector<uint8_t> input;
-  AppendServiceOp(service::Method::kCreateEnv, "", &input);  // All defaults: 3 landers.
+  AppendServiceOp(service::Method::kCreateEnv, "",
+                  &input);  // All defaults: 3 landers.
   v1::ResetEnvRequest reset;
   reset.set_name("@0");
-  AppendServiceOp(service::Method::kResetEnv, reset.SerializeAsString(), &input);
+  AppendServiceOp(service::Method::kResetEnv, reset.SerializeAsString(),
+                  &input);
   RunServiceInput(input.data(), input.size());
   input.resize(input.size() - 1);  // A truncated last frame.
   RunServiceInput(input.data(), input.size());

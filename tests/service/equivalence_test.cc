@@ -1,6 +1,6 @@
 // Same seed and same actions give bit-identical observations, rewards and
-// outcomes whether the env is stepped in-process (mll::core::Env), by StepEnv, by
-// StepAgent (AEC, once every agent acted), by StepBatch, or on a Session
+// outcomes whether the env is stepped in-process (mll::core::Env), by StepEnv,
+// by StepAgent (AEC, once every agent acted), by StepBatch, or on a Session
 // stream, and whatever the server's thread count.
 #include <string>
 #include <vector>
@@ -32,7 +32,8 @@ using Trajectory = std::vector<std::string>;  // ResultBits per step.
 // The reference: the core stepped directly, the reset's result first.
 std::vector<v1::StepData> CoreTrajectory(
     uint64_t seed, const std::vector<std::vector<int32_t>>& actions) {
-  absl::StatusOr<core::EnvConfig> config = EnvConfigFromProto(Request().config());
+  absl::StatusOr<core::EnvConfig> config =
+      EnvConfigFromProto(Request().config());
   EXPECT_TRUE(config.ok());
   absl::StatusOr<std::unique_ptr<core::Env>> env = core::Env::Create(*config);
   EXPECT_TRUE(env.ok());
@@ -238,8 +239,8 @@ TEST_F(EquivalenceTest, StepAgentMatchesTheCoreOnceEveryAgentActed) {
       const v1::StepData& reference = reference_[e][cycle];
       for (int i = 0; i < kLanders; ++i) {
         if (reference.stepped().data()[i] == 0) continue;
-        SCOPED_TRACE(::testing::Message() << "cycle " << cycle << " agent "
-                                          << i);
+        SCOPED_TRACE(::testing::Message()
+                     << "cycle " << cycle << " agent " << i);
         const size_t row = static_cast<size_t>(i) * core::kObservationSize * 4;
         EXPECT_EQ(state.observations().data().substr(row, 48),
                   reference.observations().data().substr(row, 48));

@@ -131,7 +131,8 @@ v1::CreateEnvRequest WireConfig(const Scenario& s) {
 }
 
 // The hash of one step's columns, in StepData's wire layout.
-void HashCore(const core::StepResult& result, const core::Env& env, Hash* hash) {
+void HashCore(const core::StepResult& result, const core::Env& env,
+              Hash* hash) {
   const int n = env.n_landers();
   hash->AddValues(result.observations);
   hash->AddValues(result.rewards);
@@ -184,7 +185,8 @@ struct Trajectory {
 };
 
 Trajectory CoreTrajectory(const Scenario& s) {
-  absl::StatusOr<std::unique_ptr<core::Env>> env = core::Env::Create(CoreConfig(s));
+  absl::StatusOr<std::unique_ptr<core::Env>> env =
+      core::Env::Create(CoreConfig(s));
   EXPECT_TRUE(env.ok()) << env.status();
   if (!env.ok()) return {};
   Actions actions(s.seed + 1000);

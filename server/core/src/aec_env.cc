@@ -52,9 +52,10 @@ absl::Status AecEnv::Step(const std::optional<AgentAction>& action) {
     return absl::OkStatus();
   }
   if (!action.has_value()) {
-    return absl::FailedPreconditionError(absl::StrCat(
-        AgentName(agent), " is active: an action is required (a step without "
-                          "one is only for done agents)"));
+    return absl::FailedPreconditionError(
+        absl::StrCat(AgentName(agent),
+                     " is active: an action is required (a step without "
+                     "one is only for done agents)"));
   }
   if (absl::Status status = internal::ValidateAgentAction(
           env_->config().continuous, agent, *action);

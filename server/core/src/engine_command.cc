@@ -43,10 +43,11 @@ absl::Status ValidateContinuousAction(int agent, float main, float lateral) {
   const char* names[kContinuousActionSize] = {"main", "lateral"};
   for (int i = 0; i < kContinuousActionSize; ++i) {
     if (!std::isfinite(values[i])) {
-      return absl::InvalidArgumentError(absl::StrCat(
-          "action of ", AgentName(agent), " [", i, "] (", names[i], ") = ",
-          values[i], " is not finite: allowed any finite value, clipped to "
-          "[-1, 1]"));
+      return absl::InvalidArgumentError(
+          absl::StrCat("action of ", AgentName(agent), " [", i, "] (", names[i],
+                       ") = ", values[i],
+                       " is not finite: allowed any finite value, clipped to "
+                       "[-1, 1]"));
     }
   }
   return absl::OkStatus();

@@ -104,12 +104,24 @@ std::array<uint8_t, 3> HsvToRgb(double hue_degrees, double s, double v) {
   const double m = v - c;
   double r = 0, g = 0, b = 0;
   switch (static_cast<int>(h)) {
-    case 0: r = c, g = x; break;
-    case 1: r = x, g = c; break;
-    case 2: g = c, b = x; break;
-    case 3: g = x, b = c; break;
-    case 4: r = x, b = c; break;
-    default: r = c, b = x; break;
+    case 0:
+      r = c, g = x;
+      break;
+    case 1:
+      r = x, g = c;
+      break;
+    case 2:
+      g = c, b = x;
+      break;
+    case 3:
+      g = x, b = c;
+      break;
+    case 4:
+      r = x, b = c;
+      break;
+    default:
+      r = c, b = x;
+      break;
   }
   auto to_byte = [m](double u) {
     return static_cast<uint8_t>(std::lround((u + m) * 255.0));
@@ -534,8 +546,7 @@ Vec2 VertexMean(const ScenePolygon& polygon) {
 
 Vec2 WorldToFrame(const Scene& scene, const Vec2& world) {
   const double scale = kFrameHeight / (scene.height + kViewTopMargin);
-  return {(world.x + kViewMarginX) * scale,
-          kFrameHeight - world.y * scale};
+  return {(world.x + kViewMarginX) * scale, kFrameHeight - world.y * scale};
 }
 
 Frame RenderScene(const Scene& scene, const RenderOptions& options) {

@@ -25,7 +25,8 @@ std::vector<const absl::CommandLineFlag*> FlagsNamed(
     const std::vector<absl::string_view>& names);
 
 // One block per flag: "  --name=DEFAULT" and its description indented below.
-std::string DescribeFlags(const std::vector<const absl::CommandLineFlag*>& flags);
+std::string DescribeFlags(
+    const std::vector<const absl::CommandLineFlag*>& flags);
 
 // absl::ParseCommandLine, except that --help, -h, --helpfull and --helpshort
 // print help(arguments) to stdout and exit 0, where `arguments` are the

@@ -140,10 +140,9 @@ absl::Status CheckDTypeAndShape(int got_dtype, absl::Span<const int> got_shape,
                                 absl::string_view field,
                                 absl::string_view what) {
   if (got_dtype != dtype) {
-    return absl::InvalidArgumentError(
-        absl::StrCat(field, ": dtype ", DTypeName(got_dtype),
-                     " does not match ", v1::DType_Name(dtype), " (", what,
-                     ")"));
+    return absl::InvalidArgumentError(absl::StrCat(
+        field, ": dtype ", DTypeName(got_dtype), " does not match ",
+        v1::DType_Name(dtype), " (", what, ")"));
   }
   if (got_shape != shape) {
     return absl::InvalidArgumentError(
@@ -156,9 +155,8 @@ absl::Status CheckDTypeAndShape(int got_dtype, absl::Span<const int> got_shape,
 absl::Status CheckArray(const v1::Array& array, v1::DType dtype,
                         absl::Span<const int> shape, absl::string_view field,
                         absl::string_view what) {
-  absl::Status status =
-      CheckDTypeAndShape(array.dtype(), ShapeOf(array), dtype, shape, field,
-                         what);
+  absl::Status status = CheckDTypeAndShape(array.dtype(), ShapeOf(array), dtype,
+                                           shape, field, what);
   if (!status.ok()) return status;
   return CheckByteSize(array, dtype, shape, field);
 }
@@ -178,10 +176,10 @@ absl::StatusOr<core::EnvConfig> EnvConfigFromProto(const v1::EnvConfig& proto) {
       config.render_mode = core::RenderMode::kRgbArray;
       break;
     default:
-      return absl::InvalidArgumentError(absl::StrCat(
-          "render_mode: ", proto.render_mode(),
-          " is not a RenderMode (allowed: RENDER_MODE_NONE = 1, "
-          "RENDER_MODE_RGB_ARRAY = 2)"));
+      return absl::InvalidArgumentError(
+          absl::StrCat("render_mode: ", proto.render_mode(),
+                       " is not a RenderMode (allowed: RENDER_MODE_NONE = 1, "
+                       "RENDER_MODE_RGB_ARRAY = 2)"));
   }
   absl::Status status = core::ValidateEnvConfig(config);
   if (!status.ok()) return status;
@@ -245,8 +243,7 @@ absl::Status CheckActionLayout(int dtype, absl::Span<const int> shape,
       dtype, shape, want_dtype, want, field,
       config.continuous
           ? absl::StrCat(
-                "one float32 [main, lateral] pair per agent of n_landers = ",
-                n)
+                "one float32 [main, lateral] pair per agent of n_landers = ", n)
           : absl::StrCat("one int32 per agent of n_landers = ", n));
 }
 
@@ -275,13 +272,12 @@ absl::StatusOr<PackedActions> PackedActions::Parse(
   const v1::Array& array = packed.actions();
   const int num_envs = packed.names_size();
   const auto expected = [num_envs] {
-    return absl::StrCat("expected int32 [", num_envs,
-                        ", n_landers] for discrete actions or float32 [",
-                        num_envs,
-                        ", n_landers, 2] for continuous ones: num_envs = "
-                        "len(packed.names) = ",
-                        num_envs, ", n_landers ", core::kMinLanders, "..",
-                        core::kMaxLanders);
+    return absl::StrCat(
+        "expected int32 [", num_envs,
+        ", n_landers] for discrete actions or float32 [", num_envs,
+        ", n_landers, 2] for continuous ones: num_envs = "
+        "len(packed.names) = ",
+        num_envs, ", n_landers ", core::kMinLanders, "..", core::kMaxLanders);
   };
   PackedActions actions;
   switch (array.dtype()) {
@@ -301,10 +297,9 @@ absl::StatusOr<PackedActions> PackedActions::Parse(
   if (shape.size() != rank || shape[0] != num_envs ||
       (actions.continuous_ && shape[2] != core::kContinuousActionSize) ||
       shape[1] < core::kMinLanders || shape[1] > core::kMaxLanders) {
-    return absl::InvalidArgumentError(
-        absl::StrCat(kField, ": shape ", ShapeString(shape), " of ",
-                     DTypeName(array.dtype()), " does not fit (", expected(),
-                     ")"));
+    return absl::InvalidArgumentError(absl::StrCat(
+        kField, ": shape ", ShapeString(shape), " of ",
+        DTypeName(array.dtype()), " does not fit (", expected(), ")"));
   }
   absl::Status status = CheckByteSize(array, array.dtype(), shape, kField);
   if (!status.ok()) return status;
@@ -319,23 +314,23 @@ absl::StatusOr<PackedActions> PackedActions::Parse(
   return actions;
 }
 
-absl::Status PackedActions::CheckFits(int e, const core::EnvConfig& config) const {
+absl::Status PackedActions::CheckFits(int e,
+                                      const core::EnvConfig& config) const {
   if (config.n_landers == n_landers_ && config.continuous == continuous_) {
     return absl::OkStatus();
   }
   const int dims[] = {n_landers_, core::kContinuousActionSize};
-  return CheckActionLayout(
-      continuous_ ? v1::DTYPE_FLOAT32 : v1::DTYPE_INT32,
-      absl::MakeConstSpan(dims, continuous_ ? 2 : 1), config,
-      absl::StrCat("packed.actions[", e, "]"));
+  return CheckActionLayout(continuous_ ? v1::DTYPE_FLOAT32 : v1::DTYPE_INT32,
+                           absl::MakeConstSpan(dims, continuous_ ? 2 : 1),
+                           config, absl::StrCat("packed.actions[", e, "]"));
 }
 
 core::ActionsView PackedActions::Row(int e) const {
   const size_t agents = static_cast<size_t>(n_landers_);
   if (continuous_) {
     const size_t size = agents * core::kContinuousActionSize;
-    return core::ActionsView{{}, absl::MakeConstSpan(
-                               values_.continuous.data() + e * size, size)};
+    return core::ActionsView{
+        {}, absl::MakeConstSpan(values_.continuous.data() + e * size, size)};
   }
   return core::ActionsView{
       absl::MakeConstSpan(values_.discrete.data() + e * agents, agents), {}};
@@ -349,10 +344,10 @@ absl::StatusOr<std::optional<core::AgentAction>> ParseAgentAction(
   switch (proto.action_case()) {
     case v1::AgentAction::kDiscrete:
       if (config.continuous) {
-        return absl::InvalidArgumentError(absl::StrCat(
-            "action.discrete: ", proto.discrete(),
-            " given but the env has continuous actions (set "
-            "action.continuous to float32 [2])"));
+        return absl::InvalidArgumentError(
+            absl::StrCat("action.discrete: ", proto.discrete(),
+                         " given but the env has continuous actions (set "
+                         "action.continuous to float32 [2])"));
       }
       action.discrete = proto.discrete();
       break;
@@ -382,12 +377,14 @@ absl::StatusOr<std::optional<core::AgentAction>> ParseAgentAction(
 // The core's outcome codes travel as they are: they are the wire's Outcome
 // values, which the clients name.
 static_assert(sizeof(core::Outcome) == 1, "outcomes travel as uint8");
-static_assert(static_cast<int>(core::Outcome::kNone) == v1::OUTCOME_UNSPECIFIED);
+static_assert(static_cast<int>(core::Outcome::kNone) ==
+              v1::OUTCOME_UNSPECIFIED);
 static_assert(static_cast<int>(core::Outcome::kLanded) == v1::OUTCOME_LANDED);
 static_assert(static_cast<int>(core::Outcome::kCrashed) == v1::OUTCOME_CRASHED);
 static_assert(static_cast<int>(core::Outcome::kOutOfBounds) ==
               v1::OUTCOME_OUT_OF_BOUNDS);
-static_assert(static_cast<int>(core::Outcome::kTruncated) == v1::OUTCOME_TRUNCATED);
+static_assert(static_cast<int>(core::Outcome::kTruncated) ==
+              v1::OUTCOME_TRUNCATED);
 static_assert(static_cast<int>(core::Outcome::kAborted) == v1::OUTCOME_ABORTED);
 
 void AgentColumns::Write(size_t row, const core::StepResult& result,
@@ -432,8 +429,8 @@ AgentColumns SizeAgentColumns(absl::Span<const int> lead, int n_landers,
 
 }  // namespace
 
-void FillStepData(const core::StepResult& result, const core::Env& env, bool auto_reset,
-                  v1::StepData* out) {
+void FillStepData(const core::StepResult& result, const core::Env& env,
+                  bool auto_reset, v1::StepData* out) {
   SizeAgentColumns({}, env.n_landers(), out).Write(0, result, env);
   out->set_episode_over(result.episode_over);
   out->set_auto_reset(auto_reset);
@@ -449,8 +446,8 @@ PackedColumns::PackedColumns(int num_envs, int n_landers,
   cycles_ = SizeArray<int32_t>(envs, out->mutable_cycles());
 }
 
-void PackedColumns::Write(int e, const core::StepResult& result, const core::Env& env,
-                          bool auto_reset) const {
+void PackedColumns::Write(int e, const core::StepResult& result,
+                          const core::Env& env, bool auto_reset) const {
   const size_t row = static_cast<size_t>(e);
   agents_.Write(row, result, env);
   episode_over_.Store(row, result.episode_over);
@@ -458,7 +455,8 @@ void PackedColumns::Write(int e, const core::StepResult& result, const core::Env
   cycles_.Store(row, static_cast<int32_t>(env.cycles()));
 }
 
-void FillAecState(const core::AecEnv& aec, bool world_stepped, v1::AecState* out) {
+void FillAecState(const core::AecEnv& aec, bool world_stepped,
+                  v1::AecState* out) {
   const core::Env& env = aec.env();
   const int n = env.n_landers();
   std::vector<uint8_t> in_cycle(n, 0);
@@ -473,32 +471,27 @@ void FillAecState(const core::AecEnv& aec, bool world_stepped, v1::AecState* out
   // The adapter's per-agent state is only defined for agents in the cycle;
   // the others read as zero.
   FillArray<float>(observations, matrix, out->mutable_observations());
-  FillArray<float>(PerAgent<float>(n,
-                                   [&](int i) {
-                                     return in_cycle[i] ? aec.reward(i) : 0.0f;
-                                   }),
-                   rows, out->mutable_rewards());
-  FillArray<float>(PerAgent<float>(n,
-                                   [&](int i) {
-                                     return in_cycle[i]
-                                                ? aec.cumulative_reward(i)
-                                                : 0.0f;
-                                   }),
-                   rows, out->mutable_cumulative_rewards());
+  FillArray<float>(
+      PerAgent<float>(
+          n, [&](int i) { return in_cycle[i] ? aec.reward(i) : 0.0f; }),
+      rows, out->mutable_rewards());
+  FillArray<float>(
+      PerAgent<float>(
+          n,
+          [&](int i) { return in_cycle[i] ? aec.cumulative_reward(i) : 0.0f; }),
+      rows, out->mutable_cumulative_rewards());
   FillArray<uint8_t>(
-      PerAgent<uint8_t>(n,
-                        [&](int i) { return in_cycle[i] && aec.terminated(i); }),
+      PerAgent<uint8_t>(
+          n, [&](int i) { return in_cycle[i] && aec.terminated(i); }),
       rows, out->mutable_terminations());
   FillArray<uint8_t>(
       PerAgent<uint8_t>(n,
                         [&](int i) { return in_cycle[i] && aec.truncated(i); }),
       rows, out->mutable_truncations());
-  FillArray<uint8_t>(PerAgent<uint8_t>(n,
-                                       [&](int i) {
-                                         return static_cast<uint8_t>(
-                                             env.outcome(i));
-                                       }),
-                     rows, out->mutable_outcomes());
+  FillArray<uint8_t>(
+      PerAgent<uint8_t>(
+          n, [&](int i) { return static_cast<uint8_t>(env.outcome(i)); }),
+      rows, out->mutable_outcomes());
   FillEpisodeColumns(env, out->mutable_episode_returns(),
                      out->mutable_episode_lengths());
   out->set_world_stepped(world_stepped);

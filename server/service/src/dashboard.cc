@@ -1,9 +1,8 @@
 #include "mll/service/dashboard.h"
 
-#include <csignal>
-
 #include <algorithm>
 #include <chrono>
+#include <csignal>
 #include <cstdio>
 #include <optional>
 #include <string>
@@ -177,8 +176,7 @@ void DashboardServer::ListEnvs(const httplib::Request& req,
                                httplib::Response& res) {
   std::optional<std::string> owner = Owner(req, res);
   if (!owner.has_value()) return;
-  absl::StatusOr<Registry::Page> page =
-      registry_->List(kMaxListed, "", *owner);
+  absl::StatusOr<Registry::Page> page = registry_->List(kMaxListed, "", *owner);
   if (!page.ok()) {
     SetError(res, 500, page.status().message());
     return;
@@ -192,14 +190,13 @@ void DashboardServer::ListEnvs(const httplib::Request& req,
       if (slot->env == nullptr) continue;
       const core::Env& env = *slot->env;
       const bool started = env.episode_started();
-      absl::StrAppend(&entry, "{\"name\":", JsonString(slot->name),
-                      ",\"landers\":", slot->config.n_landers,
-                      ",\"continuous\":",
-                      slot->config.continuous ? "true" : "false",
-                      ",\"episode\":", slot->episodes,
-                      ",\"step\":", started ? env.cycles() : 0,
-                      ",\"active\":", started ? env.num_active() : 0,
-                      ",\"returns\":[");
+      absl::StrAppend(
+          &entry, "{\"name\":", JsonString(slot->name),
+          ",\"landers\":", slot->config.n_landers,
+          ",\"continuous\":", slot->config.continuous ? "true" : "false",
+          ",\"episode\":", slot->episodes,
+          ",\"step\":", started ? env.cycles() : 0,
+          ",\"active\":", started ? env.num_active() : 0, ",\"returns\":[");
       for (int i = 0; i < slot->config.n_landers; ++i) {
         char value[32];
         std::snprintf(value, sizeof(value), "%.2f",
@@ -217,8 +214,8 @@ void DashboardServer::ListEnvs(const httplib::Request& req,
     absl::StrAppend(&json, first ? "" : ",", entry);
     first = false;
   }
-  absl::StrAppend(&json, "],\"auth\":",
-                  authenticator_->enabled() ? "true" : "false", "}");
+  absl::StrAppend(
+      &json, "],\"auth\":", authenticator_->enabled() ? "true" : "false", "}");
   res.set_header("Cache-Control", "no-store");
   res.set_content(json, "application/json");
 }
@@ -286,9 +283,8 @@ void DashboardServer::StreamFrames(const httplib::Request& req,
   res.set_header("Cache-Control", "no-store");
   res.set_header("X-Accel-Buffering", "no");
   res.set_chunked_content_provider(
-      "text/event-stream",
-      [this, viewer, watched, cache, name, period](size_t,
-                                                   httplib::DataSink& sink) {
+      "text/event-stream", [this, viewer, watched, cache, name, period](
+                               size_t, httplib::DataSink& sink) {
         Version sent;
         auto last_write = std::chrono::steady_clock::now();
         auto next = last_write;

@@ -21,11 +21,11 @@ absl::StatusOr<std::unique_ptr<MetricsHttpServer>> MetricsHttpServer::Start(
   absl::StatusOr<std::unique_ptr<HttpListener>> listener = HttpListener::Start(
       "--metrics_address", address, kExamplePort, kHttpThreads,
       [&render](httplib::Server& http) {
-        http.Get("/metrics", [render = std::move(render)](
-                                 const httplib::Request&,
-                                 httplib::Response& res) {
-          res.set_content(render(), kContentType);
-        });
+        http.Get("/metrics",
+                 [render = std::move(render)](const httplib::Request&,
+                                              httplib::Response& res) {
+                   res.set_content(render(), kContentType);
+                 });
       });
   if (!listener.ok()) return listener.status();
   return std::unique_ptr<MetricsHttpServer>(

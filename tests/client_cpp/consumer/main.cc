@@ -11,7 +11,8 @@ int main(int argc, char** argv) {
     std::cerr << "usage: consumer host:port" << std::endl;
     return 2;
   }
-  absl::StatusOr<mll::client::Client> client = mll::client::Client::Create(argv[1]);
+  absl::StatusOr<mll::client::Client> client =
+      mll::client::Client::Create(argv[1]);
   if (!client.ok()) {
     std::cerr << client.status() << std::endl;
     return 1;

@@ -39,11 +39,17 @@ void FillItemError(const absl::Status& status, v1::ItemError* out);
 template <typename T>
 constexpr v1::DType DTypeOf();
 template <>
-constexpr v1::DType DTypeOf<float>() { return v1::DTYPE_FLOAT32; }
+constexpr v1::DType DTypeOf<float>() {
+  return v1::DTYPE_FLOAT32;
+}
 template <>
-constexpr v1::DType DTypeOf<uint8_t>() { return v1::DTYPE_UINT8; }
+constexpr v1::DType DTypeOf<uint8_t>() {
+  return v1::DTYPE_UINT8;
+}
 template <>
-constexpr v1::DType DTypeOf<int32_t>() { return v1::DTYPE_INT32; }
+constexpr v1::DType DTypeOf<int32_t>() {
+  return v1::DTYPE_INT32;
+}
 
 // "[3, 12]".
 std::string ShapeString(absl::Span<const int> shape);
@@ -78,8 +84,8 @@ template <typename T>
 absl::StatusOr<std::vector<T>> DecodeArray(const v1::Array& array,
                                            absl::Span<const int> shape,
                                            absl::string_view field) {
-  absl::Status status = CheckArray(array, DTypeOf<T>(), shape, field,
-                                   "as the server sends it");
+  absl::Status status =
+      CheckArray(array, DTypeOf<T>(), shape, field, "as the server sends it");
   if (!status.ok()) return status;
   std::vector<T> values(array.data().size() / sizeof(T));
   std::memcpy(values.data(), array.data().data(), array.data().size());
@@ -101,7 +107,9 @@ v1::Space ActionSpace(const core::EnvConfig& config);
 struct ActionBuffer {
   std::vector<int32_t> discrete;
   std::vector<float> continuous;
-  core::ActionsView view() const { return core::ActionsView{discrete, continuous}; }
+  core::ActionsView view() const {
+    return core::ActionsView{discrete, continuous};
+  }
 };
 
 // Checks the dtype and shape of `array` for `config` (int32 [n_landers] or
@@ -185,13 +193,14 @@ struct AgentColumns {
   // THE conversion of a step (or reset) result to the wire's per-agent
   // columns: writes `result` into row `row`; the episode bookkeeping
   // (returns, lengths) comes from `env`.
-  void Write(size_t row, const core::StepResult& result, const core::Env& env) const;
+  void Write(size_t row, const core::StepResult& result,
+             const core::Env& env) const;
 };
 
 // Step (or reset) results as a StepData: sizes its arrays, writes row 0 and
 // the per-env fields.
-void FillStepData(const core::StepResult& result, const core::Env& env, bool auto_reset,
-                  v1::StepData* out);
+void FillStepData(const core::StepResult& result, const core::Env& env,
+                  bool auto_reset, v1::StepData* out);
 
 // The result columns of a packed batch of `num_envs` envs with `n_landers`
 // landers each, every column sized once (one allocation per column) and
@@ -212,7 +221,8 @@ class PackedColumns {
 };
 
 // The state of a PettingZoo AECEnv, as `aec` holds it.
-void FillAecState(const core::AecEnv& aec, bool world_stepped, v1::AecState* out);
+void FillAecState(const core::AecEnv& aec, bool world_stepped,
+                  v1::AecState* out);
 
 }  // namespace mll::service
 

@@ -42,11 +42,11 @@ struct EnvSlot {
   EnvSlot(std::string name, uint64_t serial, std::unique_ptr<core::Env> env,
           bool auto_reset, bool session_bound, std::string owner);
 
-  const std::string name;      // envs/{id}
-  const uint64_t serial;       // Creation order, for ListEnvs.
-  const core::EnvConfig config;      // Copy of env->config(), readable unlocked.
-  const bool auto_reset;       // EnvConfig.auto_reset of the proto.
-  const bool session_bound;    // Dies with the session that created it.
+  const std::string name;        // envs/{id}
+  const uint64_t serial;         // Creation order, for ListEnvs.
+  const core::EnvConfig config;  // Copy of env->config(), readable unlocked.
+  const bool auto_reset;         // EnvConfig.auto_reset of the proto.
+  const bool session_bound;      // Dies with the session that created it.
   // Who created it (auth.h); only the same owner can find it.
   const std::string owner;
   // Steady-clock nanoseconds of the last lookup; read by the reaper.
@@ -120,8 +120,7 @@ class Registry {
   void ReapLoop();
   // Removes expired envs into `expired` (destroyed by the caller, unlocked);
   // returns when the next one can expire.
-  absl::Time ReapExpiredLocked(
-      std::vector<std::shared_ptr<EnvSlot>>* expired)
+  absl::Time ReapExpiredLocked(std::vector<std::shared_ptr<EnvSlot>>* expired)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   std::string NewNameLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   // Counts an env of `owner` out (it left the map, or was never built).
@@ -150,8 +149,7 @@ class Registry {
   absl::flat_hash_map<std::string, int> live_by_owner_ ABSL_GUARDED_BY(mu_);
   // Names the reaper destroyed recently -> their owner, so NOT_FOUND can say
   // why; `reclaimed_order_` holds them oldest first.
-  absl::flat_hash_map<std::string, std::string> reclaimed_
-      ABSL_GUARDED_BY(mu_);
+  absl::flat_hash_map<std::string, std::string> reclaimed_ ABSL_GUARDED_BY(mu_);
   std::deque<std::string> reclaimed_order_ ABSL_GUARDED_BY(mu_);
   std::thread reaper_;
 };
