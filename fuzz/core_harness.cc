@@ -1,5 +1,5 @@
-// RunCoreInput: arbitrary configs and action sequences through mll::Env,
-// mll::AecEnv and the renderer.
+// RunCoreInput: arbitrary configs and action sequences through mll::core::Env,
+// mll::core::AecEnv and the renderer.
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -84,8 +84,8 @@ class ByteReader {
   size_t offset_ = 0;
 };
 
-EnvConfig TakeConfig(ByteReader& in) {
-  EnvConfig config;
+core::EnvConfig TakeConfig(ByteReader& in) {
+  core::EnvConfig config;
   const uint8_t landers = in.Take<uint8_t>();
   config.n_landers = landers < 240 ? landers % 34 : in.Take<int32_t>();
   const uint8_t flags = in.Take<uint8_t>();
@@ -95,7 +95,7 @@ EnvConfig TakeConfig(ByteReader& in) {
   config.terminate_on_damage = flags & 8;
   config.shared_reward = flags & 16;
   config.render_mode =
-      (flags & 32) ? RenderMode::kRgbArray : RenderMode::kNone;
+      (flags & 32) ? core::RenderMode::kRgbArray : core::RenderMode::kNone;
   const uint8_t cycles = in.Take<uint8_t>();
   config.max_cycles = cycles < 250 ? cycles : in.Take<int32_t>();
   config.gravity = in.Real(-10.0, -12.0, 0.0);
@@ -107,8 +107,8 @@ EnvConfig TakeConfig(ByteReader& in) {
   return config;
 }
 
-AgentAction TakeAgentAction(ByteReader& in, bool continuous) {
-  AgentAction action;
+core::AgentAction TakeAgentAction(ByteReader& in, bool continuous) {
+  core::AgentAction action;
   if (continuous) {
     action.continuous = {in.ActionValue(), in.ActionValue()};
   } else {
@@ -136,9 +136,10 @@ void CheckStepCode(const absl::Status& status, const char* call) {
 
 void RunCoreInput(const uint8_t* data, size_t size) {
   ByteReader in(data, size);
-  const EnvConfig config = TakeConfig(in);
-  absl::StatusOr<std::unique_ptr<Env>> created = Env::Create(config);
-  const absl::Status valid = ValidateEnvConfig(config);
+  const core::EnvConfig config = TakeConfig(in);
+  absl::StatusOr<std::unique_ptr<core::Env>> created =
+      core::Env::Create(config);
+  const absl::Status valid = core::ValidateEnvConfig(config);
   if (created.ok() != valid.ok()) {
     Fail(absl::StrCat("Env::Create and ValidateEnvConfig disagree: ",
                       created.status().ToString(), " vs ", valid.ToString()));
@@ -149,12 +150,12 @@ void RunCoreInput(const uint8_t* data, size_t size) {
     }
     return;
   }
-  Env& env = **created;
-  AecEnv aec(&env);
+  core::Env& env = **created;
+  core::AecEnv aec(&env);
   const int n = env.n_landers();
-  StepResult result;
+  core::StepResult result;
   // The service never mixes the two step APIs within an episode; neither do
-  // we (see mll::StepMode).
+  // we (see mll::service::StepMode).
   enum { kUnset, kParallel, kAec } mode = kUnset;
   int renders = 0;
   std::vector<int32_t> discrete(n);
@@ -170,25 +171,26 @@ void RunCoreInput(const uint8_t* data, size_t size) {
       mode = kUnset;
       for (int i = 0; i < n; ++i) CheckFinite(env.observation(i), "reset");
     } else if (op == 1) {
-      if (config.render_mode == RenderMode::kNone || renders >= kMaxRenders) {
+      if (config.render_mode == core::RenderMode::kNone ||
+          renders >= kMaxRenders) {
         continue;
       }
       ++renders;
-      absl::StatusOr<Frame> frame = RenderEnv(env);
+      absl::StatusOr<core::Frame> frame = core::RenderEnv(env);
       CheckStepCode(frame.status(), "RenderEnv");
       if (frame.ok() && renders == 1) {  // PNG once: it is the slow part.
-        absl::StatusOr<std::string> png = EncodePng(*frame);
+        absl::StatusOr<std::string> png = core::EncodePng(*frame);
         if (!png.ok()) Fail(png.status().ToString());
       }
     } else if (op < 10 && mode != kAec) {
       const int cycles = env.cycles();
       for (int i = 0; i < n; ++i) {
-        const AgentAction action = TakeAgentAction(in, config.continuous);
+        const core::AgentAction action = TakeAgentAction(in, config.continuous);
         discrete[i] = action.discrete;
         continuous[2 * i] = action.continuous[0];
         continuous[2 * i + 1] = action.continuous[1];
       }
-      ActionsView view;
+      core::ActionsView view;
       if (config.continuous) {
         view.continuous = continuous;
       } else {
@@ -204,7 +206,7 @@ void RunCoreInput(const uint8_t* data, size_t size) {
       CheckFinite(result.observations, "Env::Step observations");
       CheckFinite(result.rewards, "Env::Step rewards");
     } else if (op >= 10 && mode != kParallel) {
-      std::optional<AgentAction> action;
+      std::optional<core::AgentAction> action;
       if (in.Take<uint8_t>() < 230) {
         action = TakeAgentAction(in, config.continuous);
       }

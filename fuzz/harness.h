@@ -19,15 +19,15 @@
 
 namespace mll::fuzz {
 
-// The service's request handlers (mll::Operations over a real Registry and
-// WorkerPool). The input is a sequence of operations, each
+// The service's request handlers (mll::service::Operations over a real Registry
+// and WorkerPool). The input is a sequence of operations, each
 //   [kind: 1 byte][length: 2 bytes little-endian][length bytes of proto]
-// where kind mod kMethodCount is an mll::Method (metrics.h: the RPCs in the
-// proto's order) and picks the request message the bytes are parsed as; for
-// Method::kSession they are a SessionRequest whose operation runs as a Session
-// stream runs it (a created env is session-bound unless detached). Names of
-// the form "@<digit>" are replaced by the name of the env created n-th by
-// this input (mod the count), so that the fuzzer reaches live environments.
+// where kind mod kMethodCount is an mll::service::Method (metrics.h: the RPCs
+// in the proto's order) and picks the request message the bytes are parsed as;
+// for Method::kSession they are a SessionRequest whose operation runs as a
+// Session stream runs it (a created env is session-bound unless detached).
+// Names of the form "@<digit>" are replaced by the name of the env created n-th
+// by this input (mod the count), so that the fuzzer reaches live environments.
 // Every env the input created is deleted at its end, so each input runs from
 // the same empty state.
 void RunServiceInput(const uint8_t* data, size_t size);
@@ -44,7 +44,7 @@ void RunCoreInput(const uint8_t* data, size_t size);
                                  const std::string& what);
 
 // Appends one framed operation to `input` (for seed corpora and tests).
-void AppendServiceOp(Method method, const std::string& proto_bytes,
+void AppendServiceOp(service::Method method, const std::string& proto_bytes,
                      std::vector<uint8_t>* input);
 
 }  // namespace mll::fuzz

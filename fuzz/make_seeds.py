@@ -16,7 +16,7 @@ PROTO = "mll/v1/multi_lunar_lander.proto"
 
 
 def methods():
-    """mll::Method's enumerators in order (the harness's operation kinds)."""
+    """mll::service::Method's enumerators in order (the harness's operation kinds)."""
     header = (ROOT / "server/service/include/mll/service/metrics.h").read_text()
     body = re.search(r"enum class Method \{(.*?)\};", header, re.S).group(1)
     return re.findall(r"^\s*k(\w+),", body, re.M)

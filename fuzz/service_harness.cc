@@ -1,5 +1,5 @@
-// RunServiceInput: arbitrary request bytes through mll::Operations, the code
-// every unary handler and Session operation of the service calls.
+// RunServiceInput: arbitrary request bytes through mll::service::Operations,
+// the code every unary handler and Session operation of the service calls.
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
@@ -43,8 +43,8 @@ void CheckCode(const absl::Status& status,
   for (absl::StatusCode code : allowed) {
     if (status.code() == code) {
       if (status.message().empty()) {
-        Fail(absl::StrCat(call, ": error without a message: ",
-                          status.ToString()));
+        Fail(absl::StrCat(call,
+                          ": error without a message: ", status.ToString()));
       }
       return;
     }
@@ -56,8 +56,7 @@ void CheckFloats(const v1::Array& array, size_t count, const char* what) {
   if (array.dtype() != v1::DTYPE_FLOAT32 ||
       array.data().size() != count * sizeof(float)) {
     Fail(absl::StrCat(what, ": dtype ", array.dtype(), ", ",
-                      array.data().size(), " bytes, want ", count,
-                      " float32"));
+                      array.data().size(), " bytes, want ", count, " float32"));
   }
   std::vector<float> values(count);
   std::memcpy(values.data(), array.data().data(), array.data().size());
@@ -85,9 +84,9 @@ struct Service {
         operations(&registry, &pool),
         pool(kWorkers) {}
   // In the service's order: the workers stop first.
-  Registry registry;
-  Operations operations;
-  WorkerPool pool;
+  service::Registry registry;
+  service::Operations operations;
+  service::WorkerPool pool;
 };
 
 Service& TheService() {
@@ -145,13 +144,13 @@ void CheckPacked(const v1::PackedSteps& request,
   }
 }
 
-void RunOp(Service& service, Method method, const std::string& bytes,
+void RunOp(Service& service, service::Method method, const std::string& bytes,
            bool in_session, std::vector<std::string>* created);
 
 // A Session request runs its operation as the RPC it stands for: the one
 // whose request message the operation is (found by name, so the harness keeps
-// one list of the RPCs, mll::Method). A request without an operation never
-// reaches Operations (the stream answers it itself).
+// one list of the RPCs, mll::service::Method). A request without an operation
+// never reaches Operations (the stream answers it itself).
 void RunSessionOp(Service& service, const std::string& bytes,
                   std::vector<std::string>* created) {
   v1::SessionRequest request;
@@ -161,9 +160,9 @@ void RunSessionOp(Service& service, const std::string& bytes,
       reflection.GetOneofFieldDescriptor(
           request, request.GetDescriptor()->FindOneofByName("op"));
   if (field == nullptr) return;
-  for (int i = 0; i < kMethodCount; ++i) {
-    const auto method = static_cast<Method>(i);
-    if (absl::StrCat(MethodName(method), "Request") ==
+  for (int i = 0; i < service::kMethodCount; ++i) {
+    const auto method = static_cast<service::Method>(i);
+    if (absl::StrCat(service::MethodName(method), "Request") ==
         field->message_type()->name()) {
       RunOp(service, method,
             reflection.GetMessage(request, field).SerializeAsString(),
@@ -174,11 +173,11 @@ void RunSessionOp(Service& service, const std::string& bytes,
   Fail(absl::StrCat("Session: no method takes op ", field->name()));
 }
 
-void RunOp(Service& service, Method method, const std::string& bytes,
+void RunOp(Service& service, service::Method method, const std::string& bytes,
            bool in_session, std::vector<std::string>* created) {
-  Operations& ops = service.operations;
+  service::Operations& ops = service.operations;
   switch (method) {
-    case Method::kCreateEnv: {
+    case service::Method::kCreateEnv: {
       v1::CreateEnvRequest request;
       if (!request.ParseFromString(bytes)) return;
       v1::Env env;
@@ -191,7 +190,7 @@ void RunOp(Service& service, Method method, const std::string& bytes,
       if (status.ok()) created->push_back(env.name());
       return;
     }
-    case Method::kGetEnv: {
+    case service::Method::kGetEnv: {
       v1::GetEnvRequest request;
       if (!request.ParseFromString(bytes)) return;
       Resolve(*created, request.mutable_name());
@@ -199,7 +198,7 @@ void RunOp(Service& service, Method method, const std::string& bytes,
       CheckCode(ops.GetEnv(request, &env), kLookupCodes, "GetEnv");
       return;
     }
-    case Method::kListEnvs: {
+    case service::Method::kListEnvs: {
       v1::ListEnvsRequest request;
       if (!request.ParseFromString(bytes)) return;
       v1::ListEnvsResponse response;
@@ -210,14 +209,14 @@ void RunOp(Service& service, Method method, const std::string& bytes,
       }
       return;
     }
-    case Method::kDeleteEnv: {
+    case service::Method::kDeleteEnv: {
       v1::DeleteEnvRequest request;
       if (!request.ParseFromString(bytes)) return;
       Resolve(*created, request.mutable_name());
       CheckCode(ops.DeleteEnv(request), kLookupCodes, "DeleteEnv");
       return;
     }
-    case Method::kResetEnv: {
+    case service::Method::kResetEnv: {
       v1::ResetEnvRequest request;
       if (!request.ParseFromString(bytes)) return;
       Resolve(*created, request.mutable_name());
@@ -229,7 +228,7 @@ void RunOp(Service& service, Method method, const std::string& bytes,
       }
       return;
     }
-    case Method::kStepEnv: {
+    case service::Method::kStepEnv: {
       v1::StepEnvRequest request;
       if (!request.ParseFromString(bytes)) return;
       Resolve(*created, request.mutable_name());
@@ -240,7 +239,7 @@ void RunOp(Service& service, Method method, const std::string& bytes,
       if (status.ok()) CheckStepData(data, LandersOf(service, request.name()));
       return;
     }
-    case Method::kStepAgent: {
+    case service::Method::kStepAgent: {
       v1::StepAgentRequest request;
       if (!request.ParseFromString(bytes)) return;
       Resolve(*created, request.mutable_name());
@@ -255,7 +254,7 @@ void RunOp(Service& service, Method method, const std::string& bytes,
       }
       return;
     }
-    case Method::kStepBatch: {
+    case service::Method::kStepBatch: {
       v1::StepBatchRequest request;
       if (!request.ParseFromString(bytes)) return;
       for (v1::StepEnvRequest& step : *request.mutable_steps()) {
@@ -285,10 +284,10 @@ void RunOp(Service& service, Method method, const std::string& bytes,
       for (int i = 0; i < response.results_size(); ++i) {
         const v1::StepBatchResult& result = response.results(i);
         if (result.has_error()) {
-          CheckCode(absl::Status(static_cast<absl::StatusCode>(
-                                     result.error().code()),
-                                 result.error().message()),
-                    kStepCodes, "StepBatch item");
+          CheckCode(
+              absl::Status(static_cast<absl::StatusCode>(result.error().code()),
+                           result.error().message()),
+              kStepCodes, "StepBatch item");
         } else {
           CheckStepData(result.data(),
                         LandersOf(service, request.steps(i).name()));
@@ -296,7 +295,7 @@ void RunOp(Service& service, Method method, const std::string& bytes,
       }
       return;
     }
-    case Method::kRenderEnv: {
+    case service::Method::kRenderEnv: {
       v1::RenderEnvRequest request;
       if (!request.ParseFromString(bytes)) return;
       Resolve(*created, request.mutable_name());
@@ -312,7 +311,7 @@ void RunOp(Service& service, Method method, const std::string& bytes,
       }
       return;
     }
-    case Method::kKeepAlive: {
+    case service::Method::kKeepAlive: {
       v1::KeepAliveRequest request;
       if (!request.ParseFromString(bytes)) return;
       for (std::string& name : *request.mutable_names()) {
@@ -326,7 +325,7 @@ void RunOp(Service& service, Method method, const std::string& bytes,
       }
       return;
     }
-    case Method::kSession:
+    case service::Method::kSession:
       // RunSessionOp never comes back here: a SessionRequest cannot nest one.
       RunSessionOp(service, bytes, created);
       return;
@@ -341,7 +340,7 @@ void HarnessFailure(const std::string& harness, const std::string& what) {
   std::abort();
 }
 
-void AppendServiceOp(Method method, const std::string& proto_bytes,
+void AppendServiceOp(service::Method method, const std::string& proto_bytes,
                      std::vector<uint8_t>* input) {
   input->push_back(static_cast<uint8_t>(method));
   input->push_back(proto_bytes.size() & 0xff);
@@ -354,7 +353,8 @@ void RunServiceInput(const uint8_t* data, size_t size) {
   std::vector<std::string> created;
   size_t offset = 0;
   for (int op = 0; op < kMaxOps && offset + 3 <= size; ++op) {
-    const auto method = static_cast<Method>(data[offset] % kMethodCount);
+    const auto method =
+        static_cast<service::Method>(data[offset] % service::kMethodCount);
     size_t length = data[offset + 1] | (size_t{data[offset + 2]} << 8);
     offset += 3;
     if (length > size - offset) length = size - offset;

@@ -5,9 +5,9 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh
-echo "== lint: ruff (Python), clang-format (the C++ files in scripts/clang-format-files.txt)"
+echo "== lint: ruff (Python), clang-format (every tracked C++ file, .clang-format)"
 .venv/bin/ruff check client_py examples bench
-grep -v '^#' scripts/clang-format-files.txt | xargs clang-format --dry-run --Werror
+git ls-files -z '*.h' '*.cc' | xargs -0 clang-format --dry-run --Werror
 scripts/build.sh
 echo "== C++ tests (ctest)"
 ctest --test-dir "${BUILD_DIR:-build}" --output-on-failure -j "$(nproc)" --timeout 600

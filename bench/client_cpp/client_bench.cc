@@ -23,7 +23,7 @@
 #include "mll/v1/multi_lunar_lander.grpc.pb.h"
 #include "server_process.h"
 
-namespace mll {
+namespace mll::client {
 namespace {
 
 constexpr int kBatchEnvs = 64;
@@ -202,26 +202,26 @@ BENCHMARK(BM_Client_StepBatchTwoServers)
     ->UseRealTime();
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::client
 
 int main(int argc, char** argv) {
   benchmark::Initialize(&argc, argv);
   if (benchmark::ReportUnrecognizedArguments(argc, argv)) return 1;
-  absl::StatusOr<std::unique_ptr<mll::ServerProcess>> server =
-      mll::ServerProcess::Start(MLL_SERVER_PATH, {"--threads=2"});
+  absl::StatusOr<std::unique_ptr<mll::client::ServerProcess>> server =
+      mll::client::ServerProcess::Start(MLL_SERVER_PATH, {"--threads=2"});
   if (!server.ok()) {
     std::cerr << "cannot start the server: " << server.status() << std::endl;
     return 1;
   }
-  absl::StatusOr<std::unique_ptr<mll::ServerProcess>> second =
-      mll::ServerProcess::Start(MLL_SERVER_PATH, {"--threads=2"});
+  absl::StatusOr<std::unique_ptr<mll::client::ServerProcess>> second =
+      mll::client::ServerProcess::Start(MLL_SERVER_PATH, {"--threads=2"});
   if (!second.ok()) {
     std::cerr << "cannot start the second server: " << second.status()
               << std::endl;
     return 1;
   }
-  mll::server = server->get();
-  mll::second_server = second->get();
+  mll::client::server = server->get();
+  mll::client::second_server = second->get();
   benchmark::RunSpecifiedBenchmarks();
   benchmark::Shutdown();
   return 0;  // The servers stop when `server` and `second` go out of scope.

@@ -11,8 +11,8 @@
 //   Cairo floor), EncodePng (and libpng's defaults as the peer), and heap
 //   per environment.
 // bench/core/run.sh runs this binary and computes the ratios.
-#include <malloc.h>
 #include <cairo.h>
+#include <malloc.h>
 #include <png.h>
 
 #include <array>
@@ -32,7 +32,7 @@
 #include "mll/core/renderer.h"
 #include "rng.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 using internal::Rng;
@@ -254,8 +254,7 @@ class FloorWorld {
       oy = -tip[1] * d0 - side[1] * across;
       power = internal::kSideEnginePower;
       impulse_x = p.x + ox - tip[0] * internal::kSideEngineTipOffset / kScale;
-      impulse_y =
-          p.y + oy + tip[1] * internal::kSideEngineHeight / kScale;
+      impulse_y = p.y + oy + tip[1] * internal::kSideEngineHeight / kScale;
     } else {
       return;
     }
@@ -273,8 +272,7 @@ class FloorWorld {
     }
     for (b2Body* leg : lander.legs) {
       for (b2ContactEdge* e = leg->GetContactList(); e; e = e->next) {
-        if (e->contact->IsTouching() &&
-            e->other->GetType() != b2_staticBody) {
+        if (e->contact->IsTouching() && e->other->GetType() != b2_staticBody) {
           return true;
         }
       }
@@ -482,6 +480,6 @@ BENCHMARK(BM_MemoryPerEnv)
     ->Unit(benchmark::kMillisecond);
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core
 
 BENCHMARK_MAIN();

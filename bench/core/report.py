@@ -1,16 +1,13 @@
-"""Turns core_bench's JSON output into the Core table of docs/benchmarks.md.
+"""Turns core_bench's JSON output into the core rows of docs/benchmarks.md.
 
-usage: report.py BENCH_JSON BENCHMARKS_MD
-Prints the section and replaces the text between the core markers in
-BENCHMARKS_MD (appending the section if the markers are absent).
+usage: report.py BENCH_JSON
+Prints the rows of run A in the table's format (what | ours | floor, same
+run | ratio | target | run), then the run's context (CPUs, load average), for
+the doc to be updated by hand: the table mixes runs of several benchmarks.
 """
 import json
-import os
-import re
 import sys
 
-BEGIN = "<!-- core:begin (bench/core/run.sh writes this section) -->"
-END = "<!-- core:end -->"
 STEP_TARGET = 1.15  # Env per agent-step <= 1.15 x the bare Box2D floor.
 RENDER_TARGET_MS = 1.0
 
@@ -30,114 +27,82 @@ def cpu_ms(row):
     return row["cpu_time"] * scale
 
 
-def section(context, rows, command):
-    lines = [BEGIN, "## Core", ""]
-    lines.append(
-        f"Command: `{command}` (median of the repetitions, CPU time, "
-        f"{context.get('num_cpus')} x {context.get('mhz_per_cpu')} MHz, "
-        f"load average at start {', '.join(f'{x:.1f}' for x in context.get('load_avg', []))}; "
-        f"run {context.get('date')}).")
-    lines.append("")
-    lines.append("### Env::Step per agent-step against the bare Box2D floor")
-    lines.append("")
-    lines.append(
-        "Random discrete actions, default config (an episode ends at the first "
-        "damage), re-reset when over, resets included. The floor is the same "
-        "world built directly in `bench/core/core_bench.cc` (terrain, landers, "
-        "legs, revolute joints, collision filters, Gymnasium's engine "
-        "impulses, `Step(1/50, 180, 60)`, the Env's spawn layout, same episode "
-        "boundaries) without observations, rewards or rules; Env and floor "
-        "repetitions are interleaved at random. Target: ratio <= "
-        f"{STEP_TARGET}.")
-    lines.append("")
-    lines.append("| landers | Env us/agent-step | floor us/agent-step | ratio | Env agent-steps/s | target met |")
-    lines.append("|---|---|---|---|---|---|")
+def us_per_item(row):
+    return 1e6 / row["items_per_second"]
+
+
+def table_rows(rows, run):
+    """The table's rows made by core_bench, each a list of its six cells."""
+    out = []
     for n in (1, 3, 8, 32):
-        env = rows.get(f"BM_EnvStep/{n}")
-        floor = rows.get(f"BM_FloorStep/{n}")
+        env, floor = rows.get(f"BM_EnvStep/{n}"), rows.get(f"BM_FloorStep/{n}")
         if not env or not floor:
             continue
-        env_us = 1e6 / env["items_per_second"]
-        floor_us = 1e6 / floor["items_per_second"]
-        ratio = env_us / floor_us
-        lines.append(
-            f"| {n} | {env_us:.2f} | {floor_us:.2f} | {ratio:.3f} | "
-            f"{env['items_per_second']:,.0f} | {'yes' if ratio <= STEP_TARGET else 'NO'} |")
-    lines.append("")
-    lines.append("### Reset, rendering, memory")
-    lines.append("")
-    lines.append("| what | figure |")
-    lines.append("|---|---|")
-    for n in (1, 3, 8, 32):
-        row = rows.get(f"BM_EnvReset/{n}")
-        if row:
-            lines.append(f"| Env::Reset, n = {n} | {cpu_ms(row) * 1e3:.1f} us |")
-    renders_by_name = {name: r for name, r in rows.items() if name.startswith("BM_RenderScene/")}
-    for name, render in sorted(renders_by_name.items(),
-                               key=lambda item: (item[0].endswith("/1"), item[1].get("landers", 0))):
-        ms = cpu_ms(render)
-        if name.endswith("/1"):
-            # The dashboard's frames: not a raw render, no target.
-            lines.append(
-                f"| RenderScene with the overlay (text), {render.get('landers', 0):.0f} landers | {ms:.3f} ms |")
-            continue
-        lines.append(
-            f"| RenderScene, {render.get('landers', 0):.0f} landers, "
-            f"{render.get('particles', 0):.0f} particles, 600x400 RGB | "
-            f"{ms:.3f} ms (target < {RENDER_TARGET_MS} ms: {'met' if ms < RENDER_TARGET_MS else 'NOT met'}) |")
-    floor = rows.get("BM_CairoFloor")
-    if floor:
-        lines.append(
-            f"| floor: Cairo alone, 50 antialiased lander bodies on 600x400 | {cpu_ms(floor):.3f} ms "
-            f"(RenderScene / floor: "
-            + ", ".join(f"{cpu_ms(r) / cpu_ms(floor):.2f} at {r.get('landers', 0):.0f} landers"
-                        for name, r in sorted(renders_by_name.items(),
-                                              key=lambda item: item[1].get("landers", 0))
-                        if name.endswith("/0"))
-            + ") |")
-    png = rows.get("BM_EncodePng")
-    peer = rows.get("BM_EncodePngLibpngDefaults")
+        what = ("`Env::Step`, 1 lander, per agent-step (CPU)" if n == 1
+                else f"`Env::Step`, {n} landers")
+        floor_text = (f"bare Box2D world: {us_per_item(floor):.2f} us" if n == 1
+                      else f"{us_per_item(floor):.2f} us")
+        out.append([what, f"{us_per_item(env):.2f} us", floor_text,
+                    f"{us_per_item(env) / us_per_item(floor):.3f}",
+                    f"<= {STEP_TARGET}", run])
+
+    resets = [(n, rows[f"BM_EnvReset/{n}"]) for n in (3, 32) if f"BM_EnvReset/{n}" in rows]
+    if resets:
+        out.append([f"`Env::Reset`, {' / '.join(str(n) for n, _ in resets)} landers",
+                    " / ".join(f"{cpu_ms(r) * 1e3:.1f}" for _, r in resets) + " us",
+                    "", "", "", run])
+
+    # BM_RenderScene/<landers asked>/<overlay>; the counters give the landers
+    # and particles the scene actually held.
+    def renders(overlay):
+        found = [r for name, r in rows.items()
+                 if name.startswith("BM_RenderScene/") and name.endswith(f"/{overlay}")]
+        return sorted(found, key=lambda r: r.get("landers", 0))
+
+    plain, overlaid = renders(0), renders(1)
+    cairo = rows.get("BM_CairoFloor")
+    if plain:
+        scenes = " / ".join(f"{r.get('landers', 0):.0f} landers and {r.get('particles', 0):.0f} particles"
+                            for r in plain)
+        slowest = max(cpu_ms(r) for r in plain)
+        out.append([f"frame (`RenderScene` 600x400 RGB), {scenes}",
+                    " / ".join(f"{cpu_ms(r):.3f}" for r in plain) + " ms",
+                    f"Cairo alone, 50 antialiased lander bodies: {cpu_ms(cairo):.3f} ms" if cairo else "",
+                    " / ".join(f"{cpu_ms(r) / cpu_ms(cairo):.1f}" for r in plain) if cairo else "",
+                    f"< {RENDER_TARGET_MS:g} ms" + ("" if slowest < RENDER_TARGET_MS else " (NOT met)"),
+                    run])
+    if overlaid:
+        out.append(["the same frames with the overlay (step, ids, returns, outcomes)",
+                    " / ".join(f"{cpu_ms(r):.3f}" for r in overlaid) + " ms", "", "", "", run])
+
+    png, peer = rows.get("BM_EncodePng"), rows.get("BM_EncodePngLibpngDefaults")
     if png:
-        lines.append(f"| EncodePng of the 8-lander frame (zlib level 1, no row filter) | {cpu_ms(png):.3f} ms, {png['png_bytes'] / 1024:.1f} KiB |")
-    if peer:
-        lines.append(f"| libpng defaults (peer, same frame) | {cpu_ms(peer):.3f} ms, {peer['png_bytes'] / 1024:.1f} KiB |")
-    for name, row in sorted(rows.items()):
-        m = re.match(r"BM_MemoryPerEnv/(\d+)/(\d+)", name)
-        if m:
-            lines.append(
-                f"| heap per Env after Reset, n = {m.group(1)} ({m.group(2)} envs, mallinfo2) | "
-                f"{row['env_kb']:.0f} KiB (bare Box2D floor world: {row['floor_kb']:.0f} KiB) |")
-    lines.append("")
-    lines.append(
-        "RenderScene antialiases everything but the particles (Cairo's FAST "
-        "antialiasing; each lander's outline and fill are two fills of its "
-        "three parts, all flames two fills). Its floor only fills 50 "
-        "polygons: RenderScene also draws the sky, the margins, particles, "
-        "flames, marks and flags, and converts the surface to packed RGB "
-        "(about a third of its instructions under callgrind). The overlay "
-        "adds text for the dashboard's frames. EncodePng uses zlib level 1 and "
-        "no row filter; the peer row is libpng's simplified writer with its "
-        "defaults on the same frame. Heap per Env is mallinfo2's in-use bytes "
-        "over many Envs, nearly all of it Box2D's own allocator (compare the "
-        "bare floor world).")
-    lines.append(END)
-    return "\n".join(lines) + "\n"
+        out.append(["PNG of a frame (8 landers)",
+                    f"{cpu_ms(png):.2f} ms, {png['png_bytes'] / 1024:.1f} KiB",
+                    f"libpng's defaults: {cpu_ms(peer):.2f} ms, {peer['png_bytes'] / 1024:.1f} KiB" if peer else "",
+                    f"{cpu_ms(png) / cpu_ms(peer):.2f}" if peer else "", "", run])
+
+    # BM_MemoryPerEnv/<landers>/<envs>.
+    memory = sorted((int(name.split("/")[1]), r) for name, r in rows.items()
+                    if name.startswith("BM_MemoryPerEnv/") and int(name.split("/")[1]) in (3, 32))
+    if memory:
+        out.append([f"heap per environment, {' / '.join(str(n) for n, _ in memory)} landers",
+                    " / ".join(f"{r['env_kb']:.0f}" for _, r in memory) + " KiB",
+                    "bare Box2D world: " + " / ".join(f"{r['floor_kb']:.0f}" for _, r in memory) + " KiB",
+                    " / ".join(f"{r['env_kb'] / r['floor_kb']:.2f}" for _, r in memory), "", run])
+    return out
 
 
 def main():
+    if len(sys.argv) != 2:
+        sys.exit(__doc__)
     context, rows = medians(sys.argv[1])
-    text = section(context, rows, os.environ.get("COMMAND", "bench/core/run.sh"))
-    print(text)
-    doc_path = sys.argv[2]
-    doc = open(doc_path).read() if os.path.exists(doc_path) else "# Benchmarks\n\n"
-    if BEGIN in doc and END in doc:
-        head, rest = doc.split(BEGIN, 1)
-        tail = rest.split(END, 1)[1].lstrip("\n")
-        doc = head + text + ("\n" + tail if tail else "")
-    else:
-        doc = doc.rstrip("\n") + "\n\n" + text
-    with open(doc_path, "w") as f:
-        f.write(doc)
+    load = context.get("load_avg") or [0.0]
+    for cells in table_rows(rows, f"A, load {load[0]:.1f}"):
+        print("| " + " | ".join(cells) + " |")
+    print()
+    print(f"{context.get('num_cpus')} CPUs at {context.get('mhz_per_cpu')} MHz, load average at "
+          f"start {', '.join(f'{x:.1f}' for x in load)}; {context.get('date')}")
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Builds and runs the core benchmarks, prints the results table and writes it
-# into the "Core" section of docs/benchmarks.md (between the core markers).
+# Builds and runs the core benchmarks and prints their rows of the table in
+# docs/benchmarks.md (run A), in the table's format, with the machine's load.
 #   bench/core/run.sh                 # BUILD_DIR=build, 5 repetitions
 #   BUILD_DIR=build-x REPETITIONS=3 bench/core/run.sh
 set -euo pipefail
@@ -17,5 +17,4 @@ OUT="$BUILD_DIR/bench/core/core_bench.json"
   --benchmark_enable_random_interleaving=true \
   --benchmark_report_aggregates_only=true \
   --benchmark_out="$OUT" --benchmark_out_format=json >/dev/null
-COMMAND="BUILD_DIR=$BUILD_DIR REPETITIONS=$REPETITIONS bench/core/run.sh" \
-  python3 bench/core/report.py "$OUT" docs/benchmarks.md
+python3 bench/core/report.py "$OUT"

@@ -32,7 +32,7 @@
 #include "mll/service/server.h"
 #include "mll/v1/multi_lunar_lander.grpc.pb.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 constexpr int kLanders = 3;
@@ -110,9 +110,9 @@ double StepFor(v1::MultiLunarLander::Stub& stub, const std::string& name,
       }
     }
   }
-  const double elapsed = std::chrono::duration<double>(
-                             std::chrono::steady_clock::now() - start)
-                             .count();
+  const double elapsed =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
+          .count();
   return steps / elapsed;
 }
 
@@ -174,7 +174,8 @@ int Run(const Flags& flags) {
   options.service.threads = 2;
   absl::StatusOr<std::unique_ptr<Server>> server = Server::Start(options);
   if (!server.ok()) {
-    std::fprintf(stderr, "%s\n", std::string(server.status().message()).c_str());
+    std::fprintf(stderr, "%s\n",
+                 std::string(server.status().message()).c_str());
     return 1;
   }
   auto channel =
@@ -205,10 +206,10 @@ int Run(const Flags& flags) {
     double cpu = CpuSeconds();
     auto start = std::chrono::steady_clock::now();
     alone.push_back(StepFor(*stub, name, flags.round_s));
-    cpu_alone.push_back((CpuSeconds() - cpu) /
-                        std::chrono::duration<double>(
-                            std::chrono::steady_clock::now() - start)
-                            .count());
+    cpu_alone.push_back(
+        (CpuSeconds() - cpu) /
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
+            .count());
     const int64_t drawn_before = dashboard.frames_rendered();
     Viewers viewers((*server)->http_port(), name, flags.viewers);
     while (dashboard.viewers() < flags.viewers) {
@@ -218,12 +219,11 @@ int Run(const Flags& flags) {
     cpu = CpuSeconds();
     start = std::chrono::steady_clock::now();
     watched.push_back(StepFor(*stub, name, flags.round_s));
-    const double elapsed = std::chrono::duration<double>(
-                               std::chrono::steady_clock::now() - start)
-                               .count();
+    const double elapsed =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
+            .count();
     cpu_watched.push_back((CpuSeconds() - cpu) / elapsed);
-    fps.push_back((viewers.frames() - frames_before) / elapsed /
-                  flags.viewers);
+    fps.push_back((viewers.frames() - frames_before) / elapsed / flags.viewers);
     drawn_per_s.push_back((dashboard.frames_rendered() - drawn_before) /
                           elapsed);
     viewers.Stop();
@@ -235,8 +235,7 @@ int Run(const Flags& flags) {
         "pair %d: %.0f steps/s alone, %.0f with %d viewers (%.3f), %.1f "
         "frames/s per viewer, %.1f frames drawn/s, CPU %.2f / %.2f cores\n",
         pair + 1, alone.back(), watched.back(), flags.viewers, ratios.back(),
-        fps.back(), drawn_per_s.back(), cpu_alone.back(),
-        cpu_watched.back());
+        fps.back(), drawn_per_s.back(), cpu_alone.back(), cpu_watched.back());
   }
   std::printf(
       "\n| what | median over %d pairs of %.0f s rounds |\n|---|---|\n"
@@ -248,8 +247,8 @@ int Run(const Flags& flags) {
       "| frames drawn/s (shared by the viewers) | %.1f |\n"
       "| process CPU, cores: no viewer / with viewers | %.2f / %.2f |\n"
       "| CPU per step, us: no viewer / with viewers | %.0f / %.0f |\n",
-      flags.pairs, flags.round_s, Median(alone), flags.viewers,
-      Median(watched), Median(ratios), Median(ratios) >= 0.9 ? "met" : "NOT met", Median(fps),
+      flags.pairs, flags.round_s, Median(alone), flags.viewers, Median(watched),
+      Median(ratios), Median(ratios) >= 0.9 ? "met" : "NOT met", Median(fps),
       Median(drawn_per_s), Median(cpu_alone), Median(cpu_watched),
       1e6 * Median(cpu_alone) / Median(alone),
       1e6 * Median(cpu_watched) / Median(watched));
@@ -260,6 +259,8 @@ int Run(const Flags& flags) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::service
 
-int main(int argc, char** argv) { return mll::Run(mll::ParseFlags(argc, argv)); }
+int main(int argc, char** argv) {
+  return mll::service::Run(mll::service::ParseFlags(argc, argv));
+}

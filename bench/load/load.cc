@@ -31,7 +31,7 @@ ABSL_FLAG(double, time_limit_s, 600, "the run stops after this long");
 ABSL_FLAG(int32_t, server_pid, 0,
           "if set, the server's RSS and open fds are reported before/after");
 
-namespace mll::load {
+namespace mll::client::load {
 namespace {
 
 enum Op { kCreate, kReset, kStep, kBatch, kRender, kDelete, kOps };
@@ -52,7 +52,8 @@ bool Timed(ClientRun& run, Op op, Call&& call) {
   const absl::Time start = absl::Now();
   const auto result = call();
   const absl::Status status = [&] {
-    if constexpr (std::is_same_v<std::decay_t<decltype(result)>, absl::Status>) {
+    if constexpr (std::is_same_v<std::decay_t<decltype(result)>,
+                                 absl::Status>) {
       return result;
     } else {
       return result.status();
@@ -112,7 +113,8 @@ void RunClient(const std::string& address, int index, int64_t quota,
     ++run->ops[kCreate].errors;
     return;
   }
-  for (int64_t cycle = 0; run->done < quota && absl::Now() < deadline; ++cycle) {
+  for (int64_t cycle = 0; run->done < quota && absl::Now() < deadline;
+       ++cycle) {
     absl::StatusOr<RemoteEnv> env;
     if (!Timed(*run, kCreate, [&] {
           env = client->CreateEnv(ConfigFor(index, cycle));
@@ -153,8 +155,9 @@ int Main() {
   const int clients = absl::GetFlag(FLAGS_clients);
   const int64_t operations = absl::GetFlag(FLAGS_operations);
   if (address.empty() || clients < 1 || operations < clients) {
-    std::fprintf(stderr, "mll_load: need --address, --clients >= 1 and "
-                         "--operations >= --clients\n");
+    std::fprintf(stderr,
+                 "mll_load: need --address, --clients >= 1 and "
+                 "--operations >= --clients\n");
     return 2;
   }
   const int pid = absl::GetFlag(FLAGS_server_pid);
@@ -178,19 +181,21 @@ int Main() {
     done += run.done;
     for (int op = 0; op < kOps; ++op) all[op].Merge(run.ops[op]);
   }
-  std::printf("mll_load: %d clients (%d unary, %d session), %lld operations "
-              "in %.1f s (%.0f ops/s)\n\n",
-              clients, (clients + 1) / 2, clients / 2,
-              static_cast<long long>(done), seconds, done / seconds);
-  std::printf("| operation | count | errors | p50 us | p90 us | p99 us | max us |\n"
-              "|---|---|---|---|---|---|---|\n");
+  std::printf(
+      "mll_load: %d clients (%d unary, %d session), %lld operations "
+      "in %.1f s (%.0f ops/s)\n\n",
+      clients, (clients + 1) / 2, clients / 2, static_cast<long long>(done),
+      seconds, done / seconds);
+  std::printf(
+      "| operation | count | errors | p50 us | p90 us | p99 us | max us |\n"
+      "|---|---|---|---|---|---|---|\n");
   for (int op = 0; op < kOps; ++op) {
     Latencies& l = all[op];
     errors += l.errors;
     std::printf("| %s | %zu | %lld | %.0f | %.0f | %.0f | %.0f |\n",
-                kOpNames[op], l.micros.size(),
-                static_cast<long long>(l.errors), l.Quantile(0.5),
-                l.Quantile(0.9), l.Quantile(0.99), l.Quantile(1.0));
+                kOpNames[op], l.micros.size(), static_cast<long long>(l.errors),
+                l.Quantile(0.5), l.Quantile(0.9), l.Quantile(0.99),
+                l.Quantile(1.0));
   }
   if (pid > 0) {
     std::printf("\nserver RSS %lld -> %lld KiB, open fds %d -> %d\n",
@@ -209,12 +214,12 @@ int Main() {
 }
 
 }  // namespace
-}  // namespace mll::load
+}  // namespace mll::client::load
 
 int main(int argc, char** argv) {
   absl::SetProgramUsageMessage(
       "Load test: concurrent clients mixing create/reset/step/batch/render/"
       "delete against a running mll_server.");
   absl::ParseCommandLine(argc, argv);
-  return mll::load::Main();
+  return mll::client::load::Main();
 }

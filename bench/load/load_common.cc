@@ -11,7 +11,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/strip.h"
 
-namespace mll::load {
+namespace mll::client::load {
 namespace {
 
 constexpr int kMaxNotedErrors = 20;
@@ -84,4 +84,4 @@ int OpenFds(int pid) {
   return count;
 }
 
-}  // namespace mll::load
+}  // namespace mll::client::load

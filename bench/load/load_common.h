@@ -11,7 +11,7 @@
 #include "absl/status/statusor.h"
 #include "mll/client.h"
 
-namespace mll::load {
+namespace mll::client::load {
 
 // Client `index` of a run: even ones make unary calls on their own channel,
 // odd ones carry every environment call on their own Session stream, so a
@@ -37,6 +37,6 @@ struct Latencies {
 int64_t ResidentKib(int pid);
 int OpenFds(int pid);
 
-}  // namespace mll::load
+}  // namespace mll::client::load
 
 #endif  // MLL_BENCH_LOAD_LOAD_COMMON_H_

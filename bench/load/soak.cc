@@ -30,11 +30,12 @@ ABSL_FLAG(int64_t, cycles, 1000000, "create/reset/step/delete cycles in all");
 ABSL_FLAG(int32_t, clients, 4, "concurrent clients (threads)");
 ABSL_FLAG(double, time_limit_s, 3600, "the run stops after this long");
 ABSL_FLAG(double, sample_ms, 200, "period of the RSS / fd samples");
-ABSL_FLAG(double, max_drift_percent, 2, "allowed RSS drift, first to last tenth");
+ABSL_FLAG(double, max_drift_percent, 2,
+          "allowed RSS drift, first to last tenth");
 ABSL_FLAG(double, progress_s, 60,
           "period of the progress line on stderr (0: none)");
 
-namespace mll::load {
+namespace mll::client::load {
 namespace {
 
 struct Sample {
@@ -50,8 +51,9 @@ int Main() {
   const int clients = absl::GetFlag(FLAGS_clients);
   if (address.empty() || pid <= 0 || ResidentKib(pid) < 0 || clients < 1 ||
       cycles < 10 * clients) {
-    std::fprintf(stderr, "mll_soak: need --address, a readable --server_pid, "
-                         "--clients >= 1 and --cycles >= 10 * clients\n");
+    std::fprintf(stderr,
+                 "mll_soak: need --address, a readable --server_pid, "
+                 "--clients >= 1 and --cycles >= 10 * clients\n");
     return 2;
   }
   const absl::Time start = absl::Now();
@@ -63,14 +65,16 @@ int Main() {
   std::vector<Sample> samples;
   absl::Notification stop;
   std::thread sampler([&] {
-    const absl::Duration period = absl::Milliseconds(absl::GetFlag(FLAGS_sample_ms));
+    const absl::Duration period =
+        absl::Milliseconds(absl::GetFlag(FLAGS_sample_ms));
     // A run takes up to an hour: say where it is, so a slow machine shows
     // before the time limit does.
-    const absl::Duration progress = absl::Seconds(absl::GetFlag(FLAGS_progress_s));
+    const absl::Duration progress =
+        absl::Seconds(absl::GetFlag(FLAGS_progress_s));
     absl::Time next_progress = start + progress;
     do {
-      samples.push_back({std::min(done.load(), cycles), ResidentKib(pid),
-                         OpenFds(pid)});
+      samples.push_back(
+          {std::min(done.load(), cycles), ResidentKib(pid), OpenFds(pid)});
       if (progress > absl::ZeroDuration() && absl::Now() >= next_progress) {
         next_progress += progress;
         const Sample& s = samples.back();
@@ -83,8 +87,8 @@ int Main() {
                      static_cast<long long>(errors.load()));
       }
     } while (!stop.WaitForNotificationWithTimeout(period));
-    samples.push_back({std::min(done.load(), cycles), ResidentKib(pid),
-                       OpenFds(pid)});
+    samples.push_back(
+        {std::min(done.load(), cycles), ResidentKib(pid), OpenFds(pid)});
   });
 
   std::vector<std::thread> threads;
@@ -106,7 +110,8 @@ int Main() {
         absl::StatusOr<RemoteEnv> env = client->CreateEnv();
         absl::Status status = env.status();
         if (status.ok()) status = env->Reset().status();
-        if (status.ok()) status = env->Step(Actions::Discrete(actions)).status();
+        if (status.ok())
+          status = env->Step(Actions::Discrete(actions)).status();
         if (env.ok()) {
           const absl::Status deleted = env->Delete();
           if (status.ok()) status = deleted;
@@ -146,15 +151,16 @@ int Main() {
   int64_t peak = 0;
   for (const Sample& s : samples) peak = std::max(peak, s.rss_kib);
 
-  std::printf("mll_soak: %lld cycles (create, reset, step, delete) by %d "
-              "clients in %.1f s (%.0f cycles/s), %lld errors\n",
-              static_cast<long long>(total), clients, seconds, total / seconds,
-              static_cast<long long>(errors.load()));
-  std::printf("RSS first tenth %.0f KiB (%d samples), last tenth %.0f KiB "
-              "(%d samples): drift %+.2f%% (limit %.1f%%), peak %lld KiB\n",
-              rss_first, n_first, rss_last, n_last, drift,
-              absl::GetFlag(FLAGS_max_drift_percent),
-              static_cast<long long>(peak));
+  std::printf(
+      "mll_soak: %lld cycles (create, reset, step, delete) by %d "
+      "clients in %.1f s (%.0f cycles/s), %lld errors\n",
+      static_cast<long long>(total), clients, seconds, total / seconds,
+      static_cast<long long>(errors.load()));
+  std::printf(
+      "RSS first tenth %.0f KiB (%d samples), last tenth %.0f KiB "
+      "(%d samples): drift %+.2f%% (limit %.1f%%), peak %lld KiB\n",
+      rss_first, n_first, rss_last, n_last, drift,
+      absl::GetFlag(FLAGS_max_drift_percent), static_cast<long long>(peak));
   std::printf("open fds first tenth %d, last tenth %d\n", fds_first, fds_last);
   std::printf("%s", NotedErrors().c_str());
   bool ok = errors == 0;
@@ -176,12 +182,12 @@ int Main() {
 }
 
 }  // namespace
-}  // namespace mll::load
+}  // namespace mll::client::load
 
 int main(int argc, char** argv) {
   absl::SetProgramUsageMessage(
       "Soak test: create/reset/step/delete cycles against a running "
       "mll_server, checking its memory and descriptors.");
   absl::ParseCommandLine(argc, argv);
-  return mll::load::Main();
+  return mll::client::load::Main();
 }

@@ -30,7 +30,7 @@ ABSL_FLAG(int, steps, 2000, "Steps per environment at most.");
 ABSL_FLAG(double, seconds, 20.0, "Wall-time bound in seconds.");
 ABSL_FLAG(uint64_t, seed, 0, "Env i is first reset with seed + i.");
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 using Clock = std::chrono::steady_clock;
@@ -42,8 +42,8 @@ struct Slot {
 };
 
 // Steps `slots` until `steps` or `deadline`; returns the agent-steps taken.
-int64_t StepSlots(std::vector<Slot*> slots, int steps, Clock::time_point deadline,
-                  uint64_t seed) {
+int64_t StepSlots(std::vector<Slot*> slots, int steps,
+                  Clock::time_point deadline, uint64_t seed) {
   std::mt19937_64 rng(seed);
   int64_t agent_steps = 0;
   for (int step = 0; step < steps && Clock::now() < deadline; ++step) {
@@ -106,7 +106,8 @@ int Run() {
   int64_t agent_steps = 0;
   for (int64_t count : counts) agent_steps += count;
   std::printf(
-      "{\"envs\": %d, \"n_landers\": %d, \"threads\": %d, \"agent_steps\": %lld, "
+      "{\"envs\": %d, \"n_landers\": %d, \"threads\": %d, \"agent_steps\": "
+      "%lld, "
       "\"seconds\": %.6f, \"agent_steps_per_s\": %.1f}\n",
       envs, config.n_landers, threads, static_cast<long long>(agent_steps),
       seconds, agent_steps / seconds);
@@ -114,9 +115,9 @@ int Run() {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core
 
 int main(int argc, char** argv) {
   absl::ParseCommandLine(argc, argv);
-  return mll::Run();
+  return mll::core::Run();
 }

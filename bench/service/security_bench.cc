@@ -22,7 +22,7 @@
 #include "mll/service/metrics.h"
 #include "mll/service/server.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 constexpr int kLanders = 3;
@@ -184,13 +184,13 @@ void BM_StepEnvTcp(benchmark::State& state) {
     return;
   }
   StepLoop(state,
-           grpc::CreateChannel(
-               "127.0.0.1:" + std::to_string((*server)->port()), credentials),
+           grpc::CreateChannel("127.0.0.1:" + std::to_string((*server)->port()),
+                               credentials),
            "");
 }
 BENCHMARK(BM_StepEnvTcp)->Arg(0)->Arg(1)->UseRealTime();
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::service
 
 BENCHMARK_MAIN();

@@ -28,7 +28,7 @@
 #include "mll/service/convert.h"
 #include "mll/service/server.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 constexpr int kLanders = 3;
@@ -285,29 +285,30 @@ struct Throughput {
 };
 
 Throughput RunCoreFloor() {
-  EnvConfig config;
+  core::EnvConfig config;
   config.n_landers = kLanders;
-  std::vector<std::unique_ptr<Env>> envs;
-  StepResult scratch;
+  std::vector<std::unique_ptr<core::Env>> envs;
+  core::StepResult scratch;
   for (int e = 0; e < kBatchEnvs; ++e) {
-    envs.push_back(*Env::Create(config));
+    envs.push_back(*core::Env::Create(config));
     envs.back()->Reset(1, &scratch);
   }
   std::atomic<int64_t> agent_steps{0};
   auto run = [&](int first, int last) {
-    StepResult result;
+    core::StepResult result;
     std::vector<int32_t> actions(kLanders);
     int64_t count = 0;
     for (int64_t step = 0; step < kBatchRounds; ++step) {
       for (int i = 0; i < kLanders; ++i) actions[i] = ActionFor(step, i);
       for (int e = first; e < last; ++e) {
-        Env& env = *envs[e];
+        core::Env& env = *envs[e];
         if (env.episode_over()) {
           env.Reset(std::nullopt, &result);
           continue;
         }
         count += env.num_active();
-        if (!env.Step(ActionsView{actions, {}}, &result).ok()) std::abort();
+        if (!env.Step(core::ActionsView{actions, {}}, &result).ok())
+          std::abort();
       }
     }
     agent_steps += count;
@@ -317,9 +318,9 @@ Throughput RunCoreFloor() {
   std::thread other(run, 0, kBatchEnvs / 2);
   run(kBatchEnvs / 2, kBatchEnvs);
   other.join();
-  const double seconds = std::chrono::duration<double>(
-                             std::chrono::steady_clock::now() - start)
-                             .count();
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
+          .count();
   return {agent_steps.load() / seconds,
           1e6 * (ProcessCpuSeconds() - cpu_before) / agent_steps.load()};
 }
@@ -328,8 +329,7 @@ void BM_CoreFloor64x3TwoThreads(benchmark::State& state) {
   Throughput floor;
   for (auto _ : state) floor = RunCoreFloor();
   state.counters["agent_steps_per_s"] = floor.agent_steps_per_s;
-  state.counters["process_cpu_us_per_agent_step"] =
-      floor.cpu_us_per_agent_step;
+  state.counters["process_cpu_us_per_agent_step"] = floor.cpu_us_per_agent_step;
 }
 
 // Times kBatchRounds StepBatch calls over 64 envs on a --threads=2 server,
@@ -443,8 +443,7 @@ int64_t ResidentBytes() {
 }
 
 double SecondsSince(std::chrono::steady_clock::time_point start) {
-  return std::chrono::duration<double>(std::chrono::steady_clock::now() -
-                                       start)
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
       .count();
 }
 
@@ -505,7 +504,7 @@ BENCHMARK(BM_StepBatchPacked64x3)->Iterations(kBatchRounds)->UseRealTime();
 BENCHMARK(BM_TenThousandLiveEnvs)->Iterations(1)->UseRealTime();
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::service
 
 // As mll_server does: no Mutex deadlock detection (see mll_server_main.cc).
 int main(int argc, char** argv) {

@@ -9,9 +9,9 @@
 #include "transport.h"
 #include "wire.h"
 
-namespace mll {
+namespace mll::client {
 
-using client_internal::Transport;
+using internal::Transport;
 
 namespace {
 
@@ -23,7 +23,7 @@ absl::StatusOr<EnvInfo> GetEnvOn(Transport& transport, absl::string_view name,
   v1::SessionResponse response;
   absl::Status status = transport.Call(request, &response);
   if (!status.ok()) return status;
-  EnvInfo info = client_internal::DecodeEnv(response.env());
+  EnvInfo info = internal::DecodeEnv(response.env());
   info.server = server;
   return info;
 }
@@ -38,15 +38,16 @@ absl::Status DeleteEnvOn(Transport& transport, absl::string_view name) {
 // `status` with the server's address in front, so that a failure among
 // several servers says which one.
 absl::Status AtServer(const Transport& transport, const absl::Status& status) {
-  return absl::Status(status.code(),
-                      absl::StrCat("server ", transport.address(), ": ",
-                                   status.message()));
+  return absl::Status(
+      status.code(),
+      absl::StrCat("server ", transport.address(), ": ", status.message()));
 }
 
 }  // namespace
 
 // The client's outcome codes are the wire's: mll.v1.Outcome.
-static_assert(static_cast<int>(LanderOutcome::kNone) == v1::OUTCOME_UNSPECIFIED);
+static_assert(static_cast<int>(LanderOutcome::kNone) ==
+              v1::OUTCOME_UNSPECIFIED);
 static_assert(static_cast<int>(LanderOutcome::kLanded) == v1::OUTCOME_LANDED);
 static_assert(static_cast<int>(LanderOutcome::kCrashed) == v1::OUTCOME_CRASHED);
 static_assert(static_cast<int>(LanderOutcome::kOutOfBounds) ==
@@ -56,7 +57,7 @@ static_assert(static_cast<int>(LanderOutcome::kTruncated) ==
 static_assert(static_cast<int>(LanderOutcome::kAborted) == v1::OUTCOME_ABORTED);
 
 absl::string_view LanderOutcomeName(LanderOutcome outcome) {
-  return client_internal::OutcomeName(static_cast<int>(outcome));
+  return internal::OutcomeName(static_cast<int>(outcome));
 }
 
 AecTurn AecState::Last(int agent) const {
@@ -117,10 +118,10 @@ absl::StatusOr<StepData> RemoteEnv::Reset(std::optional<uint64_t> seed) {
   absl::Status status = transport_->Call(request, &response);
   if (!status.ok()) return status;
   absl::StatusOr<AecState> aec =
-      client_internal::DecodeAecState(response.reset_env().aec());
+      internal::DecodeAecState(response.reset_env().aec());
   if (!aec.ok()) return aec.status();
   absl::StatusOr<StepData> data =
-      client_internal::DecodeStepData(response.reset_env().data());
+      internal::DecodeStepData(response.reset_env().data());
   if (!data.ok()) return data.status();
   if (response.reset_env().has_seed()) data->seed = response.reset_env().seed();
   aec_ = *std::move(aec);
@@ -135,12 +136,12 @@ absl::StatusOr<StepData> RemoteEnv::Step(const Actions& actions) {
   v1::StepEnvRequest& step = *request.mutable_step_env();
   step.set_name(info_.name);
   absl::Status status =
-      client_internal::EncodeActions(actions, step.mutable_actions());
+      internal::EncodeActions(actions, step.mutable_actions());
   if (!status.ok()) return status;
   v1::SessionResponse response;
   status = transport_->Call(request, &response);
   if (!status.ok()) return status;
-  return client_internal::DecodeStepData(response.step_env().data());
+  return internal::DecodeStepData(response.step_env().data());
 }
 
 absl::Status RemoteEnv::StepAgent(int32_t discrete_action) {
@@ -176,15 +177,15 @@ absl::Status RemoteEnv::StepAgentImpl(const AgentMove& move) {
       step.mutable_action()->set_discrete(move.discrete);
       break;
     case AgentMove::Kind::kContinuous:
-      client_internal::EncodeAgentAction(
-          move.continuous, step.mutable_action()->mutable_continuous());
+      internal::EncodeAgentAction(move.continuous,
+                                  step.mutable_action()->mutable_continuous());
       break;
   }
   v1::SessionResponse response;
   absl::Status status = transport_->Call(request, &response);
   if (!status.ok()) return status;
   absl::StatusOr<AecState> aec =
-      client_internal::DecodeAecState(response.step_agent().aec());
+      internal::DecodeAecState(response.step_agent().aec());
   if (!aec.ok()) return aec.status();
   aec_ = *std::move(aec);
   return absl::OkStatus();
@@ -212,7 +213,7 @@ absl::StatusOr<RenderedFrame> RemoteEnv::Render(FrameFormat format) {
   v1::SessionResponse response;
   absl::Status status = transport_->Call(request, &response);
   if (!status.ok()) return status;
-  return client_internal::DecodeFrame(response.frame());
+  return internal::DecodeFrame(response.frame());
 }
 
 absl::StatusOr<EnvInfo> RemoteEnv::Refresh() {
@@ -273,12 +274,12 @@ absl::StatusOr<Client> Client::Create(const std::vector<std::string>& addresses,
                        "\", which appears earlier; each server once"));
     }
     absl::StatusOr<std::shared_ptr<Transport>> transport =
-        client_internal::MakeUnaryTransport(addresses[i], options);
+        internal::MakeUnaryTransport(addresses[i], options);
     if (!transport.ok()) {
       if (addresses.size() == 1) return transport.status();
-      return absl::Status(transport.status().code(),
-                          absl::StrCat("addresses[", i, "]: ",
-                                       transport.status().message()));
+      return absl::Status(
+          transport.status().code(),
+          absl::StrCat("addresses[", i, "]: ", transport.status().message()));
     }
     transports.push_back(*std::move(transport));
   }
@@ -324,8 +325,8 @@ absl::StatusOr<RemoteEnv> Client::CreateEnvOn(int server,
                                               bool detached) const {
   if (server < 0 || server >= server_count()) {
     return absl::InvalidArgumentError(
-        absl::StrCat("server is ", server, "; allowed: 0..",
-                     server_count() - 1, " (one per address)"));
+        absl::StrCat("server is ", server, "; allowed: 0..", server_count() - 1,
+                     " (one per address)"));
   }
   return CreateEnvAt(static_cast<size_t>(server), config, detached);
 }
@@ -335,12 +336,12 @@ absl::StatusOr<RemoteEnv> Client::CreateEnvAt(size_t server,
                                               bool detached) const {
   v1::SessionRequest request;
   v1::CreateEnvRequest& create = *request.mutable_create_env();
-  client_internal::EncodeConfig(config, create.mutable_config());
+  internal::EncodeConfig(config, create.mutable_config());
   create.set_detached(detached);
   v1::SessionResponse response;
   absl::Status status = transports_[server]->Call(request, &response);
   if (!status.ok()) return status;
-  EnvInfo info = client_internal::DecodeEnv(response.env());
+  EnvInfo info = internal::DecodeEnv(response.env());
   info.server = static_cast<int>(server);
   return RemoteEnv(transports_[server], std::move(info), /*owned=*/true);
 }
@@ -374,7 +375,7 @@ absl::StatusOr<std::vector<EnvInfo>> Client::ListEnvs() const {
                                        : AtServer(*transports_[server], status);
       }
       for (const v1::Env& env : response.envs()) {
-        envs.push_back(client_internal::DecodeEnv(env));
+        envs.push_back(internal::DecodeEnv(env));
         envs.back().server = static_cast<int>(server);
       }
       request.set_page_token(response.next_page_token());
@@ -427,12 +428,11 @@ absl::StatusOr<std::vector<absl::StatusOr<StepData>>> Client::StepBatch(
     ServerCall& call = calls[*server];
     v1::StepEnvRequest& step = *call.request.mutable_step_batch()->add_steps();
     step.set_name(steps[i].env->name());
-    absl::Status status = client_internal::EncodeActions(
-        steps[i].actions, step.mutable_actions());
+    absl::Status status =
+        internal::EncodeActions(steps[i].actions, step.mutable_actions());
     if (!status.ok()) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("steps[", i, "] (", steps[i].env->name(),
-                       "): ", status.message()));
+      return absl::InvalidArgumentError(absl::StrCat(
+          "steps[", i, "] (", steps[i].env->name(), "): ", status.message()));
     }
     call.items.push_back(i);
   }
@@ -476,22 +476,21 @@ absl::StatusOr<std::vector<absl::StatusOr<StepData>>> Client::StepBatch(
     any_answered = true;
     const auto& results = call.response.step_batch().results();
     if (results.size() != static_cast<int>(call.items.size())) {
-      return absl::InternalError(absl::StrCat(
-          "StepBatch sent ", call.items.size(), " steps to ",
-          transports_[server]->address(), " and received ", results.size(),
-          " results"));
+      return absl::InternalError(
+          absl::StrCat("StepBatch sent ", call.items.size(), " steps to ",
+                       transports_[server]->address(), " and received ",
+                       results.size(), " results"));
     }
     for (size_t k = 0; k < call.items.size(); ++k) {
       const v1::StepBatchResult& result = results[static_cast<int>(k)];
-      out[call.items[k]] =
-          result.has_error()
-              ? absl::StatusOr<StepData>(
-                    client_internal::FromItemError(result.error()))
-              : client_internal::DecodeStepData(result.data());
+      out[call.items[k]] = result.has_error()
+                               ? absl::StatusOr<StepData>(
+                                     internal::FromItemError(result.error()))
+                               : internal::DecodeStepData(result.data());
     }
   }
   if (!any_answered) return first_failure;
   return out;
 }
 
-}  // namespace mll
+}  // namespace mll::client

@@ -22,8 +22,8 @@
 #include "grpcpp/support/byte_buffer.h"
 #include "grpcpp/support/channel_arguments.h"
 
-namespace mll {
-namespace client_internal {
+namespace mll::client {
+namespace internal {
 namespace {
 
 using ::google::protobuf::internal::WireFormatLite;
@@ -68,7 +68,8 @@ absl::StatusOr<uint32_t> DecodeHealthStatus(const std::string& bytes) {
                         ? input.ReadVarint32(&status)
                         : WireFormatLite::SkipField(&input, tag);
     if (!ok) {
-      return absl::InternalError("malformed grpc.health.v1.HealthCheckResponse");
+      return absl::InternalError(
+          "malformed grpc.health.v1.HealthCheckResponse");
     }
   }
   return status;
@@ -218,9 +219,9 @@ class SessionTransport final : public Transport {
       return FinishLocked();
     }
     if (response->sequence() != sequence) {
-      return absl::InternalError(absl::StrCat(
-          "session response has sequence ", response->sequence(),
-          "; expected ", sequence));
+      return absl::InternalError(absl::StrCat("session response has sequence ",
+                                              response->sequence(),
+                                              "; expected ", sequence));
     }
     if (response->has_error()) return FromItemError(response->error());
     return absl::OkStatus();
@@ -258,9 +259,8 @@ absl::Status CheckToken(const std::string& token) {
     const unsigned char c = static_cast<unsigned char>(token[i]);
     if (c <= ' ' || c > '~') {
       return absl::InvalidArgumentError(absl::StrCat(
-          "token has character code ", static_cast<int>(c), " at position ",
-          i, " (of ", token.size(),
-          "); allowed: printable ASCII without spaces"));
+          "token has character code ", static_cast<int>(c), " at position ", i,
+          " (of ", token.size(), "); allowed: printable ASCII without spaces"));
     }
   }
   return absl::OkStatus();
@@ -304,9 +304,9 @@ void Transport::Hold(const std::string& name, double idle_timeout_s) {
   absl::MutexLock lock(&lease_mu_);
   ++held_[name];
   lease_period_ =
-      std::min(lease_period_, std::max(absl::Seconds(idle_timeout_s) /
-                                           kRenewalsPerTimeout,
-                                       kMinRenewalPeriod));
+      std::min(lease_period_,
+               std::max(absl::Seconds(idle_timeout_s) / kRenewalsPerTimeout,
+                        kMinRenewalPeriod));
   if (!renewer_.joinable()) renewer_ = std::thread([this] { RenewLoop(); });
 }
 
@@ -385,9 +385,9 @@ absl::Status Transport::CheckHealth(absl::string_view service) const {
   grpc::Slice response_slice;
   status = FromGrpc(response.DumpToSingleSlice(&response_slice));
   if (!status.ok()) return status;
-  absl::StatusOr<uint32_t> serving = DecodeHealthStatus(std::string(
-      reinterpret_cast<const char*>(response_slice.begin()),
-      response_slice.size()));
+  absl::StatusOr<uint32_t> serving = DecodeHealthStatus(
+      std::string(reinterpret_cast<const char*>(response_slice.begin()),
+                  response_slice.size()));
   if (!serving.ok()) return serving.status();
   if (*serving != kServing) {
     return absl::UnavailableError(
@@ -421,7 +421,8 @@ absl::Status CheckAddress(absl::string_view address) {
   }
   const size_t colon = address.rfind(':');
   absl::string_view host = address.substr(0, colon);
-  const bool bracketed = absl::StartsWith(host, "[") && absl::EndsWith(host, "]");
+  const bool bracketed =
+      absl::StartsWith(host, "[") && absl::EndsWith(host, "]");
   int port = 0;
   if (colon == absl::string_view::npos || host.empty() ||
       (!bracketed && absl::StrContains(host, ':')) ||
@@ -467,11 +468,11 @@ absl::StatusOr<std::shared_ptr<Transport>> MakeUnaryTransport(
     credentials = grpc::InsecureChannelCredentials();
   }
   arguments.SetMaxReceiveMessageSize(options.max_receive_message_bytes);
-  std::shared_ptr<grpc::Channel> channel = grpc::CreateCustomChannel(
-      std::string(address), credentials, arguments);
+  std::shared_ptr<grpc::Channel> channel =
+      grpc::CreateCustomChannel(std::string(address), credentials, arguments);
   return std::shared_ptr<Transport>(std::make_shared<UnaryTransport>(
       std::string(address), std::move(channel), options));
 }
 
-}  // namespace client_internal
-}  // namespace mll
+}  // namespace internal
+}  // namespace mll::client

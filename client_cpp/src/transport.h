@@ -10,9 +10,9 @@
 #include <string>
 #include <thread>
 
-#include "absl/status/status.h"
 #include "absl/base/thread_annotations.h"
 #include "absl/container/flat_hash_map.h"
+#include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "absl/strings/string_view.h"
 #include "absl/synchronization/mutex.h"
@@ -23,8 +23,8 @@
 #include "mll/client.h"
 #include "mll/v1/multi_lunar_lander.grpc.pb.h"
 
-namespace mll {
-namespace client_internal {
+namespace mll::client {
+namespace internal {
 
 // The server's code and message, unchanged (gRPC and absl share the codes).
 absl::Status FromGrpc(const grpc::Status& status);
@@ -98,7 +98,7 @@ class Transport {
 absl::StatusOr<std::shared_ptr<Transport>> MakeUnaryTransport(
     absl::string_view address, const ClientOptions& options);
 
-}  // namespace client_internal
-}  // namespace mll
+}  // namespace internal
+}  // namespace mll::client
 
 #endif  // MLL_CLIENT_SRC_TRANSPORT_H_

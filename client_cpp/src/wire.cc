@@ -9,15 +9,15 @@
 #include <vector>
 
 #include "absl/base/config.h"
-#include "absl/strings/str_cat.h"
 #include "absl/strings/ascii.h"
+#include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/strip.h"
 #include "google/protobuf/descriptor.h"
 #include "google/protobuf/util/json_util.h"
 
-namespace mll {
-namespace client_internal {
+namespace mll::client {
+namespace internal {
 namespace {
 
 // Arrays travel little-endian and are copied as they are.
@@ -28,10 +28,9 @@ namespace {
 // The optional members of RemoteEnvConfig, each named as its field of
 // mll.v1.EnvConfig; encoding and decoding both walk this one list, through
 // protobuf reflection by name.
-using ConfigMember =
-    std::variant<std::optional<int> RemoteEnvConfig::*,
-                 std::optional<bool> RemoteEnvConfig::*,
-                 std::optional<double> RemoteEnvConfig::*>;
+using ConfigMember = std::variant<std::optional<int> RemoteEnvConfig::*,
+                                  std::optional<bool> RemoteEnvConfig::*,
+                                  std::optional<double> RemoteEnvConfig::*>;
 struct ConfigField {
   const char* name;
   ConfigMember member;
@@ -118,17 +117,18 @@ absl::Status DecodeColumn(const v1::Array& array, absl::string_view field,
     return absl::InternalError(absl::StrCat(
         "server sent ", field, " with dtype ", v1::DType_Name(array.dtype()),
         ", shape [", absl::StrJoin(array.shape(), ","), "] and ",
-        array.data().size(), " bytes; expected ",
-        v1::DType_Name(DTypeOf<T>()), " [", absl::StrJoin(shape, ","), "]"));
+        array.data().size(), " bytes; expected ", v1::DType_Name(DTypeOf<T>()),
+        " [", absl::StrJoin(shape, ","), "]"));
   }
   out->resize(count);
-  if (count > 0) std::memcpy(out->data(), array.data().data(), count * sizeof(T));
+  if (count > 0)
+    std::memcpy(out->data(), array.data().data(), count * sizeof(T));
   return absl::OkStatus();
 }
 
 template <typename T>
-void EncodeColumn(absl::Span<const T> values,
-                  std::initializer_list<int> shape, v1::Array* proto) {
+void EncodeColumn(absl::Span<const T> values, std::initializer_list<int> shape,
+                  v1::Array* proto) {
   proto->set_dtype(DTypeOf<T>());
   proto->mutable_shape()->Assign(shape.begin(), shape.end());
   proto->set_data(reinterpret_cast<const char*>(values.data()),
@@ -139,14 +139,13 @@ void EncodeColumn(absl::Span<const T> values,
 // the observations' shape.
 template <typename Message>
 absl::Status DecodeAgentColumns(const Message& proto, AgentColumns* columns) {
-  const int n = proto.observations().shape_size() > 0
-                    ? proto.observations().shape(0)
-                    : 0;
+  const int n =
+      proto.observations().shape_size() > 0 ? proto.observations().shape(0) : 0;
   columns->n_landers = n;
   std::vector<uint8_t> outcomes;
-  absl::Status status = DecodeColumn(proto.observations(), "observations",
-                                     {n, kRemoteObservationSize},
-                                     &columns->observations);
+  absl::Status status =
+      DecodeColumn(proto.observations(), "observations",
+                   {n, kRemoteObservationSize}, &columns->observations);
   if (status.ok()) {
     status = DecodeColumn(proto.rewards(), "rewards", {n}, &columns->rewards);
   }
@@ -235,8 +234,8 @@ RemoteEnvConfig DecodeConfig(const v1::EnvConfig& proto) {
           const google::protobuf::FieldDescriptor& descriptor =
               ConfigFieldDescriptor(field.name);
           if (!proto.GetReflection()->HasField(proto, &descriptor)) return;
-          using Value = typename std::decay_t<decltype(config.*member)>::
-              value_type;
+          using Value =
+              typename std::decay_t<decltype(config.*member)>::value_type;
           config.*member = GetField<Value>(descriptor, proto);
         },
         field.member);
@@ -266,17 +265,16 @@ EnvInfo DecodeEnv(const v1::Env& proto) {
   options.always_print_primitive_fields = true;
   // Printing a well-formed message cannot fail; an empty string would only
   // make the JSON field empty.
-  (void)google::protobuf::util::MessageToJsonString(proto, &info.json,
-                                                    options);
+  (void)google::protobuf::util::MessageToJsonString(proto, &info.json, options);
   return info;
 }
 
 absl::Status EncodeActions(const Actions& actions, v1::Array* proto) {
   if (actions.discrete.empty() == actions.continuous.empty()) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "actions: set exactly one of discrete (has ", actions.discrete.size(),
-        " values) and continuous (has ", actions.continuous.size(),
-        " values)"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("actions: set exactly one of discrete (has ",
+                     actions.discrete.size(), " values) and continuous (has ",
+                     actions.continuous.size(), " values)"));
   }
   if (!actions.discrete.empty()) {
     EncodeColumn(actions.discrete, {static_cast<int>(actions.discrete.size())},
@@ -287,10 +285,10 @@ absl::Status EncodeActions(const Actions& actions, v1::Array* proto) {
   // server, which names the wrong count in its error.
   const int size = static_cast<int>(actions.continuous.size());
   if (size % kRemoteContinuousActionSize == 0) {
-    EncodeColumn(actions.continuous,
-                 {size / kRemoteContinuousActionSize,
-                  kRemoteContinuousActionSize},
-                 proto);
+    EncodeColumn(
+        actions.continuous,
+        {size / kRemoteContinuousActionSize, kRemoteContinuousActionSize},
+        proto);
   } else {
     EncodeColumn(actions.continuous, {size}, proto);
   }
@@ -353,11 +351,10 @@ absl::string_view OutcomeName(int code) {
       if (value->number() >= static_cast<int>(names->size())) {
         names->resize(value->number() + 1, "unknown");
       }
-      (*names)[value->number()] =
-          value->number() == v1::OUTCOME_UNSPECIFIED
-              ? "none"
-              : absl::AsciiStrToLower(
-                    absl::StripPrefix(value->name(), "OUTCOME_"));
+      (*names)[value->number()] = value->number() == v1::OUTCOME_UNSPECIFIED
+                                      ? "none"
+                                      : absl::AsciiStrToLower(absl::StripPrefix(
+                                            value->name(), "OUTCOME_"));
     }
     return names;
   }();
@@ -365,5 +362,5 @@ absl::string_view OutcomeName(int code) {
   return (*kNames)[code];
 }
 
-}  // namespace client_internal
-}  // namespace mll
+}  // namespace internal
+}  // namespace mll::client

@@ -10,8 +10,8 @@
 #include "mll/client.h"
 #include "mll/v1/multi_lunar_lander.pb.h"
 
-namespace mll {
-namespace client_internal {
+namespace mll::client {
+namespace internal {
 
 // Only the fields that are set travel; the server fills the defaults.
 void EncodeConfig(const RemoteEnvConfig& config, v1::EnvConfig* proto);
@@ -38,7 +38,7 @@ RenderedFrame DecodeFrame(const v1::Frame& proto);
 // does not know -> "unknown".
 absl::string_view OutcomeName(int code);
 
-}  // namespace client_internal
-}  // namespace mll
+}  // namespace internal
+}  // namespace mll::client
 
 #endif  // MLL_CLIENT_SRC_WIRE_H_

@@ -6,15 +6,15 @@
 #include "absl/strings/str_cat.h"
 #include "mll/core/heuristic.h"
 
-namespace mll {
+namespace mll::client {
 
-RemoteEnvConfig RemoteConfigFrom(const EnvConfig& config) {
+RemoteEnvConfig RemoteConfigFrom(const core::EnvConfig& config) {
   RemoteEnvConfig remote;
 #define MLL_COPY_OPTION(type, name, default_value, range, help) \
   remote.name = config.name;
   MLL_ENV_OPTIONS(MLL_COPY_OPTION)
 #undef MLL_COPY_OPTION
-  remote.render_rgb_array = config.render_mode == RenderMode::kRgbArray;
+  remote.render_rgb_array = config.render_mode == core::RenderMode::kRgbArray;
   return remote;
 }
 
@@ -31,7 +31,7 @@ RemotePilot::RemotePilot(PilotPolicy policy, int n_landers, bool continuous,
       continuous_(continuous),
       rng_(seed),
       discrete_(n_landers, 0),
-      continuous_actions_(kContinuousActionSize * n_landers, 0.0f) {}
+      continuous_actions_(core::kContinuousActionSize * n_landers, 0.0f) {}
 
 Actions RemotePilot::Act(const StepData& last) {
   std::fill(discrete_.begin(), discrete_.end(), 0);
@@ -39,13 +39,14 @@ Actions RemotePilot::Act(const StepData& last) {
   const int n = std::min<int>(last.n_landers, discrete_.size());
   for (int agent = 0; agent < n; ++agent) {
     if (!last.stepped[agent] || !last.active(agent)) continue;
-    const AgentAction action =
+    const core::AgentAction action =
         policy_ == PilotPolicy::kHeuristic
-            ? HeuristicAction(last.observation(agent), continuous_)
+            ? core::HeuristicAction(last.observation(agent), continuous_)
             : RandomAction();
     discrete_[agent] = action.discrete;
-    std::copy(action.continuous.begin(), action.continuous.end(),
-              continuous_actions_.begin() + kContinuousActionSize * agent);
+    std::copy(
+        action.continuous.begin(), action.continuous.end(),
+        continuous_actions_.begin() + core::kContinuousActionSize * agent);
   }
   return continuous_ ? Actions::Continuous(continuous_actions_)
                      : Actions::Discrete(discrete_);
@@ -53,10 +54,10 @@ Actions RemotePilot::Act(const StepData& last) {
 
 // Raw 64-bit draws, not std distributions (whose algorithms differ between
 // standard libraries), so a seed means the same actions everywhere.
-AgentAction RemotePilot::RandomAction() {
-  AgentAction action;
+core::AgentAction RemotePilot::RandomAction() {
+  core::AgentAction action;
   if (!continuous_) {
-    action.discrete = static_cast<int32_t>(rng_() % kDiscreteActionCount);
+    action.discrete = static_cast<int32_t>(rng_() % core::kDiscreteActionCount);
     return action;
   }
   for (float& value : action.continuous) {
@@ -66,4 +67,4 @@ AgentAction RemotePilot::RandomAction() {
   return action;
 }
 
-}  // namespace mll
+}  // namespace mll::client

@@ -15,10 +15,10 @@
 #include "mll/core/env.h"
 #include "mll/core/env_config.h"
 
-namespace mll {
+namespace mll::client {
 
 // Every field set, so the server builds exactly `config`.
-RemoteEnvConfig RemoteConfigFrom(const EnvConfig& config);
+RemoteEnvConfig RemoteConfigFrom(const core::EnvConfig& config);
 
 enum class PilotPolicy { kHeuristic, kRandom };
 
@@ -37,7 +37,7 @@ class RemotePilot {
   Actions Act(const StepData& last);
 
  private:
-  AgentAction RandomAction();
+  core::AgentAction RandomAction();
 
   PilotPolicy policy_;
   bool continuous_;
@@ -46,6 +46,6 @@ class RemotePilot {
   std::vector<float> continuous_actions_;
 };
 
-}  // namespace mll
+}  // namespace mll::client
 
 #endif  // MLL_CLIENT_TOOLS_CORE_BRIDGE_H_

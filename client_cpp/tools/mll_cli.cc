@@ -91,7 +91,7 @@ ABSL_FLAG(int, episodes, 1, "play: number of episodes, >= 1.");
 ABSL_FLAG(bool, auto_reset, false,
           "create: the step after an episode ends starts a new one.");
 
-namespace mll {
+namespace mll::client {
 namespace {
 
 constexpr int kExitServerError = 1;
@@ -131,20 +131,26 @@ std::string Quoted(absl::string_view text) {
 std::string StepDataJson(const StepData& data) {
   const int n = data.n_landers;
   std::string json = absl::StrCat(
-      "{\"observations\":", PerAgent(n, [&](int a) {
-        std::vector<std::string> values;
-        for (float v : data.observation(a)) values.push_back(JsonNumber(v));
-        return absl::StrCat("[", absl::StrJoin(values, ","), "]");
-      }),
+      "{\"observations\":",
+      PerAgent(n,
+               [&](int a) {
+                 std::vector<std::string> values;
+                 for (float v : data.observation(a))
+                   values.push_back(JsonNumber(v));
+                 return absl::StrCat("[", absl::StrJoin(values, ","), "]");
+               }),
       ",\"rewards\":",
       PerAgent(n, [&](int a) { return JsonNumber(data.rewards[a]); }),
       ",\"terminations\":",
-      PerAgent(n, [&](int a) { return data.terminations[a] ? "true" : "false"; }),
+      PerAgent(n,
+               [&](int a) { return data.terminations[a] ? "true" : "false"; }),
       ",\"truncations\":",
-      PerAgent(n, [&](int a) { return data.truncations[a] ? "true" : "false"; }),
-      ",\"outcomes\":", PerAgent(n, [&](int a) {
-        return Quoted(LanderOutcomeName(data.outcomes[a]));
-      }),
+      PerAgent(n,
+               [&](int a) { return data.truncations[a] ? "true" : "false"; }),
+      ",\"outcomes\":",
+      PerAgent(
+          n,
+          [&](int a) { return Quoted(LanderOutcomeName(data.outcomes[a])); }),
       ",\"episode_over\":", data.episode_over ? "true" : "false",
       ",\"cycles\":", data.cycles);
   if (data.seed.has_value()) absl::StrAppend(&json, ",\"seed\":", *data.seed);
@@ -267,7 +273,7 @@ Result List(const Client& client, const std::vector<std::string>&) {
 }
 
 Result Create(const Client& client, const std::vector<std::string>&) {
-  absl::StatusOr<EnvConfig> config = EnvConfigFromFlags();
+  absl::StatusOr<core::EnvConfig> config = core::EnvConfigFromFlags();
   if (!config.ok()) return Usage(config.status());
   RemoteEnvConfig remote = RemoteConfigFrom(*config);
   remote.auto_reset = absl::GetFlag(FLAGS_auto_reset);
@@ -328,14 +334,13 @@ Result Step(const Client& client, const std::vector<std::string>& args) {
   for (absl::string_view item : absl::StrSplit(text, ',', absl::SkipEmpty())) {
     int32_t integer = 0;
     float real = 0.0f;
-    const bool parsed = env->continuous()
-                            ? absl::SimpleAtof(item, &real)
-                            : absl::SimpleAtoi(item, &integer);
+    const bool parsed = env->continuous() ? absl::SimpleAtof(item, &real)
+                                          : absl::SimpleAtoi(item, &integer);
     if (!parsed) {
-      return Usage(absl::InvalidArgumentError(absl::StrCat(
-          "actions has \"", item, "\"; expected ",
-          env->continuous() ? "numbers" : "integers 0..3",
-          " separated by commas")));
+      return Usage(absl::InvalidArgumentError(
+          absl::StrCat("actions has \"", item, "\"; expected ",
+                       env->continuous() ? "numbers" : "integers 0..3",
+                       " separated by commas")));
     }
     discrete.push_back(integer);
     continuous.push_back(real);
@@ -344,9 +349,9 @@ Result Step(const Client& client, const std::vector<std::string>& args) {
     return Usage(absl::InvalidArgumentError(
         "step needs --actions, e.g. --actions=2,0,3 (one per lander)"));
   }
-  absl::StatusOr<StepData> data = env->Step(
-      env->continuous() ? Actions::Continuous(continuous)
-                        : Actions::Discrete(discrete));
+  absl::StatusOr<StepData> data =
+      env->Step(env->continuous() ? Actions::Continuous(continuous)
+                                  : Actions::Discrete(discrete));
   if (!data.ok()) return Server(data.status());
   std::cout << StepDataJson(*data) << std::endl;
   return std::nullopt;
@@ -362,8 +367,8 @@ Result Render(const Client& client, const std::vector<std::string>& args) {
   }
   absl::StatusOr<RemoteEnv> env = client.Attach(*name);
   if (!env.ok()) return Server(env.status());
-  absl::StatusOr<RenderedFrame> frame = env->Render(
-      format_name == "png" ? FrameFormat::kPng : FrameFormat::kRgb);
+  absl::StatusOr<RenderedFrame> frame =
+      env->Render(format_name == "png" ? FrameFormat::kPng : FrameFormat::kRgb);
   if (!frame.ok()) return Server(frame.status());
   const std::string out = absl::GetFlag(FLAGS_out);
   absl::Status written = WriteFile(out, frame->data);
@@ -423,7 +428,7 @@ Result OpenPlayEnvs(const Client& client, const PlayFlags& flags,
     envs->push_back(*std::move(env));
     return std::nullopt;
   }
-  absl::StatusOr<EnvConfig> config = EnvConfigFromFlags();
+  absl::StatusOr<core::EnvConfig> config = core::EnvConfigFromFlags();
   if (!config.ok()) return Usage(config.status());
   for (int j = 0; j < flags.n_envs; ++j) {
     absl::StatusOr<RemoteEnv> env = client.CreateEnv(RemoteConfigFrom(*config));
@@ -494,38 +499,39 @@ class PlayReport {
     }
     total_steps_ += steps;
     ++env_episodes_;
-    std::cout << absl::StrCat(
-                     "{\"episode\":", episode, ",\"seed\":", seed,
-                     ",\"steps\":", steps, ",\"returns\":",
-                     PerAgent(n_, [&](int a) { return JsonNumber(returns[a]); }),
-                     ",\"lengths\":",
-                     PerAgent(n_, [&](int a) { return lengths[a]; }),
-                     ",\"outcomes\":", PerAgent(n_, [&](int a) {
-                       return Quoted(LanderOutcomeName(outcomes[a]));
-                     }),
-                     ",\"env\":", Quoted(env.name()), ",\"server\":",
-                     Quoted(client.address(env.server())), "}")
-              << std::endl;
+    std::cout
+        << absl::StrCat(
+               "{\"episode\":", episode, ",\"seed\":", seed,
+               ",\"steps\":", steps, ",\"returns\":",
+               PerAgent(n_, [&](int a) { return JsonNumber(returns[a]); }),
+               ",\"lengths\":", PerAgent(n_, [&](int a) { return lengths[a]; }),
+               ",\"outcomes\":",
+               PerAgent(n_,
+                        [&](int a) {
+                          return Quoted(LanderOutcomeName(outcomes[a]));
+                        }),
+               ",\"env\":", Quoted(env.name()),
+               ",\"server\":", Quoted(client.address(env.server())), "}")
+        << std::endl;
   }
 
   void Summary(int episodes, int n_envs, double seconds) const {
-    std::cout << absl::StrCat(
-                     "{\"summary\":true,\"episodes\":", episodes,
-                     ",\"envs\":", n_envs,
-                     ",\"mean_return\":", PerAgent(n_, [&](int a) {
-                       return JsonNumber(return_sums_[a] / env_episodes_);
-                     }),
-                     ",\"landing_rate\":",
-                     JsonNumber(static_cast<double>(landed_) /
-                                (env_episodes_ * n_)),
-                     ",\"mean_steps\":",
-                     JsonNumber(static_cast<double>(total_steps_) /
-                                env_episodes_),
-                     ",\"agent_steps\":", agent_steps_,
-                     ",\"agent_steps_per_second\":",
-                     JsonNumber(seconds > 0 ? agent_steps_ / seconds : 0.0),
-                     "}")
-              << std::endl;
+    std::cout
+        << absl::StrCat(
+               "{\"summary\":true,\"episodes\":", episodes,
+               ",\"envs\":", n_envs, ",\"mean_return\":",
+               PerAgent(n_,
+                        [&](int a) {
+                          return JsonNumber(return_sums_[a] / env_episodes_);
+                        }),
+               ",\"landing_rate\":",
+               JsonNumber(static_cast<double>(landed_) / (env_episodes_ * n_)),
+               ",\"mean_steps\":",
+               JsonNumber(static_cast<double>(total_steps_) / env_episodes_),
+               ",\"agent_steps\":", agent_steps_,
+               ",\"agent_steps_per_second\":",
+               JsonNumber(seconds > 0 ? agent_steps_ / seconds : 0.0), "}")
+        << std::endl;
   }
 
  private:
@@ -563,17 +569,18 @@ Result Play(const Client& client, const std::vector<std::string>&) {
     }
     std::vector<StepData> last;
     std::vector<int> steps;
-    if (Result failed = FlyEpisode(client, envs, pilots, seeds, &last, &steps)) {
+    if (Result failed =
+            FlyEpisode(client, envs, pilots, seeds, &last, &steps)) {
       return failed;
     }
     for (int j = 0; j < n_envs; ++j) {
       report.Episode(client, envs[j], episode, seeds[j], steps[j], last[j]);
     }
   }
-  report.Summary(flags->episodes, n_envs,
-                 std::chrono::duration<double>(
-                     std::chrono::steady_clock::now() - start)
-                     .count());
+  report.Summary(
+      flags->episodes, n_envs,
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
+          .count());
   return std::nullopt;
 }
 
@@ -592,27 +599,49 @@ struct CommandSpec {
 
 const std::map<std::string, CommandSpec>& Commands() {
   static const auto* const kCommands = new std::map<std::string, CommandSpec>{
-      {"health", {Health, 0, "", "checks that the server is serving", {}, false}},
-      {"list", {List, 0, "", "lists the environments (one JSON line each)", {},
-        false}},
+      {"health",
+       {Health, 0, "", "checks that the server is serving", {}, false}},
+      {"list",
+       {List, 0, "", "lists the environments (one JSON line each)", {}, false}},
       {"create",
-       {Create, 0, "", "creates an environment and prints its name",
-        {"server", "auto_reset"}, true}},
+       {Create,
+        0,
+        "",
+        "creates an environment and prints its name",
+        {"server", "auto_reset"},
+        true}},
       {"get", {Get, 1, " envs/ID", "prints an environment", {"name"}, false}},
-      {"delete", {Delete, 1, " envs/ID", "deletes an environment", {"name"},
-        false}},
+      {"delete",
+       {Delete, 1, " envs/ID", "deletes an environment", {"name"}, false}},
       {"reset",
-       {Reset, 1, " envs/ID", "resets an environment", {"name", "seed"},
+       {Reset,
+        1,
+        " envs/ID",
+        "resets an environment",
+        {"name", "seed"},
         false}},
       {"step",
-       {Step, 1, " envs/ID", "steps every active lander once",
-        {"name", "actions"}, false}},
+       {Step,
+        1,
+        " envs/ID",
+        "steps every active lander once",
+        {"name", "actions"},
+        false}},
       {"render",
-       {Render, 1, " envs/ID", "writes a frame", {"name", "out", "format"},
+       {Render,
+        1,
+        " envs/ID",
+        "writes a frame",
+        {"name", "out", "format"},
         false}},
       {"play",
-       {Play, 0, "", "flies landers with a pilot and prints one JSON line per "
-        "episode", {"policy", "episodes", "seed", "envs", "name"}, true}},
+       {Play,
+        0,
+        "",
+        "flies landers with a pilot and prints one JSON line per "
+        "episode",
+        {"policy", "episodes", "seed", "envs", "name"},
+        true}},
   };
   return *kCommands;
 }
@@ -624,31 +653,32 @@ std::string CommandNames() {
 }
 
 constexpr absl::string_view kConnectionFlags[] = {
-    "address", "timeout_ms", "tls", "tls_root_cert", "tls_server_name",
-    "token", "token_file"};
+    "address",         "timeout_ms", "tls",       "tls_root_cert",
+    "tls_server_name", "token",      "token_file"};
 
 // `mll_cli --help`, or `mll_cli COMMAND --help` for one command's flags.
 std::string Help(const std::vector<std::string>& words) {
   const std::vector<const absl::CommandLineFlag*> connection =
-      tools::FlagsNamed({std::begin(kConnectionFlags),
-                         std::end(kConnectionFlags)});
+      core::tools::FlagsNamed(
+          {std::begin(kConnectionFlags), std::end(kConnectionFlags)});
   for (const std::string& word : words) {
     const auto command = Commands().find(word);
     if (command == Commands().end()) continue;
     const CommandSpec& spec = command->second;
     std::string text = absl::StrCat("mll_cli ", word, spec.arguments,
-                                     " [--flags]: ", spec.summary, "\n");
+                                    " [--flags]: ", spec.summary, "\n");
     if (!spec.flags.empty()) {
-      absl::StrAppend(&text, "\nFlags:\n",
-                      tools::DescribeFlags(tools::FlagsNamed(spec.flags)));
+      absl::StrAppend(
+          &text, "\nFlags:\n",
+          core::tools::DescribeFlags(core::tools::FlagsNamed(spec.flags)));
     }
     if (spec.takes_env_options) {
       absl::StrAppend(&text, "\nEnvironment options:\n",
-                      tools::DescribeFlags(
-                          tools::FlagsDefinedIn("config_flags.cc")));
+                      core::tools::DescribeFlags(
+                          core::tools::FlagsDefinedIn("config_flags.cc")));
     }
     absl::StrAppend(&text, "\nConnection flags:\n",
-                    tools::DescribeFlags(connection));
+                    core::tools::DescribeFlags(connection));
     return text;
   }
   std::string text =
@@ -661,7 +691,7 @@ std::string Help(const std::vector<std::string>& words) {
                     "\n");
   }
   absl::StrAppend(&text, "\nConnection flags (every command):\n",
-                  tools::DescribeFlags(connection));
+                  core::tools::DescribeFlags(connection));
   return text;
 }
 
@@ -674,8 +704,8 @@ int Run(const std::vector<std::string>& positional) {
   const std::string& command_name = positional[0];
   const auto command = Commands().find(command_name);
   if (command == Commands().end()) {
-    std::cerr << "mll_cli: unknown command \"" << command_name
-              << "\"; one of " << CommandNames() << std::endl;
+    std::cerr << "mll_cli: unknown command \"" << command_name << "\"; one of "
+              << CommandNames() << std::endl;
     return kExitUsage;
   }
   absl::StatusOr<ClientOptions> options = OptionsFromFlags();
@@ -690,8 +720,7 @@ int Run(const std::vector<std::string>& positional) {
     std::cerr << "mll_cli: " << client.status() << std::endl;
     return kExitUsage;
   }
-  const std::vector<std::string> args(positional.begin() + 1,
-                                      positional.end());
+  const std::vector<std::string> args(positional.begin() + 1, positional.end());
   if (static_cast<int>(args.size()) > command->second.max_arguments) {
     std::cerr << "mll_cli " << command_name << ": takes "
               << (command->second.max_arguments == 0
@@ -709,15 +738,15 @@ int Run(const std::vector<std::string>& positional) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::client
 
 int main(int argc, char** argv) {
   const std::vector<std::string> positional =
-      mll::tools::ParseCommandLine(argc, argv, mll::Help);
+      mll::core::tools::ParseCommandLine(argc, argv, mll::client::Help);
   // gRPC's own log lines (e.g. "E1125 ... Failed to parse [::1") repeat the
   // error mll_cli prints; GRPC_VERBOSITY (DEBUG, INFO, ERROR) turns them on.
   if (std::getenv("GRPC_VERBOSITY") == nullptr) {
     gpr_set_log_function([](gpr_log_func_args*) {});
   }
-  return mll::Run(positional);
+  return mll::client::Run(positional);
 }

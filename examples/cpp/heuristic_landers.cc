@@ -22,38 +22,39 @@ int main(int argc, char** argv) {
   const uint64_t seed = argc > 3 ? std::strtoull(argv[3], nullptr, 10) : 0;
   const bool continuous = argc > 4 && std::string(argv[4]) == "1";
 
-  absl::StatusOr<mll::Client> client = mll::Client::Create(argv[1]);
+  absl::StatusOr<mll::client::Client> client =
+      mll::client::Client::Create(argv[1]);
   if (!client.ok()) {
     std::cerr << client.status() << std::endl;
     return 1;
   }
-  mll::RemoteEnvConfig config;
+  mll::client::RemoteEnvConfig config;
   config.n_landers = n_landers;  // The server checks the range.
   config.continuous = continuous;
   // Heuristic pilots all steer for the pad and may collide; let the others
   // fly on when one is damaged.
   config.terminate_on_damage = false;
   // The handle deletes the environment when it goes out of scope.
-  absl::StatusOr<mll::RemoteEnv> env = client->CreateEnv(config);
+  absl::StatusOr<mll::client::RemoteEnv> env = client->CreateEnv(config);
   if (!env.ok()) {
     std::cerr << "CreateEnv: " << env.status() << std::endl;
     return 1;
   }
-  absl::StatusOr<mll::StepData> data = env->Reset(seed);
+  absl::StatusOr<mll::client::StepData> data = env->Reset(seed);
   std::vector<int32_t> discrete(n_landers, 0);
   std::vector<float> throttle(2 * n_landers, 0.0f);
   int steps = 0;
   while (data.ok() && !data->episode_over) {
     for (int agent = 0; agent < n_landers; ++agent) {
       if (!data->active(agent)) continue;  // Done landers' actions are ignored.
-      const mll::AgentAction action =
-          mll::HeuristicAction(data->observation(agent), continuous);
+      const mll::core::AgentAction action =
+          mll::core::HeuristicAction(data->observation(agent), continuous);
       discrete[agent] = action.discrete;
       throttle[2 * agent] = action.continuous[0];
       throttle[2 * agent + 1] = action.continuous[1];
     }
-    data = env->Step(continuous ? mll::Actions::Continuous(throttle)
-                                : mll::Actions::Discrete(discrete));
+    data = env->Step(continuous ? mll::client::Actions::Continuous(throttle)
+                                : mll::client::Actions::Discrete(discrete));
     ++steps;
   }
   if (!data.ok()) {
@@ -64,8 +65,8 @@ int main(int argc, char** argv) {
             << std::endl;
   for (int agent = 0; agent < n_landers; ++agent) {
     std::cout << "  " << env->info().possible_agents[agent] << " "
-              << mll::LanderOutcomeName(data->outcomes[agent]) << " after "
-              << data->episode_lengths[agent] << " steps, return "
+              << mll::client::LanderOutcomeName(data->outcomes[agent])
+              << " after " << data->episode_lengths[agent] << " steps, return "
               << data->episode_returns[agent] << std::endl;
   }
   return 0;

@@ -126,9 +126,8 @@ absl::Status FollowParent() {
     prctl(PR_SET_PDEATHSIG, SIGTERM);
     // The parent may have exited before the line above took effect.
     if (getppid() != parent_pid) {
-      return absl::FailedPreconditionError(
-          absl::StrCat("--parent_pid=", parent_pid,
-                       " has already exited; not starting"));
+      return absl::FailedPreconditionError(absl::StrCat(
+          "--parent_pid=", parent_pid, " has already exited; not starting"));
     }
   }
 #endif
@@ -136,8 +135,8 @@ absl::Status FollowParent() {
 }
 
 // The server's options from the flags, with the auth tokens read.
-absl::StatusOr<mll::ServerOptions> ServerOptionsFromFlags() {
-  mll::ServerOptions options;
+absl::StatusOr<mll::service::ServerOptions> ServerOptionsFromFlags() {
+  mll::service::ServerOptions options;
   options.address = absl::GetFlag(FLAGS_address);
   options.max_message_mb = absl::GetFlag(FLAGS_max_message_mb);
   options.service.threads = absl::GetFlag(FLAGS_threads);
@@ -152,7 +151,7 @@ absl::StatusOr<mll::ServerOptions> ServerOptionsFromFlags() {
   const std::string token_file = absl::GetFlag(FLAGS_auth_token_file);
   if (!token_file.empty()) {
     absl::StatusOr<std::vector<std::string>> tokens =
-        mll::ReadTokenFile(token_file);
+        mll::service::ReadTokenFile(token_file);
     if (!tokens.ok()) return tokens.status();
     options.service.auth_tokens = *std::move(tokens);
   }
@@ -161,7 +160,8 @@ absl::StatusOr<mll::ServerOptions> ServerOptionsFromFlags() {
 
 // What the server listens on and what protects it, in two lines on stderr;
 // never the tokens themselves.
-void PrintBanner(const mll::Server& server, const mll::ServerOptions& options,
+void PrintBanner(const mll::service::Server& server,
+                 const mll::service::ServerOptions& options,
                  double shutdown_grace_s) {
   const std::string host = HostOf(options.address);
   const std::string port_file = absl::GetFlag(FLAGS_port_file);
@@ -173,7 +173,7 @@ void PrintBanner(const mll::Server& server, const mll::ServerOptions& options,
                host.c_str(), server.port(), options.address.c_str(),
                port_file.c_str(), options.service.threads,
                options.service.max_envs,
-               mll::EffectiveMaxEnvsPerToken(options.service),
+               mll::service::EffectiveMaxEnvsPerToken(options.service),
                absl::ToDoubleSeconds(options.service.idle_timeout),
                options.max_message_mb, shutdown_grace_s);
   const int n_tokens = static_cast<int>(options.service.auth_tokens.size());
@@ -206,12 +206,12 @@ int Fail(const absl::Status& status) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  mll::tools::ParseFlagsOnly(argc, argv, "mll_server", [] {
+  mll::core::tools::ParseFlagsOnly(argc, argv, "mll_server", [] {
     return absl::StrCat(
         "mll_server: hosts Multi Lunar Lander environments over gRPC "
         "(mll.v1).\nUsage: mll_server [--flags]\n\nFlags:\n",
-        mll::tools::DescribeFlags(
-            mll::tools::FlagsDefinedIn("mll_server_main.cc")));
+        mll::core::tools::DescribeFlags(
+            mll::core::tools::FlagsDefinedIn("mll_server_main.cc")));
   });
   QuietGrpcLogsUnlessAsked();
   // Debian's abseil is built with Mutex deadlock detection on, which puts a
@@ -224,15 +224,16 @@ int main(int argc, char** argv) {
 
   const double shutdown_grace_s = absl::GetFlag(FLAGS_shutdown_grace_s);
   if (!(shutdown_grace_s > 0 && shutdown_grace_s <= kMaxShutdownGraceS)) {
-    return Fail(absl::InvalidArgumentError(absl::StrCat(
-        "--shutdown_grace_s: ", shutdown_grace_s,
-        " is out of range: allowed 0 < S <= ", kMaxShutdownGraceS,
-        " seconds")));
+    return Fail(absl::InvalidArgumentError(
+        absl::StrCat("--shutdown_grace_s: ", shutdown_grace_s,
+                     " is out of range: allowed 0 < S <= ", kMaxShutdownGraceS,
+                     " seconds")));
   }
-  absl::StatusOr<mll::ServerOptions> options = ServerOptionsFromFlags();
+  absl::StatusOr<mll::service::ServerOptions> options =
+      ServerOptionsFromFlags();
   if (!options.ok()) return Fail(options.status());
-  absl::StatusOr<std::unique_ptr<mll::Server>> server =
-      mll::Server::Start(*options);
+  absl::StatusOr<std::unique_ptr<mll::service::Server>> server =
+      mll::service::Server::Start(*options);
   if (!server.ok()) return Fail(server.status());
   const std::string port_file = absl::GetFlag(FLAGS_port_file);
   if (!port_file.empty() && !WritePortFile(port_file, (*server)->port())) {

@@ -10,7 +10,7 @@
 
 #include "server_process.h"
 
-namespace mll {
+namespace mll::client {
 
 // The build's mll_cli with `args`, to completion; when it cannot be run,
 // exit_code is -1 and err says why.
@@ -23,6 +23,6 @@ inline CommandResult RunCli(std::vector<std::string> args) {
   return failed;
 }
 
-}  // namespace mll
+}  // namespace mll::client
 
 #endif  // MLL_TESTS_CLIENT_CPP_CLI_RUNNER_H_

@@ -14,7 +14,7 @@
 #include "gtest/gtest.h"
 #include "server_process.h"
 
-namespace mll {
+namespace mll::client {
 namespace {
 
 using ::testing::HasSubstr;
@@ -216,11 +216,11 @@ TEST_F(CliTest, NoServerExitsOneUnavailable) {
 // formatting: steps, lengths and outcomes.
 std::string Trajectory(const std::string& line) {
   static const std::regex kParts(
-      "\"steps\":([0-9]+).*(\"lengths\":\\{[^}]*\\}),(\"outcomes\":\\{[^}]*\\})");
+      "\"steps\":([0-9]+).*(\"lengths\":\\{[^}]*\\}),(\"outcomes\":\\{[^}]*\\}"
+      ")");
   std::smatch match;
   if (!std::regex_search(line, match, kParts)) return "unparsed: " + line;
-  return absl::StrCat(match[1].str(), " ", match[2].str(), " ",
-                      match[3].str());
+  return absl::StrCat(match[1].str(), " ", match[2].str(), " ", match[3].str());
 }
 
 // play flies through the server what mll_rollout flies in-process: the same
@@ -262,4 +262,4 @@ TEST_F(CliTest, PlayMatchesInProcessRollout) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::client

@@ -14,7 +14,7 @@
 #include "gtest/gtest.h"
 #include "server_process.h"
 
-namespace mll {
+namespace mll::client {
 namespace {
 
 using ::testing::ElementsAre;
@@ -305,7 +305,8 @@ TEST_P(ClientTest, StepBatchReportsErrorsPerItem) {
   EXPECT_EQ((*results)[2].status().code(),
             absl::StatusCode::kFailedPrecondition);
 
-  const std::vector<BatchStep> empty_handle = {{nullptr, Actions::Discrete(one)}};
+  const std::vector<BatchStep> empty_handle = {
+      {nullptr, Actions::Discrete(one)}};
   EXPECT_EQ(client().StepBatch(empty_handle).status().code(),
             absl::StatusCode::kInvalidArgument);
 }
@@ -448,8 +449,7 @@ TEST(ServerGoneTest, CallsFailUnavailable) {
   (*server)->Kill();
   EXPECT_EQ(client->CheckHealth().code(), absl::StatusCode::kUnavailable);
   EXPECT_EQ(env->Reset(0).status().code(), absl::StatusCode::kUnavailable);
-  EXPECT_EQ(client->ListEnvs().status().code(),
-            absl::StatusCode::kUnavailable);
+  EXPECT_EQ(client->ListEnvs().status().code(), absl::StatusCode::kUnavailable);
   absl::Status on_session = session_env->Reset(0).status();
   EXPECT_EQ(on_session.code(), absl::StatusCode::kUnavailable) << on_session;
   // The stream stays failed; later calls say the same at once.
@@ -498,10 +498,10 @@ TEST(ServerGoneTest, NoServerAtAll) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::client
 
 int main(int argc, char** argv) {
   ::testing::InitGoogleTest(&argc, argv);
-  ::testing::AddGlobalTestEnvironment(new mll::ServerEnvironment);
+  ::testing::AddGlobalTestEnvironment(new mll::client::ServerEnvironment);
   return RUN_ALL_TESTS();
 }

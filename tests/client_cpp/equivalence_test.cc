@@ -15,7 +15,7 @@
 #include "mll/core/heuristic.h"
 #include "server_process.h"
 
-namespace mll {
+namespace mll::client {
 namespace {
 
 enum class Transport { kUnary, kSession, kBatch };
@@ -23,7 +23,7 @@ enum class Transport { kUnary, kSession, kBatch };
 struct Case {
   std::string label;
   Transport transport;
-  EnvConfig config;
+  core::EnvConfig config;
   uint64_t seed;
 };
 
@@ -36,7 +36,8 @@ bool SameBits(const std::vector<T>& a, const std::vector<T>& b) {
 }
 
 // Every column of a remote result equals the core's, bit for bit.
-void ExpectSameBits(const StepResult& core, const StepData& remote, int step) {
+void ExpectSameBits(const core::StepResult& core, const StepData& remote,
+                    int step) {
   SCOPED_TRACE(testing::Message() << "step " << step);
   EXPECT_TRUE(SameBits(core.observations, remote.observations));
   EXPECT_TRUE(SameBits(core.rewards, remote.rewards));
@@ -75,7 +76,7 @@ class EquivalenceTest : public ::testing::TestWithParam<Case> {
 
 TEST_P(EquivalenceTest, HeuristicEpisodeIsBitIdentical) {
   const Case& c = GetParam();
-  absl::StatusOr<std::unique_ptr<Env>> core = Env::Create(c.config);
+  absl::StatusOr<std::unique_ptr<core::Env>> core = core::Env::Create(c.config);
   ASSERT_TRUE(core.ok()) << core.status();
   absl::StatusOr<Client> client = ClientFor(c.transport);
   ASSERT_TRUE(client.ok()) << client.status();
@@ -83,7 +84,7 @@ TEST_P(EquivalenceTest, HeuristicEpisodeIsBitIdentical) {
       client->CreateEnv(RemoteConfigFrom(c.config));
   ASSERT_TRUE(remote.ok()) << remote.status();
 
-  StepResult core_result;
+  core::StepResult core_result;
   (*core)->Reset(c.seed, &core_result);
   absl::StatusOr<StepData> remote_result = remote->Reset(c.seed);
   ASSERT_TRUE(remote_result.ok()) << remote_result.status();
@@ -102,7 +103,7 @@ TEST_P(EquivalenceTest, HeuristicEpisodeIsBitIdentical) {
     core_view.truncations = core_result.truncations;
     core_view.stepped = core_result.stepped;
     const Actions actions = pilot.Act(core_view);
-    ActionsView view{actions.discrete, actions.continuous};
+    core::ActionsView view{actions.discrete, actions.continuous};
     ASSERT_TRUE((*core)->Step(view, &core_result).ok());
     if (c.transport == Transport::kBatch) {
       const std::vector<BatchStep> batch = {{&*remote, actions}};
@@ -134,9 +135,9 @@ using AecEquivalenceTest = EquivalenceTest;
 
 TEST_P(AecEquivalenceTest, AecEpisodeIsBitIdentical) {
   const Case& c = GetParam();
-  absl::StatusOr<std::unique_ptr<Env>> core = Env::Create(c.config);
+  absl::StatusOr<std::unique_ptr<core::Env>> core = core::Env::Create(c.config);
   ASSERT_TRUE(core.ok());
-  AecEnv core_aec(core->get());
+  core::AecEnv core_aec(core->get());
   absl::StatusOr<Client> client = ClientFor(c.transport);
   ASSERT_TRUE(client.ok()) << client.status();
   absl::StatusOr<RemoteEnv> remote =
@@ -162,7 +163,8 @@ TEST_P(AecEquivalenceTest, AecEpisodeIsBitIdentical) {
       ASSERT_TRUE(core_aec.Step(std::nullopt).ok());
       ASSERT_TRUE(remote->StepAgentDead().ok());
     } else {
-      const AgentAction action = HeuristicAction(core_obs, c.config.continuous);
+      const core::AgentAction action =
+          core::HeuristicAction(core_obs, c.config.continuous);
       ASSERT_TRUE(core_aec.Step(action).ok());
       ASSERT_TRUE((c.config.continuous ? remote->StepAgent(action.continuous)
                                        : remote->StepAgent(action.discrete))
@@ -174,8 +176,8 @@ TEST_P(AecEquivalenceTest, AecEpisodeIsBitIdentical) {
   EXPECT_GT(turns, 50);
 }
 
-EnvConfig Config(int n, bool continuous, bool wind) {
-  EnvConfig config;
+core::EnvConfig Config(int n, bool continuous, bool wind) {
+  core::EnvConfig config;
   config.n_landers = n;
   config.continuous = continuous;
   config.enable_wind = wind;
@@ -200,13 +202,11 @@ std::string Label(const ::testing::TestParamInfo<Case>& info) {
   return info.param.label;
 }
 
-INSTANTIATE_TEST_SUITE_P(Transports, EquivalenceTest,
-                         ::testing::Values(kUnaryDiscrete3,
-                                           kUnaryContinuousWind4,
-                                           kSessionDiscrete3,
-                                           kSessionContinuous2,
-                                           kBatchDiscreteWind9),
-                         Label);
+INSTANTIATE_TEST_SUITE_P(
+    Transports, EquivalenceTest,
+    ::testing::Values(kUnaryDiscrete3, kUnaryContinuousWind4, kSessionDiscrete3,
+                      kSessionContinuous2, kBatchDiscreteWind9),
+    Label);
 INSTANTIATE_TEST_SUITE_P(Transports, AecEquivalenceTest,
                          ::testing::Values(kUnaryDiscrete3,
                                            kUnaryContinuousWind4,
@@ -215,4 +215,4 @@ INSTANTIATE_TEST_SUITE_P(Transports, AecEquivalenceTest,
                          Label);
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::client

@@ -12,15 +12,16 @@ int main(int argc, char** argv) {
     std::cerr << "usage: run_with_server SERVER COMMAND [ARGS...]" << std::endl;
     return 2;
   }
-  absl::StatusOr<std::unique_ptr<mll::ServerProcess>> server =
-      mll::ServerProcess::Start(argv[1]);
+  absl::StatusOr<std::unique_ptr<mll::client::ServerProcess>> server =
+      mll::client::ServerProcess::Start(argv[1]);
   if (!server.ok()) {
     std::cerr << "run_with_server: " << server.status() << std::endl;
     return 1;
   }
   std::vector<std::string> command(argv + 2, argv + argc);
   command.push_back((*server)->address());
-  absl::StatusOr<mll::CommandResult> result = mll::RunCommand(command);
+  absl::StatusOr<mll::client::CommandResult> result =
+      mll::client::RunCommand(command);
   if (!result.ok()) {
     std::cerr << "run_with_server: " << result.status() << std::endl;
     return 1;

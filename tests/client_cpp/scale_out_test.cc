@@ -20,7 +20,7 @@
 #include "mll/client.h"
 #include "server_process.h"
 
-namespace mll {
+namespace mll::client {
 namespace {
 
 using ::testing::HasSubstr;
@@ -301,8 +301,8 @@ TEST_P(ScaleOutBatchTest, BatchAcrossServersIsBitIdenticalToOneServer) {
 TEST_P(ScaleOutBatchTest, BatchRejectsHandlesOfOtherServers) {
   const Client both = Maybe(ConnectBoth(), GetParam());
   // The same server under another name is another address to the client.
-  const std::string port = std::string(absl::StripPrefix(
-      TwoServers::addresses()[0], "127.0.0.1:"));
+  const std::string port =
+      std::string(absl::StripPrefix(TwoServers::addresses()[0], "127.0.0.1:"));
   const Client other = Connect({"localhost:" + port});
   absl::StatusOr<RemoteEnv> foreign = other.CreateEnv(Landers(1));
   ASSERT_TRUE(foreign.ok()) << foreign.status();
@@ -345,7 +345,8 @@ TEST(ScaleOutTest, SessionEnvsLiveOnBothServersAndDieWithIt) {
     const Client one = ConnectOne(server);
     EXPECT_TRUE(Eventually([&] {
       return Names(one).count(names[server]) == 0;
-    })) << names[server] << " on server " << server;
+    })) << names[server]
+        << " on server " << server;
   }
 }
 
@@ -422,8 +423,8 @@ std::vector<std::string> EpisodeLines(const std::string& out) {
   std::vector<std::string> lines;
   for (absl::string_view line : absl::StrSplit(out, '\n', absl::SkipEmpty())) {
     if (absl::StrContains(line, "\"summary\"")) continue;
-    lines.push_back(std::regex_replace(std::string(line),
-                                       std::regex(",\"env\":.*"), ""));
+    lines.push_back(
+        std::regex_replace(std::string(line), std::regex(",\"env\":.*"), ""));
   }
   return lines;
 }
@@ -434,8 +435,8 @@ TEST(ScaleOutCliTest, PlayOverTwoServersFliesAsOneServer) {
                                           "--max_cycles=80"};
   std::vector<std::string> spread = {"play", BothFlag()};
   spread.insert(spread.end(), flags.begin(), flags.end());
-  std::vector<std::string> single = {
-      "play", "--address=" + TwoServers::addresses()[0]};
+  std::vector<std::string> single = {"play",
+                                     "--address=" + TwoServers::addresses()[0]};
   single.insert(single.end(), flags.begin(), flags.end());
   const CommandResult a = RunCli(spread);
   const CommandResult b = RunCli(single);
@@ -459,10 +460,10 @@ TEST(ScaleOutCliTest, PlayOverTwoServersFliesAsOneServer) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::client
 
 int main(int argc, char** argv) {
   ::testing::InitGoogleTest(&argc, argv);
-  ::testing::AddGlobalTestEnvironment(new mll::TwoServers());
+  ::testing::AddGlobalTestEnvironment(new mll::client::TwoServers());
   return RUN_ALL_TESTS();
 }

@@ -16,7 +16,7 @@
 #include "mll/client.h"
 #include "server_process.h"
 
-namespace mll {
+namespace mll::client {
 namespace {
 
 using ::testing::HasSubstr;
@@ -45,21 +45,21 @@ class SecureServers : public ::testing::Environment {
     renamed_ = *renamed;
     stranger_ = *stranger;
     absl::StatusOr<std::string> tokens = WriteTempFile(
-        "mll_tokens", absl::StrCat("# test tokens\n", kTokenA, "\n", kTokenB,
-                                   "\n"));
+        "mll_tokens",
+        absl::StrCat("# test tokens\n", kTokenA, "\n", kTokenB, "\n"));
     ASSERT_TRUE(tokens.ok()) << tokens.status();
     token_file_ = *tokens;
 
     absl::StatusOr<std::unique_ptr<ServerProcess>> secure =
-        ServerProcess::Start(MLL_SERVER_PATH,
-                             {"--tls_cert=" + local_.cert_file,
-                              "--tls_key=" + local_.key_file,
-                              "--auth_token_file=" + token_file_});
+        ServerProcess::Start(
+            MLL_SERVER_PATH,
+            {"--tls_cert=" + local_.cert_file, "--tls_key=" + local_.key_file,
+             "--auth_token_file=" + token_file_});
     ASSERT_TRUE(secure.ok()) << secure.status();
     secure_ = *std::move(secure);
     absl::StatusOr<std::unique_ptr<ServerProcess>> named = ServerProcess::Start(
-        MLL_SERVER_PATH, {"--tls_cert=" + renamed_.cert_file,
-                          "--tls_key=" + renamed_.key_file});
+        MLL_SERVER_PATH,
+        {"--tls_cert=" + renamed_.cert_file, "--tls_key=" + renamed_.key_file});
     ASSERT_TRUE(named.ok()) << named.status();
     renamed_server_ = *std::move(named);
   }
@@ -275,10 +275,9 @@ class ScopedTokenVariable {
 TEST(SecureCliTest, TlsRootCertAndTokenFlags) {
   const CommandResult health = RunCli({"health", SecureFlag(), RootFlag()});
   EXPECT_EQ(health.exit_code, 0) << health.err;
-  const CommandResult play =
-      RunCli({"play", SecureFlag(), RootFlag(),
-              std::string("--token=") + kTokenA, "--n_landers=2",
-              "--max_cycles=30"});
+  const CommandResult play = RunCli({"play", SecureFlag(), RootFlag(),
+                                     std::string("--token=") + kTokenA,
+                                     "--n_landers=2", "--max_cycles=30"});
   EXPECT_EQ(play.exit_code, 0) << play.err;
   EXPECT_THAT(play.out, HasSubstr("\"summary\":true"));
 
@@ -337,9 +336,9 @@ TEST(SecureCliTest, TokenFromFlagFileOrEnvironmentInThatOrder) {
   EXPECT_EQ(deleted.exit_code, 0) << deleted.err;
 
   // Bad token sources are command-line errors that never print the token.
-  const CommandResult both = RunCli({"list", SecureFlag(), RootFlag(),
-                                     std::string("--token=") + kTokenA,
-                                     "--token_file=" + *file_b});
+  const CommandResult both =
+      RunCli({"list", SecureFlag(), RootFlag(),
+              std::string("--token=") + kTokenA, "--token_file=" + *file_b});
   EXPECT_EQ(both.exit_code, 2);
   EXPECT_THAT(both.err, HasSubstr("both set"));
   absl::StatusOr<std::string> two = WriteTempFile(
@@ -350,17 +349,17 @@ TEST(SecureCliTest, TokenFromFlagFileOrEnvironmentInThatOrder) {
   EXPECT_EQ(many.exit_code, 2);
   EXPECT_THAT(many.err, HasSubstr("has 2 tokens"));
   EXPECT_THAT(many.err, Not(HasSubstr(kTokenA)));
-  const CommandResult missing = RunCli({"list", SecureFlag(), RootFlag(),
-                                        "--token_file=/nonexistent/token"});
+  const CommandResult missing = RunCli(
+      {"list", SecureFlag(), RootFlag(), "--token_file=/nonexistent/token"});
   EXPECT_EQ(missing.exit_code, 2);
   EXPECT_THAT(missing.err, HasSubstr("cannot be read"));
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::client
 
 int main(int argc, char** argv) {
   ::testing::InitGoogleTest(&argc, argv);
-  ::testing::AddGlobalTestEnvironment(new mll::SecureServers());
+  ::testing::AddGlobalTestEnvironment(new mll::client::SecureServers());
   return RUN_ALL_TESTS();
 }

@@ -17,7 +17,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/strip.h"
 
-namespace mll {
+namespace mll::client {
 namespace {
 
 using Clock = std::chrono::steady_clock;
@@ -25,8 +25,8 @@ using Clock = std::chrono::steady_clock;
 // A fresh, empty file in the test's temporary directory.
 absl::StatusOr<std::string> MakeTempFile(const std::string& stem) {
   const char* dir = std::getenv("TMPDIR");
-  std::string path = absl::StrCat(dir != nullptr ? dir : "/tmp", "/", stem,
-                                  "_XXXXXX");
+  std::string path =
+      absl::StrCat(dir != nullptr ? dir : "/tmp", "/", stem, "_XXXXXX");
   const int fd = mkstemp(path.data());
   if (fd < 0) {
     return absl::InternalError(absl::StrCat("mkstemp ", path, " failed"));
@@ -47,7 +47,8 @@ absl::StatusOr<pid_t> Spawn(const std::vector<std::string>& argv,
                             const std::string& out_path,
                             const std::string& err_path) {
   std::vector<char*> args;
-  for (const std::string& arg : argv) args.push_back(const_cast<char*>(arg.c_str()));
+  for (const std::string& arg : argv)
+    args.push_back(const_cast<char*>(arg.c_str()));
   args.push_back(nullptr);
   const pid_t pid = fork();
   if (pid < 0) return absl::InternalError("fork failed");
@@ -98,8 +99,8 @@ absl::StatusOr<std::unique_ptr<ServerProcess>> ServerProcess::Start(
   while (Clock::now() < deadline) {
     int status = 0;
     if (waitpid(*pid, &status, WNOHANG) == *pid) {
-      return absl::InternalError(absl::StrCat(
-          server_path, " exited (status ", status, ") before serving"));
+      return absl::InternalError(absl::StrCat(server_path, " exited (status ",
+                                              status, ") before serving"));
     }
     // Accepted once two reads a moment apart agree, so a half-written file
     // is never taken for the port.
@@ -121,7 +122,9 @@ absl::StatusOr<std::unique_ptr<ServerProcess>> ServerProcess::Start(
 
 ServerProcess::ServerProcess(pid_t pid, std::string address,
                              std::string port_file)
-    : pid_(pid), address_(std::move(address)), port_file_(std::move(port_file)) {}
+    : pid_(pid),
+      address_(std::move(address)),
+      port_file_(std::move(port_file)) {}
 
 ServerProcess::~ServerProcess() {
   if (pid_ > 0) Terminate();
@@ -156,8 +159,8 @@ absl::StatusOr<CommandResult> RunCommand(const std::vector<std::string>& argv,
   if (!WaitFor(*pid, timeout_seconds, &status)) {
     kill(*pid, SIGKILL);
     waitpid(*pid, &status, 0);
-    return absl::DeadlineExceededError(absl::StrCat(
-        argv[0], " did not finish in ", timeout_seconds, " s"));
+    return absl::DeadlineExceededError(
+        absl::StrCat(argv[0], " did not finish in ", timeout_seconds, " s"));
   }
   CommandResult result;
   result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
@@ -203,27 +206,25 @@ absl::StatusOr<Certificate> MakeSelfSignedCertificate(
   if (!key_file.ok()) return key_file.status();
   certificate.cert_file = *cert_file;
   certificate.key_file = *key_file;
-  absl::StatusOr<CommandResult> openssl = RunCommand(
-      {"openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt",
-       "ec_paramgen_curve:prime256v1", "-nodes", "-days", "2", "-subj",
-       "/CN=mll-test", "-addext",
-       absl::StrCat("subjectAltName=", subject_alt_names), "-keyout",
-       certificate.key_file, "-out", certificate.cert_file},
-      60);
+  absl::StatusOr<CommandResult> openssl =
+      RunCommand({"openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt",
+                  "ec_paramgen_curve:prime256v1", "-nodes", "-days", "2",
+                  "-subj", "/CN=mll-test", "-addext",
+                  absl::StrCat("subjectAltName=", subject_alt_names), "-keyout",
+                  certificate.key_file, "-out", certificate.cert_file},
+                 60);
   if (!openssl.ok()) return openssl.status();
   if (openssl->exit_code != 0) {
-    return absl::InternalError(absl::StrCat("openssl req exited ",
-                                            openssl->exit_code, ": ",
-                                            openssl->err));
+    return absl::InternalError(absl::StrCat(
+        "openssl req exited ", openssl->exit_code, ": ", openssl->err));
   }
   certificate.cert_pem = ReadFile(certificate.cert_file);
   if (certificate.cert_pem.find("-----BEGIN CERTIFICATE-----") ==
       std::string::npos) {
-    return absl::InternalError(
-        absl::StrCat("openssl wrote no PEM certificate to ",
-                     certificate.cert_file));
+    return absl::InternalError(absl::StrCat(
+        "openssl wrote no PEM certificate to ", certificate.cert_file));
   }
   return certificate;
 }
 
-}  // namespace mll
+}  // namespace mll::client

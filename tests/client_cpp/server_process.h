@@ -12,7 +12,7 @@
 
 #include "absl/status/statusor.h"
 
-namespace mll {
+namespace mll::client {
 
 class ServerProcess {
  public:
@@ -77,6 +77,6 @@ struct Certificate {
 absl::StatusOr<Certificate> MakeSelfSignedCertificate(
     const std::string& stem, const std::string& subject_alt_names);
 
-}  // namespace mll
+}  // namespace mll::client
 
 #endif  // MLL_TESTS_CLIENT_CPP_SERVER_PROCESS_H_

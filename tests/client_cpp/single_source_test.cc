@@ -16,7 +16,7 @@
 #include "mll/v1/multi_lunar_lander.pb.h"
 #include "wire.h"
 
-namespace mll {
+namespace mll::client {
 namespace {
 
 using google::protobuf::FieldDescriptor;
@@ -64,9 +64,9 @@ TEST(SingleSourceTest, CoreOptionsAreTheProtoOptionsInOrder) {
 // when the client lacks an option); the client's encoding must then carry
 // every proto option with the core's value.
 TEST(SingleSourceTest, TheClientEncodesEveryOption) {
-  const EnvConfig defaults;
+  const core::EnvConfig defaults;
   v1::EnvConfig proto;
-  client_internal::EncodeConfig(RemoteConfigFrom(defaults), &proto);
+  internal::EncodeConfig(RemoteConfigFrom(defaults), &proto);
   for (const FieldDescriptor* field : ProtoOptions()) {
     EXPECT_TRUE(proto.GetReflection()->HasField(proto, field))
         << field->name() << " is not encoded by the C++ client";
@@ -75,7 +75,7 @@ TEST(SingleSourceTest, TheClientEncodesEveryOption) {
   EXPECT_EQ(proto.name(), defaults.name) << #name;
   MLL_ENV_OPTIONS(MLL_CHECK_ENCODED)
 #undef MLL_CHECK_ENCODED
-  const RemoteEnvConfig decoded = client_internal::DecodeConfig(proto);
+  const RemoteEnvConfig decoded = internal::DecodeConfig(proto);
 #define MLL_CHECK_DECODED(type, name, default_value, range, help) \
   EXPECT_EQ(decoded.name, defaults.name) << #name;
   MLL_ENV_OPTIONS(MLL_CHECK_DECODED)
@@ -84,13 +84,13 @@ TEST(SingleSourceTest, TheClientEncodesEveryOption) {
 
 // Ranges are worded in errors as the option help words them.
 TEST(SingleSourceTest, OptionRangesAreWordedAsTheyAreChecked) {
-  EXPECT_EQ(OptionRange::Integers(1, 32).Describe(), "1..32");
-  EXPECT_EQ(OptionRange::AtLeast(1).Describe(), ">= 1");
-  EXPECT_EQ(OptionRange::Closed(0, 20).Describe(), "[0, 20]");
-  EXPECT_EQ(OptionRange::Open(-12, 0).Describe(), "(-12, 0), exclusive");
-  EXPECT_FALSE(OptionRange::Open(-12, 0).Contains(0.0));
-  EXPECT_FALSE(OptionRange::Closed(0, 2).Contains(2.5));
-  EXPECT_TRUE(OptionRange::Closed(0, 2).Contains(2.0));
+  EXPECT_EQ(core::OptionRange::Integers(1, 32).Describe(), "1..32");
+  EXPECT_EQ(core::OptionRange::AtLeast(1).Describe(), ">= 1");
+  EXPECT_EQ(core::OptionRange::Closed(0, 20).Describe(), "[0, 20]");
+  EXPECT_EQ(core::OptionRange::Open(-12, 0).Describe(), "(-12, 0), exclusive");
+  EXPECT_FALSE(core::OptionRange::Open(-12, 0).Contains(0.0));
+  EXPECT_FALSE(core::OptionRange::Closed(0, 2).Contains(2.5));
+  EXPECT_TRUE(core::OptionRange::Closed(0, 2).Contains(2.0));
 }
 
 TEST(SingleSourceTest, OutcomeNamesAgreeWithTheProto) {
@@ -100,7 +100,7 @@ TEST(SingleSourceTest, OutcomeNamesAgreeWithTheProto) {
     const int code = outcomes->value(i)->number();
     SCOPED_TRACE(outcomes->value(i)->name());
     EXPECT_EQ(LanderOutcomeName(static_cast<LanderOutcome>(code)),
-              OutcomeName(static_cast<Outcome>(code)));
+              OutcomeName(static_cast<core::Outcome>(code)));
   }
   EXPECT_EQ(LanderOutcomeName(LanderOutcome::kNone), "none");
   EXPECT_EQ(LanderOutcomeName(LanderOutcome::kOutOfBounds), "out_of_bounds");
@@ -108,4 +108,4 @@ TEST(SingleSourceTest, OutcomeNamesAgreeWithTheProto) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::client

@@ -1,15 +1,16 @@
 // AecEnv: PettingZoo's AEC bookkeeping over the one parallel step, checked
 // against a parallel Env run with the same seed and actions.
+#include "mll/core/aec_env.h"
+
 #include <optional>
 #include <random>
 #include <vector>
 
 #include "env_test_util.h"
 #include "gtest/gtest.h"
-#include "mll/core/aec_env.h"
 #include "mll/core/env.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 EnvConfig Config() {
@@ -69,7 +70,8 @@ TEST(AecEnvTest, MatchesParallelRunWithPettingZooBookkeeping) {
     // turn returns to the first live agent.
     std::vector<int> dead;
     for (int a : live_before) {
-      if (expected.terminations[a] || expected.truncations[a]) dead.push_back(a);
+      if (expected.terminations[a] || expected.truncations[a])
+        dead.push_back(a);
     }
     for (int a : dead) {
       ASSERT_EQ(aec.agent_selection(), a);
@@ -81,7 +83,8 @@ TEST(AecEnvTest, MatchesParallelRunWithPettingZooBookkeeping) {
     }
     std::vector<int> live;
     for (int a : live_before) {
-      if (!expected.terminations[a] && !expected.truncations[a]) live.push_back(a);
+      if (!expected.terminations[a] && !expected.truncations[a])
+        live.push_back(a);
     }
     EXPECT_EQ(aec.agents(), live);
     if (!live.empty()) {
@@ -138,4 +141,4 @@ TEST(AecEnvTest, Errors) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core

@@ -1,16 +1,17 @@
 // The paper's collision table I, pair by pair: the filter data our fixtures
 // carry, judged by Box2D's own contact filter, and real contacts between
 // placed landers.
+#include "collision.h"
+
 #include <string>
 #include <vector>
 
-#include "../../server/core/src/collision.h"
 #include "box2d/box2d.h"
 #include "env_test_util.h"
 #include "gtest/gtest.h"
 #include "mll/core/env.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 using internal::LanderBodyFilter;
@@ -103,7 +104,8 @@ TEST(CollisionTest, LandersLegsAndMoonReallyCollide) {
     ASSERT_TRUE(env->SetLanderStateForTest(1, 6.0 + (dy > 0 ? 0.0 : 3.0), 9.0,
                                            0, dy > 0 ? 0 : -4, 0, 0)
                     .ok());
-    for (int s = 0; s < 60 && env->num_active() > 0; ++s) testing::StepNoop(*env);
+    for (int s = 0; s < 60 && env->num_active() > 0; ++s)
+      testing::StepNoop(*env);
     EXPECT_EQ(env->outcome(0), Outcome::kCrashed) << "dy " << dy;
     EXPECT_EQ(env->outcome(1), Outcome::kCrashed) << "dy " << dy;
   }
@@ -149,4 +151,4 @@ TEST(CollisionTest, ParticlesRestOnTheMoonAndNeverTouchLanders) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core

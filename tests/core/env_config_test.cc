@@ -11,7 +11,7 @@
 #include "gtest/gtest.h"
 #include "mll/core/env.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 using ::testing::AllOf;
@@ -140,10 +140,10 @@ TEST(EnvConfigTest, BadActionsAreRejectedBeforeAnyPhysics) {
   std::vector<float> not_finite = {0, 0, 0, std::nanf(""), 0, 0};
   status = cont->Step(ActionsView{{}, not_finite}, &result);
   EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
-  EXPECT_THAT(std::string(status.message()),
-              AllOf(HasSubstr("lander_1"), HasSubstr("nan"),
-                    HasSubstr("finite")));
+  EXPECT_THAT(
+      std::string(status.message()),
+      AllOf(HasSubstr("lander_1"), HasSubstr("nan"), HasSubstr("finite")));
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core

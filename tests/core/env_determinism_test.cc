@@ -9,7 +9,7 @@
 #include "mll/core/env.h"
 #include "mll/core/renderer.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 using testing::AppendBits;
@@ -148,4 +148,4 @@ TEST(EnvDeterminismTest, NeverSeededEnvUsesSeedZero) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core

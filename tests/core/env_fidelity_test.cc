@@ -8,7 +8,7 @@
 #include "mll/core/env.h"
 #include "mll/core/heuristic.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 struct PilotStats {
@@ -65,4 +65,4 @@ TEST(EnvFidelityTest, ContinuousHeuristicScoresLikeGymnasium) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core

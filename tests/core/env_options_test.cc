@@ -6,13 +6,14 @@
 #include "gtest/gtest.h"
 #include "mll/core/env.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 using testing::MakeEnv;
 
 // Observations of `steps` steps of a fixed action cycle.
-std::vector<float> ObservationTrace(const EnvConfig& config, int steps, bool continuous_twin) {
+std::vector<float> ObservationTrace(const EnvConfig& config, int steps,
+                                    bool continuous_twin) {
   auto env = MakeEnv(config);
   StepResult r;
   env->Reset(9, &r);
@@ -54,7 +55,8 @@ TEST(EnvOptionsTest, ContinuousTwinsOfDiscreteActionsFlyTheSame) {
   discrete.terminate_on_damage = false;
   EnvConfig continuous = discrete;
   continuous.continuous = true;
-  EXPECT_EQ(ObservationTrace(discrete, 60, false), ObservationTrace(continuous, 60, true));
+  EXPECT_EQ(ObservationTrace(discrete, 60, false),
+            ObservationTrace(continuous, 60, true));
 }
 
 TEST(EnvOptionsTest, MaxCyclesTruncatesNotTerminates) {
@@ -87,7 +89,7 @@ TEST(EnvOptionsTest, GravityChangesOnlyTheFall) {
   const std::vector<float> b = ObservationTrace(light, 20, false);
   ASSERT_EQ(a.size(), b.size());
   const size_t last = a.size() - 12;
-  EXPECT_LT(a[last + 3], b[last + 3] - 0.1f);  // Falls faster.
+  EXPECT_LT(a[last + 3], b[last + 3] - 0.1f);   // Falls faster.
   EXPECT_NEAR(a[last + 0], b[last + 0], 2e-3);  // Same sideways drift.
 }
 
@@ -97,7 +99,8 @@ TEST(EnvOptionsTest, WindPushesOnlyWhenEnabled) {
   EnvConfig calm_strong = calm;
   calm_strong.wind_power = 20.0;  // Ignored without enable_wind.
   calm_strong.turbulence_power = 2.0;
-  EXPECT_EQ(ObservationTrace(calm, 50, false), ObservationTrace(calm_strong, 50, false));
+  EXPECT_EQ(ObservationTrace(calm, 50, false),
+            ObservationTrace(calm_strong, 50, false));
   EnvConfig windy = calm_strong;
   windy.enable_wind = true;
   const std::vector<float> w1 = ObservationTrace(windy, 50, false);
@@ -113,8 +116,9 @@ TEST(EnvOptionsTest, RewardOptionsDoNotChangeThePhysics) {
   other.damage_reward = -3;
   other.successful_reward = 3;
   other.terminate_reward = -3;
-  EXPECT_EQ(ObservationTrace(base, 100, false), ObservationTrace(other, 100, false));
+  EXPECT_EQ(ObservationTrace(base, 100, false),
+            ObservationTrace(other, 100, false));
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core

@@ -7,7 +7,7 @@
 #include "gtest/gtest.h"
 #include "mll/core/env.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 using testing::HoldHigh;
@@ -70,8 +70,8 @@ TEST(EnvRulesTest, LegTouchingAnotherLanderDamagesBoth) {
   // Lander 0's legs[0] hangs at x + 20/30, feet about 0.87 m below its
   // centre; lander 1's body top is 17/30 above its centre. Drop the one leg
   // onto the other's roof.
-  ASSERT_TRUE(env->SetLanderStateForTest(1, 5.0 + 20.0 / 30, 8.0, 0, 0, 0, 0)
-                  .ok());
+  ASSERT_TRUE(
+      env->SetLanderStateForTest(1, 5.0 + 20.0 / 30, 8.0, 0, 0, 0, 0).ok());
   ASSERT_TRUE(env->SetLanderStateForTest(0, 5.0, 8.0 + 1.6, 0, 0, -3, 0).ok());
   for (int s = 0; s < 40 && env->is_active(0); ++s) {
     HoldHigh(*env, 2, 15.0);
@@ -132,7 +132,7 @@ TEST(EnvRulesTest, LanderAtRestLandsOnceAndIsRemoved) {
   ASSERT_EQ(env->outcome(0), Outcome::kLanded);
   const StepResult& landing = results.back();
   EXPECT_EQ(landing.terminations[0], 1);
-  EXPECT_GT(landing.rewards[0], 90.0f);   // successful_reward + tiny delta.
+  EXPECT_GT(landing.rewards[0], 90.0f);  // successful_reward + tiny delta.
   EXPECT_LT(landing.rewards[0], 110.0f);
   // Step 0 carries the shaping jump of the placement itself.
   int rewarded = 0;
@@ -215,8 +215,8 @@ TEST(EnvRulesTest, TerminateOnDamageAbortsTheOthers) {
   EXPECT_EQ(last.terminations[1], 1);
   EXPECT_EQ(last.terminations[2], 1);
   StepResult after;
-  const absl::Status status = env->Step(
-      ActionsView{std::vector<int32_t>(3, 0), {}}, &after);
+  const absl::Status status =
+      env->Step(ActionsView{std::vector<int32_t>(3, 0), {}}, &after);
   EXPECT_EQ(status.code(), absl::StatusCode::kFailedPrecondition);
 }
 
@@ -281,7 +281,8 @@ TEST(EnvRulesTest, SharedRewardIsTheMeanOfTheLandersStepped) {
   ASSERT_EQ(a.size(), b.size());
   for (size_t s = 0; s < a.size(); ++s) {
     const double mean = (static_cast<double>(a[s].rewards[0]) +
-                         a[s].rewards[1] + a[s].rewards[2]) / 3;
+                         a[s].rewards[1] + a[s].rewards[2]) /
+                        3;
     for (int i = 0; i < 3; ++i) EXPECT_NEAR(b[s].rewards[i], mean, 1e-3);
   }
   // After the landing, lander 0's +100 never reaches the others' mean.
@@ -295,7 +296,8 @@ TEST(EnvRulesTest, SharedRewardIsTheMeanOfTheLandersStepped) {
   for (int s = 0; s < 10; ++s) {
     const StepResult rs = StepNoop(*env);
     const StepResult ru = StepNoop(*env_unshared);
-    const double mean = (static_cast<double>(ru.rewards[1]) + ru.rewards[2]) / 2;
+    const double mean =
+        (static_cast<double>(ru.rewards[1]) + ru.rewards[2]) / 2;
     EXPECT_EQ(rs.rewards[0], 0.0f);
     EXPECT_NEAR(rs.rewards[1], mean, 1e-3);
     EXPECT_NEAR(rs.rewards[2], mean, 1e-3);
@@ -318,4 +320,4 @@ TEST(EnvRulesTest, EpisodeReturnIsTheSumOfRewards) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core

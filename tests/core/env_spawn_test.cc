@@ -8,7 +8,7 @@
 #include "gtest/gtest.h"
 #include "mll/core/env.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 // Box2D reports a touching contact once two polygons come within their skins
@@ -97,10 +97,11 @@ TEST(EnvSpawnTest, EveryLanderCountSpawnsApartAndUndamaged) {
       // the no-op step would count here.)
       for (int i = 0; i < n; ++i) {
         const auto o = env->observation(i);
-        ASSERT_TRUE(env->SetLanderStateForTest(i, o[0] * 10.0 + 10.0,
-                                               o[1] * (20.0 / 3.0) + 10.0 / 3.0 + 0.6,
-                                               o[4], 0, 0, 0)
-                        .ok());
+        ASSERT_TRUE(
+            env->SetLanderStateForTest(i, o[0] * 10.0 + 10.0,
+                                       o[1] * (20.0 / 3.0) + 10.0 / 3.0 + 0.6,
+                                       o[4], 0, 0, 0)
+                .ok());
       }
       const StepResult still = testing::StepNoop(*env);
       for (int i = 0; i < n; ++i) {
@@ -112,4 +113,4 @@ TEST(EnvSpawnTest, EveryLanderCountSpawnsApartAndUndamaged) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core

@@ -13,7 +13,7 @@
 #include "gtest/gtest.h"
 #include "mll/core/env.h"
 
-namespace mll {
+namespace mll::core {
 namespace testing {
 
 inline std::unique_ptr<Env> MakeEnv(const EnvConfig& config) {
@@ -95,6 +95,6 @@ inline void AppendBits(const StepResult& r, std::vector<uint8_t>* bits) {
 }
 
 }  // namespace testing
-}  // namespace mll
+}  // namespace mll::core
 
 #endif  // MLL_TESTS_CORE_ENV_TEST_UTIL_H_

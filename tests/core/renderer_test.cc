@@ -16,7 +16,7 @@
 #include "gtest/gtest.h"
 #include "mll/core/env.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 using ::testing::HasSubstr;
@@ -91,7 +91,7 @@ TEST(RendererTest, FrameIs600x400Rgb) {
 
 TEST(RendererTest, SkyIsBlackAndGroundIsWhite) {
   const Frame frame = RenderScene(MakeScene({}));
-  EXPECT_EQ(PixelAt(frame, 60, 10), (Pixel{0, 0, 0}));   // High in the sky.
+  EXPECT_EQ(PixelAt(frame, 60, 10), (Pixel{0, 0, 0}));  // High in the sky.
   EXPECT_EQ(PixelAt(frame, 300, 395), (Pixel{255, 255, 255}));  // Ground.
   // The terrain line is at helipad_y = H/4.
   EXPECT_EQ(WorldPixel(frame, 3.0, kHelipadY + 0.2), (Pixel{0, 0, 0}));
@@ -173,9 +173,9 @@ TEST(RendererTest, HelipadFlagsAreYellowOnWhitePoles) {
     const Vec2 pole = WorldToFrame(WorldOnly(), {x, kHelipadY + 20 / kScale});
     int brightest = 0;
     for (int dx = -1; dx <= 1; ++dx) {
-      brightest = std::max<int>(
-          brightest, PixelAt(frame, static_cast<int>(pole.x) + dx,
-                             static_cast<int>(pole.y))[0]);
+      brightest =
+          std::max<int>(brightest, PixelAt(frame, static_cast<int>(pole.x) + dx,
+                                           static_cast<int>(pole.y))[0]);
     }
     EXPECT_GT(brightest, 200) << "pole at x = " << x;
   }
@@ -317,7 +317,7 @@ TEST(RendererTest, RemovedLandersLeaveAMarkWhereTheirEpisodeEnded) {
   scene.agents[1].outcome = Outcome::kLanded;
   scene.agents[1].final_parts = {LanderBody(10.0, kHelipadY + 0.5)};
   const Frame frame = RenderScene(scene);
-  EXPECT_GT(CountIn(frame, {4.0, 4.0}, 0.6, IsRed), 20);      // A red cross.
+  EXPECT_GT(CountIn(frame, {4.0, 4.0}, 0.6, IsRed), 20);  // A red cross.
   EXPECT_EQ(CountIn(frame, {4.0, 4.0}, 0.6, IsGreen), 0);
   EXPECT_GT(CountIn(frame, {10.0, kHelipadY + 0.5}, 0.6, IsGreen), 20);
   EXPECT_EQ(CountIn(frame, {10.0, kHelipadY + 0.5}, 0.6, IsRed), 0);
@@ -496,10 +496,10 @@ TEST(RenderEnvTest, LandersAreInFrameFromTheFirstStep) {
         for (const SceneLander& lander : env->scene().landers) {
           for (const ScenePolygon& part : lander.parts) {
             for (const Vec2& v : part.vertices) {
-              ASSERT_TRUE(InFrame(v)) << "n " << n << " seed " << seed
-                                      << " step " << step << " agent "
-                                      << lander.agent << " at (" << v.x
-                                      << ", " << v.y << ")";
+              ASSERT_TRUE(InFrame(v))
+                  << "n " << n << " seed " << seed << " step " << step
+                  << " agent " << lander.agent << " at (" << v.x << ", " << v.y
+                  << ")";
             }
           }
         }
@@ -537,4 +537,4 @@ TEST(RenderEnvTest, TheSceneKeepsWhereALanderWasDestroyed) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core

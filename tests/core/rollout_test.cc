@@ -10,12 +10,12 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
+#include "gmock/gmock.h"
 #include "google/protobuf/struct.pb.h"
 #include "google/protobuf/util/json_util.h"
-#include "gmock/gmock.h"
 #include "gtest/gtest.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 using ::google::protobuf::Struct;
@@ -77,9 +77,8 @@ TEST(RolloutTest, PrintsOneJsonLinePerEpisodeAndASummary) {
   const RunResult run = RunRollout(kTwoEpisodes);
   ASSERT_EQ(run.exit_code, 0);
   ASSERT_EQ(run.lines.size(), 3u);
-  const std::vector<std::string> kOutcomes = {"landed", "crashed",
-                                              "out_of_bounds", "truncated",
-                                              "aborted"};
+  const std::vector<std::string> kOutcomes = {
+      "landed", "crashed", "out_of_bounds", "truncated", "aborted"};
   for (int episode = 0; episode < 2; ++episode) {
     const Struct line = ParseJson(run.lines[episode]);
     EXPECT_EQ(Field(line, "episode").number_value(), episode);
@@ -135,8 +134,8 @@ TEST(RolloutTest, RenderingDoesNotChangeTheEpisodes) {
       (std::filesystem::path(testing::TempDir()) / "mll_rollout_frames")
           .string();
   std::filesystem::remove_all(frames);
-  const RunResult plain = RunRollout(
-      "--n_landers=3 --episodes=1 --seed=1 --policy=heuristic");
+  const RunResult plain =
+      RunRollout("--n_landers=3 --episodes=1 --seed=1 --policy=heuristic");
   const RunResult rendered = RunRollout(
       absl::StrCat("--n_landers=3 --episodes=1 --seed=1 --policy=heuristic "
                    "--frames_dir=",
@@ -154,8 +153,8 @@ TEST(RolloutTest, RenderingDoesNotChangeTheEpisodes) {
     pngs += entry.path().extension() == ".png";
   }
   EXPECT_EQ(pngs, steps + 1);
-  EXPECT_TRUE(std::filesystem::exists(
-      std::filesystem::path(frames) / "000_00000.png"));
+  EXPECT_TRUE(
+      std::filesystem::exists(std::filesystem::path(frames) / "000_00000.png"));
   std::filesystem::remove_all(frames);
 }
 
@@ -185,4 +184,4 @@ TEST(RolloutTest, BadValuesExitNonZeroNamingTheField) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core

@@ -28,7 +28,7 @@
 #include "subprocess.h"
 #include "test_util.h"  // tests/service: action arrays.
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 using ::testing::HasSubstr;
@@ -72,7 +72,8 @@ grpc::Status Reset(MultiLunarLander::Stub& stub, const std::string& name) {
 }
 
 grpc::Status Step(MultiLunarLander::Stub& stub, const std::string& name,
-                  const v1::Array& actions, v1::StepEnvResponse* out = nullptr) {
+                  const v1::Array& actions,
+                  v1::StepEnvResponse* out = nullptr) {
   grpc::ClientContext context;
   v1::StepEnvRequest request;
   request.set_name(name);
@@ -154,12 +155,12 @@ bool WaitUntilGone(MultiLunarLander::Stub& stub,
 struct HeavyBatch {
   HeavyBatch(MultiLunarLander::Stub& stub, int envs) {
     for (int i = 0; i < envs; ++i) {
-      const std::string name = Create(stub, Landers(kMaxLanders));
+      const std::string name = Create(stub, Landers(core::kMaxLanders));
       EXPECT_TRUE(Reset(stub, name).ok());
       v1::StepEnvRequest* step = request.add_steps();
       step->set_name(name);
       *step->mutable_actions() =
-          DiscreteActions(std::vector<int32_t>(kMaxLanders, 0));
+          DiscreteActions(std::vector<int32_t>(core::kMaxLanders, 0));
       names.push_back(name);
     }
   }
@@ -235,13 +236,12 @@ TEST(FaultTest, KilledClientsSessionEnvsGoAtOnceItsUnaryEnvsAtTheIdleTimeout) {
 class HeavyBatchTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    absl::StatusOr<ServerUnderTest> started =
-        StartServer({"--threads=1", "--max_envs=1000",
-                     // In-flight calls must finish within the grace period,
-                     // which sanitizers slow down like everything else.
-                     absl::StrCat("--shutdown_grace_s=",
-                                  absl::ToDoubleSeconds(
-                                      Scaled(absl::Seconds(5))))});
+    absl::StatusOr<ServerUnderTest> started = StartServer(
+        {"--threads=1", "--max_envs=1000",
+         // In-flight calls must finish within the grace period,
+         // which sanitizers slow down like everything else.
+         absl::StrCat("--shutdown_grace_s=",
+                      absl::ToDoubleSeconds(Scaled(absl::Seconds(5))))});
     ASSERT_TRUE(started.ok()) << started.status();
     server = *std::move(started);
     stub = NewStub(server.address);
@@ -254,12 +254,13 @@ class HeavyBatchTest : public ::testing::Test {
   absl::Duration batch_time;
 };
 
-TEST_F(HeavyBatchTest, SigtermUnderLoadFinishesInFlightCallsRefusesNewOnesExitsZero) {
-
+TEST_F(HeavyBatchTest,
+       SigtermUnderLoadFinishesInFlightCallsRefusesNewOnesExitsZero) {
   // Load: clients on their own connections stepping auto-reset envs until
   // the server refuses them.
   constexpr int kClients = 6;
-  constexpr int kMaxCallsPerClient = 200000;  // Bounds the loop if never refused.
+  constexpr int kMaxCallsPerClient =
+      200000;  // Bounds the loop if never refused.
   std::vector<std::map<grpc::StatusCode, int>> codes(kClients);
   std::vector<std::string> last_error(kClients);
   std::vector<std::thread> clients;
@@ -273,7 +274,8 @@ TEST_F(HeavyBatchTest, SigtermUnderLoadFinishesInFlightCallsRefusesNewOnesExitsZ
       EXPECT_TRUE(Reset(*own, name).ok());
       ++started;
       for (int i = 0; i < kMaxCallsPerClient; ++i) {
-        const grpc::Status status = Step(*own, name, DiscreteActions({2, 0, 2}));
+        const grpc::Status status =
+            Step(*own, name, DiscreteActions({2, 0, 2}));
         ++codes[c][status.error_code()];
         if (!status.ok()) {
           last_error[c] = status.error_message();
@@ -294,7 +296,8 @@ TEST_F(HeavyBatchTest, SigtermUnderLoadFinishesInFlightCallsRefusesNewOnesExitsZ
   // The batch is in flight once it has stepped its first env (one worker
   // steps the items in order); the other items take most of batch_time.
   const absl::Time give_up = absl::Now() + Scaled(absl::Seconds(30));
-  while (Get(*stub, batch->names.front()).cycles() < 2 && absl::Now() < give_up) {
+  while (Get(*stub, batch->names.front()).cycles() < 2 &&
+         absl::Now() < give_up) {
     absl::SleepFor(absl::Microseconds(200));
   }
   server.process->Signal(SIGTERM);
@@ -322,13 +325,14 @@ TEST_F(HeavyBatchTest, SigtermUnderLoadFinishesInFlightCallsRefusesNewOnesExitsZ
     for (const auto& [code, count] : codes[c]) {
       absl::StrAppend(&seen, " code ", code, " x", count);
     }
-    SCOPED_TRACE(absl::StrCat("client ", c, ":", seen, "; last error: ",
-                              last_error[c]));
+    SCOPED_TRACE(
+        absl::StrCat("client ", c, ":", seen, "; last error: ", last_error[c]));
     EXPECT_GT(codes[c][grpc::StatusCode::OK], 0);
     EXPECT_EQ(codes[c][grpc::StatusCode::UNAVAILABLE], 1);
     EXPECT_EQ(codes[c].size(), 2u) << "a code other than OK or UNAVAILABLE";
   }
-  const std::optional<int> exit = server.process->Wait(Scaled(absl::Seconds(15)));
+  const std::optional<int> exit =
+      server.process->Wait(Scaled(absl::Seconds(15)));
   ASSERT_TRUE(exit.has_value()) << "mll_server did not exit after SIGTERM";
   EXPECT_TRUE(WIFEXITED(*exit));
   EXPECT_EQ(WEXITSTATUS(*exit), 0);
@@ -355,7 +359,8 @@ TEST_F(HeavyBatchTest, DeadlinesExpiringMidCallLeaveServerAndEnvsUsable) {
   ASSERT_TRUE(Reset(*stub, drawn).ok());
   {
     grpc::ClientContext context;
-    context.set_deadline(absl::ToChronoTime(absl::Now() + absl::Microseconds(200)));
+    context.set_deadline(
+        absl::ToChronoTime(absl::Now() + absl::Microseconds(200)));
     v1::RenderEnvRequest request;
     request.set_name(drawn);
     request.set_format(v1::FRAME_FORMAT_PNG);
@@ -370,7 +375,8 @@ TEST_F(HeavyBatchTest, DeadlinesExpiringMidCallLeaveServerAndEnvsUsable) {
   std::vector<std::string> bound;
   {
     grpc::ClientContext context;
-    context.set_deadline(absl::ToChronoTime(absl::Now() + Scaled(absl::Seconds(1))));
+    context.set_deadline(
+        absl::ToChronoTime(absl::Now() + Scaled(absl::Seconds(1))));
     auto stream = stub->Session(&context);
     for (uint64_t sequence = 1; sequence <= 2; ++sequence) {
       v1::SessionRequest request;
@@ -382,7 +388,8 @@ TEST_F(HeavyBatchTest, DeadlinesExpiringMidCallLeaveServerAndEnvsUsable) {
     }
     v1::SessionResponse none;
     EXPECT_FALSE(stream->Read(&none));  // Blocks until the deadline.
-    EXPECT_EQ(stream->Finish().error_code(), grpc::StatusCode::DEADLINE_EXCEEDED);
+    EXPECT_EQ(stream->Finish().error_code(),
+              grpc::StatusCode::DEADLINE_EXCEEDED);
   }
   EXPECT_TRUE(WaitUntilGone(*stub, bound, Scaled(absl::Seconds(5))));
   EXPECT_TRUE(ContainsAll(ListNames(*stub), batch->names));
@@ -513,19 +520,45 @@ TEST(FaultTest, BadValuesGetTheirCodeAndLeaveTheEnvUsable) {
   const float nan = std::numeric_limits<float>::quiet_NaN();
   const float inf = std::numeric_limits<float>::infinity();
   const std::vector<std::pair<std::string, BadStep>> cases = {
-      {discrete, {"5 garbage bytes", garbage, grpc::StatusCode::INVALID_ARGUMENT, "actions: data has 5 bytes"}},
-      {discrete, {"float32 for discrete", as_float, grpc::StatusCode::INVALID_ARGUMENT, "actions: dtype"}},
-      {discrete, {"no dtype", no_dtype, grpc::StatusCode::INVALID_ARGUMENT, "actions: dtype"}},
-      {discrete, {"shape [3, 1]", two_d, grpc::StatusCode::INVALID_ARGUMENT, "actions: shape [3, 1]"}},
-      {discrete, {"4 agents for 3", DiscreteActions({0, 0, 0, 0}), grpc::StatusCode::INVALID_ARGUMENT, "actions: shape [4]"}},
-      {discrete, {"action 4", DiscreteActions({0, 4, 0}), grpc::StatusCode::INVALID_ARGUMENT, "lander_1 = 4"}},
-      {discrete, {"action -1", DiscreteActions({-1, 0, 0}), grpc::StatusCode::INVALID_ARGUMENT, "lander_0 = -1"}},
-      {continuous, {"NaN", ContinuousActions({0, 0, 0.5f, nan}), grpc::StatusCode::INVALID_ARGUMENT, "lander_1"}},
-      {continuous, {"+inf", ContinuousActions({inf, 0, 0, 0}), grpc::StatusCode::INVALID_ARGUMENT, "not finite"}},
-      {continuous, {"-inf", ContinuousActions({0, -inf, 0, 0}), grpc::StatusCode::INVALID_ARGUMENT, "not finite"}},
-      {continuous, {"int32 for continuous", DiscreteActions({0, 0}), grpc::StatusCode::INVALID_ARGUMENT, "actions: dtype"}},
-      {"envs/00000000000000000000000000000000", {"unknown env", DiscreteActions({0}), grpc::StatusCode::NOT_FOUND, "does not exist"}},
-      {"lander_0", {"not an env name", DiscreteActions({0}), grpc::StatusCode::INVALID_ARGUMENT, "is not an env name"}},
+      {discrete,
+       {"5 garbage bytes", garbage, grpc::StatusCode::INVALID_ARGUMENT,
+        "actions: data has 5 bytes"}},
+      {discrete,
+       {"float32 for discrete", as_float, grpc::StatusCode::INVALID_ARGUMENT,
+        "actions: dtype"}},
+      {discrete,
+       {"no dtype", no_dtype, grpc::StatusCode::INVALID_ARGUMENT,
+        "actions: dtype"}},
+      {discrete,
+       {"shape [3, 1]", two_d, grpc::StatusCode::INVALID_ARGUMENT,
+        "actions: shape [3, 1]"}},
+      {discrete,
+       {"4 agents for 3", DiscreteActions({0, 0, 0, 0}),
+        grpc::StatusCode::INVALID_ARGUMENT, "actions: shape [4]"}},
+      {discrete,
+       {"action 4", DiscreteActions({0, 4, 0}),
+        grpc::StatusCode::INVALID_ARGUMENT, "lander_1 = 4"}},
+      {discrete,
+       {"action -1", DiscreteActions({-1, 0, 0}),
+        grpc::StatusCode::INVALID_ARGUMENT, "lander_0 = -1"}},
+      {continuous,
+       {"NaN", ContinuousActions({0, 0, 0.5f, nan}),
+        grpc::StatusCode::INVALID_ARGUMENT, "lander_1"}},
+      {continuous,
+       {"+inf", ContinuousActions({inf, 0, 0, 0}),
+        grpc::StatusCode::INVALID_ARGUMENT, "not finite"}},
+      {continuous,
+       {"-inf", ContinuousActions({0, -inf, 0, 0}),
+        grpc::StatusCode::INVALID_ARGUMENT, "not finite"}},
+      {continuous,
+       {"int32 for continuous", DiscreteActions({0, 0}),
+        grpc::StatusCode::INVALID_ARGUMENT, "actions: dtype"}},
+      {"envs/00000000000000000000000000000000",
+       {"unknown env", DiscreteActions({0}), grpc::StatusCode::NOT_FOUND,
+        "does not exist"}},
+      {"lander_0",
+       {"not an env name", DiscreteActions({0}),
+        grpc::StatusCode::INVALID_ARGUMENT, "is not an env name"}},
   };
   for (const auto& [name, bad] : cases) {
     SCOPED_TRACE(bad.what);
@@ -557,7 +590,8 @@ TEST(FaultTest, BadValuesGetTheirCodeAndLeaveTheEnvUsable) {
   EXPECT_EQ(Get(*stub, discrete).cycles(), 0);
   EXPECT_EQ(Get(*stub, continuous).cycles(), 0);
   EXPECT_TRUE(Step(*stub, discrete, DiscreteActions({1, 2, 3})).ok());
-  EXPECT_TRUE(Step(*stub, continuous, ContinuousActions({1, 0.5f, -1, 0})).ok());
+  EXPECT_TRUE(
+      Step(*stub, continuous, ContinuousActions({1, 0.5f, -1, 0})).ok());
 
   // AEC: an action for an agent that is not agent_selection, or out of range.
   const std::string aec = Create(*stub, Landers(2));
@@ -568,8 +602,9 @@ TEST(FaultTest, BadValuesGetTheirCodeAndLeaveTheEnvUsable) {
             grpc::StatusCode::FAILED_PRECONDITION);
   EXPECT_EQ(StepAgent(*stub, aec, 9).error_code(),
             grpc::StatusCode::INVALID_ARGUMENT);
-  EXPECT_EQ(StepAgent(*stub, aec, std::nullopt).error_code(),
-            grpc::StatusCode::FAILED_PRECONDITION);  // Dead step for a live one.
+  EXPECT_EQ(
+      StepAgent(*stub, aec, std::nullopt).error_code(),
+      grpc::StatusCode::FAILED_PRECONDITION);  // Dead step for a live one.
   EXPECT_TRUE(StepAgent(*stub, aec, 2, /*agent=*/0).ok());
   // The other step API within an AEC episode.
   EXPECT_EQ(Step(*stub, aec, DiscreteActions({0, 0})).error_code(),
@@ -616,4 +651,4 @@ TEST(FaultTest, StepsAfterTheEpisodeEndedAreRefusedUntilReset) {
 }
 
 }  // namespace
-}  // namespace mll::testing
+}  // namespace mll::service::testing

@@ -63,16 +63,18 @@ TEST(FuzzRegressionTest, ServiceInputsRunCleanly) {
 // input goes (ASan checks the reads), envs made by an input are gone after it.
 TEST(FuzzRegressionTest, ServiceFramesAreBoundedByTheInput) {
   std::vector<uint8_t> input;
-  AppendServiceOp(Method::kCreateEnv, "", &input);  // All defaults: 3 landers.
+  AppendServiceOp(service::Method::kCreateEnv, "",
+                  &input);  // All defaults: 3 landers.
   v1::ResetEnvRequest reset;
   reset.set_name("@0");
-  AppendServiceOp(Method::kResetEnv, reset.SerializeAsString(), &input);
+  AppendServiceOp(service::Method::kResetEnv, reset.SerializeAsString(),
+                  &input);
   RunServiceInput(input.data(), input.size());
   input.resize(input.size() - 1);  // A truncated last frame.
   RunServiceInput(input.data(), input.size());
   // A length far past the end: ListEnvs with page_size 1, then nothing.
   const std::vector<uint8_t> oversized = {
-      static_cast<uint8_t>(Method::kListEnvs), 0xff, 0xff, 0x08, 0x01};
+      static_cast<uint8_t>(service::Method::kListEnvs), 0xff, 0xff, 0x08, 0x01};
   RunServiceInput(oversized.data(), oversized.size());
 }
 

@@ -19,7 +19,7 @@
 
 extern char** environ;
 
-namespace mll::testing {
+namespace mll::service::testing {
 
 absl::StatusOr<std::unique_ptr<Subprocess>> Subprocess::Start(
     const std::vector<std::string>& argv) {
@@ -29,7 +29,8 @@ absl::StatusOr<std::unique_ptr<Subprocess>> Subprocess::Start(
   posix_spawn_file_actions_init(&actions);
   posix_spawn_file_actions_adddup2(&actions, fds[1], STDOUT_FILENO);
   std::vector<char*> args;
-  for (const std::string& arg : argv) args.push_back(const_cast<char*>(arg.c_str()));
+  for (const std::string& arg : argv)
+    args.push_back(const_cast<char*>(arg.c_str()));
   args.push_back(nullptr);
   pid_t pid = 0;
   const int error =
@@ -38,7 +39,8 @@ absl::StatusOr<std::unique_ptr<Subprocess>> Subprocess::Start(
   close(fds[1]);
   if (error != 0) {
     close(fds[0]);
-    return absl::InternalError(absl::StrCat("posix_spawn ", argv[0], ": error ", error));
+    return absl::InternalError(
+        absl::StrCat("posix_spawn ", argv[0], ": error ", error));
   }
   return std::unique_ptr<Subprocess>(new Subprocess(pid, fds[0]));
 }
@@ -63,7 +65,8 @@ std::optional<std::string> Subprocess::ReadLine(absl::Duration timeout) {
     const absl::Duration left = deadline - absl::Now();
     if (left <= absl::ZeroDuration()) return std::nullopt;
     pollfd entry = {stdout_fd_, POLLIN, 0};
-    if (poll(&entry, 1, static_cast<int>(absl::ToInt64Milliseconds(left)) + 1) <= 0) {
+    if (poll(&entry, 1,
+             static_cast<int>(absl::ToInt64Milliseconds(left)) + 1) <= 0) {
       continue;
     }
     char chunk[4096];
@@ -106,7 +109,8 @@ std::optional<int> Subprocess::Wait(absl::Duration timeout) {
 absl::StatusOr<ServerUnderTest> StartServer(
     const std::vector<std::string>& flags) {
   char dir_template[] = "/tmp/mll_reliability_XXXXXX";
-  if (mkdtemp(dir_template) == nullptr) return absl::InternalError("mkdtemp failed");
+  if (mkdtemp(dir_template) == nullptr)
+    return absl::InternalError("mkdtemp failed");
   const std::string port_file = absl::StrCat(dir_template, "/port");
   std::vector<std::string> argv = {MLL_SERVER_PATH, "--address=127.0.0.1:0",
                                    "--port_file=" + port_file};
@@ -137,4 +141,4 @@ absl::Duration Scaled(absl::Duration duration) {
   return sanitizer != nullptr && *sanitizer != '\0' ? duration * 5 : duration;
 }
 
-}  // namespace mll::testing
+}  // namespace mll::service::testing

@@ -15,7 +15,7 @@
 #include "absl/status/statusor.h"
 #include "absl/time/time.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 
 class Subprocess {
  public:
@@ -62,6 +62,6 @@ absl::StatusOr<ServerUnderTest> StartServer(
 // times slower. Only waits are scaled, never what a test asserts.
 absl::Duration Scaled(absl::Duration duration);
 
-}  // namespace mll::testing
+}  // namespace mll::service::testing
 
 #endif  // MLL_TESTS_RELIABILITY_SUBPROCESS_H_

@@ -2,6 +2,8 @@
 // token file, the Authenticator, and a real server (in-process channel)
 // reached with no token, wrong tokens and two valid ones, over every unary
 // method and the Session stream.
+#include "mll/service/auth.h"
+
 #include <chrono>
 #include <fstream>
 #include <functional>
@@ -13,11 +15,10 @@
 #include "absl/strings/str_replace.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
-#include "mll/service/auth.h"
 #include "server_process.h"
 #include "test_util.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 using ::testing::AllOf;
@@ -66,8 +67,8 @@ TEST(AuthenticatorTest, OffMeansOneAnonymousOwner) {
   const Authenticator off({});
   EXPECT_FALSE(off.enabled());
   for (std::optional<absl::string_view> value :
-       {std::optional<absl::string_view>(), std::optional<absl::string_view>(
-                                                "Bearer anything")}) {
+       {std::optional<absl::string_view>(),
+        std::optional<absl::string_view>("Bearer anything")}) {
     absl::StatusOr<absl::string_view> owner = off.Authenticate(value);
     ASSERT_TRUE(owner.ok());
     EXPECT_EQ(*owner, kAnonymousOwner);
@@ -77,7 +78,6 @@ TEST(AuthenticatorTest, OffMeansOneAnonymousOwner) {
 TEST(AuthenticatorTest, AcceptsOnlyItsBearerTokens) {
   const Authenticator auth({kAlpha, kBeta});
   EXPECT_TRUE(auth.enabled());
-  EXPECT_EQ(auth.token_count(), 2);
 
   absl::StatusOr<absl::string_view> alpha =
       auth.Authenticate(absl::StrCat("Bearer ", kAlpha));
@@ -99,14 +99,14 @@ TEST(AuthenticatorTest, AcceptsOnlyItsBearerTokens) {
   };
   const std::string prefix_of_alpha = std::string("Bearer ") + "alpha";
   const std::string longer_alpha = absl::StrCat("Bearer ", kAlpha, "x");
-  for (const Case& c : std::vector<Case>{
-           {std::nullopt, "missing"},
-           {"Basic YWxwaGE=", "not of the form `Bearer <token>`"},
-           {"Bearer ", "not of the form `Bearer <token>`"},
-           {kAlpha, "not of the form `Bearer <token>`"},
-           {"Bearer wrong-token", "the token is not accepted"},
-           {prefix_of_alpha, "the token is not accepted"},
-           {longer_alpha, "the token is not accepted"}}) {
+  for (const Case& c :
+       std::vector<Case>{{std::nullopt, "missing"},
+                         {"Basic YWxwaGE=", "not of the form `Bearer <token>`"},
+                         {"Bearer ", "not of the form `Bearer <token>`"},
+                         {kAlpha, "not of the form `Bearer <token>`"},
+                         {"Bearer wrong-token", "the token is not accepted"},
+                         {prefix_of_alpha, "the token is not accepted"},
+                         {longer_alpha, "the token is not accepted"}}) {
     absl::StatusOr<absl::string_view> owner = auth.Authenticate(c.value);
     ASSERT_FALSE(owner.ok()) << c.value.value_or("(none)");
     EXPECT_EQ(owner.status().code(), absl::StatusCode::kUnauthenticated);
@@ -384,9 +384,8 @@ TEST_F(AuthServerTest, SessionActsAsItsTokenOnly) {
     request.mutable_step_batch()->add_steps()->set_name(alphas);
     *request.mutable_step_batch()->mutable_steps(0)->mutable_actions() =
         DiscreteActions({0, 0});
-    EXPECT_EQ(
-        Exchange(*stream, request).step_batch().results(0).error().code(),
-        grpc::NOT_FOUND);
+    EXPECT_EQ(Exchange(*stream, request).step_batch().results(0).error().code(),
+              grpc::NOT_FOUND);
     request.set_sequence(6);
     request.mutable_reset_env()->set_name(alphas);
     EXPECT_EQ(Exchange(*stream, request).error().code(), grpc::NOT_FOUND);
@@ -411,7 +410,8 @@ TEST_F(AuthServerTest, SessionActsAsItsTokenOnly) {
   // the client); alpha's is untouched.
   const auto deadline =
       std::chrono::steady_clock::now() + std::chrono::seconds(5);
-  while (!ListAs(kBeta).empty() && std::chrono::steady_clock::now() < deadline) {
+  while (!ListAs(kBeta).empty() &&
+         std::chrono::steady_clock::now() < deadline) {
     std::this_thread::sleep_for(std::chrono::milliseconds(5));
   }
   EXPECT_THAT(ListAs(kBeta), IsEmpty());
@@ -432,4 +432,4 @@ TEST(AuthOffTest, EveryCallerIsTheAnonymousOwner) {
 }
 
 }  // namespace
-}  // namespace mll::testing
+}  // namespace mll::service::testing

@@ -26,7 +26,7 @@
 #include "server_process.h"
 #include "test_util.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 using ::testing::HasSubstr;
@@ -104,12 +104,11 @@ httplib::Result Watch(const InProcess& s, const std::string& name,
                       Viewer* viewer, const std::function<bool()>& stop,
                       const httplib::Headers& headers = {}) {
   httplib::Client http = Client(s);
-  return http.Get(
-      absl::StrCat("/api/frames?name=", name).c_str(), headers,
-      [viewer, &stop](const char* data, size_t size) {
-        viewer->Feed(data, size);
-        return !stop();
-      });
+  return http.Get(absl::StrCat("/api/frames?name=", name).c_str(), headers,
+                  [viewer, &stop](const char* data, size_t size) {
+                    viewer->Feed(data, size);
+                    return !stop();
+                  });
 }
 
 bool WaitFor(const std::function<bool()>& condition,
@@ -179,9 +178,8 @@ TEST(DashboardTest, WithAuthEachTokenSeesOnlyItsEnvs) {
   EXPECT_EQ(beta->status, 200);
   EXPECT_EQ(beta->body, "{\"envs\":[],\"auth\":true}");
   // The page's way: the token in a cookie, URI-encoded.
-  httplib::Result alpha =
-      http.Get("/api/envs",
-               {{"Cookie", "theme=dark; mll_token=alpha%2Dtoken"}});
+  httplib::Result alpha = http.Get(
+      "/api/envs", {{"Cookie", "theme=dark; mll_token=alpha%2Dtoken"}});
   ASSERT_TRUE(alpha);
   EXPECT_EQ(alpha->status, 200);
   EXPECT_THAT(alpha->body, HasSubstr(env.name()));
@@ -209,8 +207,8 @@ TEST(DashboardTest, StreamErrorsNameTheParameter) {
   EXPECT_EQ(unknown->status, 404);
   EXPECT_THAT(unknown->body, HasSubstr("name: no env"));
   for (const char* fps : {"0", "31", "x"}) {
-    httplib::Result bad = http.Get(
-        absl::StrCat("/api/frames?fps=", fps, "&name=", name).c_str());
+    httplib::Result bad =
+        http.Get(absl::StrCat("/api/frames?fps=", fps, "&name=", name).c_str());
     ASSERT_TRUE(bad);
     EXPECT_EQ(bad->status, 400) << fps;
     EXPECT_THAT(bad->body, HasSubstr("fps: \\\"")) << fps;
@@ -239,8 +237,7 @@ TEST(DashboardTest, FramesFollowTheEnvAndAViewerThatLeavesLeavesNoWork) {
   EXPECT_EQ(std::set<std::string>(viewer.ids.begin(), viewer.ids.end()).size(),
             5u);
   EXPECT_EQ(
-      std::set<std::string>(viewer.pngs.begin(), viewer.pngs.end()).size(),
-      5u);
+      std::set<std::string>(viewer.pngs.begin(), viewer.pngs.end()).size(), 5u);
   for (const std::string& id : viewer.ids) EXPECT_THAT(id, HasSubstr("1."));
 
   // The connection is closed: the stream's thread notices at its next
@@ -308,9 +305,8 @@ TEST(DashboardTest, ViewersNeverChangeATrajectoryAndShareFrames) {
       Watch(s, watched, &viewer, [&done] { return done.load(); });
     });
   }
-  ASSERT_TRUE(WaitFor([&] {
-    return s.server->dashboard()->viewers() == kViewers;
-  }));
+  ASSERT_TRUE(
+      WaitFor([&] { return s.server->dashboard()->viewers() == kViewers; }));
   const std::vector<std::vector<int32_t>> actions = ActionTable(150, 3, 5);
   for (const std::vector<int32_t>& row : actions) {
     const v1::StepData a = Step(s, watched, row);
@@ -364,8 +360,7 @@ TEST(DashboardBinaryTest, BadOrBusyHttpAddressExitsWithOneLine) {
   ASSERT_EQ(listen(busy, 1), 0);
   socklen_t length = sizeof(address);
   getsockname(busy, reinterpret_cast<sockaddr*>(&address), &length);
-  const std::string taken =
-      absl::StrCat("127.0.0.1:", ntohs(address.sin_port));
+  const std::string taken = absl::StrCat("127.0.0.1:", ntohs(address.sin_port));
   std::tie(code, output) =
       RunServer(absl::StrCat("--address=127.0.0.1:0 --http_address=", taken));
   close(busy);
@@ -378,4 +373,4 @@ TEST(DashboardBinaryTest, BadOrBusyHttpAddressExitsWithOneLine) {
 }
 
 }  // namespace
-}  // namespace mll::testing
+}  // namespace mll::service::testing

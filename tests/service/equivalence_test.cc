@@ -1,6 +1,6 @@
 // Same seed and same actions give bit-identical observations, rewards and
-// outcomes whether the env is stepped in-process (mll::Env), by StepEnv, by
-// StepAgent (AEC, once every agent acted), by StepBatch, or on a Session
+// outcomes whether the env is stepped in-process (mll::core::Env), by StepEnv,
+// by StepAgent (AEC, once every agent acted), by StepBatch, or on a Session
 // stream, and whatever the server's thread count.
 #include <string>
 #include <vector>
@@ -11,7 +11,7 @@
 #include "mll/service/convert.h"
 #include "test_util.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 constexpr int kLanders = 3;
@@ -32,18 +32,19 @@ using Trajectory = std::vector<std::string>;  // ResultBits per step.
 // The reference: the core stepped directly, the reset's result first.
 std::vector<v1::StepData> CoreTrajectory(
     uint64_t seed, const std::vector<std::vector<int32_t>>& actions) {
-  absl::StatusOr<EnvConfig> config = EnvConfigFromProto(Request().config());
+  absl::StatusOr<core::EnvConfig> config =
+      EnvConfigFromProto(Request().config());
   EXPECT_TRUE(config.ok());
-  absl::StatusOr<std::unique_ptr<Env>> env = Env::Create(*config);
+  absl::StatusOr<std::unique_ptr<core::Env>> env = core::Env::Create(*config);
   EXPECT_TRUE(env.ok());
-  StepResult result;
+  core::StepResult result;
   v1::StepData data;
   (*env)->Reset(seed, &result);
   FillStepData(result, **env, false, &data);
   std::vector<v1::StepData> trajectory = {data};
   for (const std::vector<int32_t>& row : actions) {
     if (result.episode_over) break;
-    EXPECT_TRUE((*env)->Step(ActionsView{row, {}}, &result).ok());
+    EXPECT_TRUE((*env)->Step(core::ActionsView{row, {}}, &result).ok());
     FillStepData(result, **env, false, &data);
     trajectory.push_back(data);
   }
@@ -238,9 +239,9 @@ TEST_F(EquivalenceTest, StepAgentMatchesTheCoreOnceEveryAgentActed) {
       const v1::StepData& reference = reference_[e][cycle];
       for (int i = 0; i < kLanders; ++i) {
         if (reference.stepped().data()[i] == 0) continue;
-        SCOPED_TRACE(::testing::Message() << "cycle " << cycle << " agent "
-                                          << i);
-        const size_t row = static_cast<size_t>(i) * kObservationSize * 4;
+        SCOPED_TRACE(::testing::Message()
+                     << "cycle " << cycle << " agent " << i);
+        const size_t row = static_cast<size_t>(i) * core::kObservationSize * 4;
         EXPECT_EQ(state.observations().data().substr(row, 48),
                   reference.observations().data().substr(row, 48));
         EXPECT_EQ(state.rewards().data().substr(i * 4, 4),
@@ -260,4 +261,4 @@ TEST_F(EquivalenceTest, StepAgentMatchesTheCoreOnceEveryAgentActed) {
 }
 
 }  // namespace
-}  // namespace mll::testing
+}  // namespace mll::service::testing

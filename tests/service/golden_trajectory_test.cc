@@ -24,7 +24,7 @@
 #include "mll/core/env_config.h"
 #include "test_util.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 constexpr int kMaxCycles = 300;
@@ -106,8 +106,8 @@ class Hash {
   uint64_t value_ = 0xCBF29CE484222325ull;
 };
 
-EnvConfig CoreConfig(const Scenario& s) {
-  EnvConfig config;
+core::EnvConfig CoreConfig(const Scenario& s) {
+  core::EnvConfig config;
   config.n_landers = s.n_landers;
   config.continuous = s.continuous;
   config.enable_wind = s.enable_wind;
@@ -131,7 +131,8 @@ v1::CreateEnvRequest WireConfig(const Scenario& s) {
 }
 
 // The hash of one step's columns, in StepData's wire layout.
-void HashCore(const StepResult& result, const Env& env, Hash* hash) {
+void HashCore(const core::StepResult& result, const core::Env& env,
+              Hash* hash) {
   const int n = env.n_landers();
   hash->AddValues(result.observations);
   hash->AddValues(result.rewards);
@@ -184,11 +185,12 @@ struct Trajectory {
 };
 
 Trajectory CoreTrajectory(const Scenario& s) {
-  absl::StatusOr<std::unique_ptr<Env>> env = Env::Create(CoreConfig(s));
+  absl::StatusOr<std::unique_ptr<core::Env>> env =
+      core::Env::Create(CoreConfig(s));
   EXPECT_TRUE(env.ok()) << env.status();
   if (!env.ok()) return {};
   Actions actions(s.seed + 1000);
-  StepResult result;
+  core::StepResult result;
   Hash hash;
   (*env)->Reset(s.seed, &result);
   HashCore(result, **env, &hash);
@@ -197,17 +199,17 @@ Trajectory CoreTrajectory(const Scenario& s) {
     absl::Status status;
     if (s.continuous) {
       const std::vector<float> row = actions.Continuous(s.n_landers);
-      status = (*env)->Step(ActionsView{{}, row}, &result);
+      status = (*env)->Step(core::ActionsView{{}, row}, &result);
     } else {
       const std::vector<int32_t> row = actions.Discrete(s.n_landers);
-      status = (*env)->Step(ActionsView{row, {}}, &result);
+      status = (*env)->Step(core::ActionsView{row, {}}, &result);
     }
     EXPECT_TRUE(status.ok()) << status;
     if (!status.ok()) break;
     HashCore(result, **env, &hash);
     ++trajectory.steps;
   }
-  for (Outcome outcome : result.outcomes) {
+  for (core::Outcome outcome : result.outcomes) {
     trajectory.final_outcomes.push_back(static_cast<int>(outcome));
   }
   trajectory.hash = hash.value();
@@ -376,4 +378,4 @@ INSTANTIATE_TEST_SUITE_P(Scenarios, GoldenTrajectoryTest,
                          });
 
 }  // namespace
-}  // namespace mll::testing
+}  // namespace mll::service::testing

@@ -10,7 +10,7 @@
 #include "gtest/gtest.h"
 #include "test_util.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 using ::testing::HasSubstr;
@@ -181,4 +181,4 @@ TEST(LifecycleTest, MaxEnvsIsResourceExhaustedAndTheRestKeepsWorking) {
 }
 
 }  // namespace
-}  // namespace mll::testing
+}  // namespace mll::service::testing

@@ -1,6 +1,8 @@
 // Prometheus metrics: the exposition text parses (HELP/TYPE lines, label
 // syntax, histogram invariants), and a real server's /metrics, scraped over
 // loopback HTTP, moves as the traffic sent to it says it must.
+#include "mll/service/metrics.h"
+
 #include <chrono>
 #include <map>
 #include <regex>
@@ -12,10 +14,9 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "httplib.h"
-#include "mll/service/metrics.h"
 #include "test_util.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 using ::testing::HasSubstr;
@@ -76,11 +77,12 @@ std::map<std::string, double> Parse(const std::string& text) {
       EXPECT_GE(samples[series], previous) << series;
       previous = samples[series];
     }
-    const double inf = samples[absl::StrCat(
-        "mll_rpc_duration_seconds_bucket{", label, ",le=\"+Inf\"}")];
+    const double inf = samples[absl::StrCat("mll_rpc_duration_seconds_bucket{",
+                                            label, ",le=\"+Inf\"}")];
     EXPECT_GE(inf, previous);
-    EXPECT_EQ(inf, samples[absl::StrCat("mll_rpc_duration_seconds_count{",
-                                        label, "}")]);
+    EXPECT_EQ(
+        inf,
+        samples[absl::StrCat("mll_rpc_duration_seconds_count{", label, "}")]);
   }
   return samples;
 }
@@ -131,8 +133,7 @@ TEST(MetricsTest, PackedBatchRowsCountAsSteps) {
   // env 3 stepped one.
   packed->mutable_stepped()->set_data(
       std::string("\x01\x01\x00\x00\x01\x01\x01\x00", 8));
-  packed->mutable_auto_reset()->set_data(
-      std::string("\x00\x00\x01\x00", 4));
+  packed->mutable_auto_reset()->set_data(std::string("\x00\x00\x01\x00", 4));
   packed->add_errors()->set_index(1);
   metrics.RecordStepBatch(Method::kStepBatch, response);
   std::map<std::string, double> s = Parse(metrics.Render(0));
@@ -256,14 +257,13 @@ TEST_F(MetricsServerTest, ScrapeFollowsTheTraffic) {
   EXPECT_EQ(after[Series("mll_agent_steps_total", "Session")], 4);
   EXPECT_EQ(after[Series("mll_steps_total", "StepAgent")], 0);
   EXPECT_EQ(after[Series("mll_rpc_duration_seconds_count", "CreateEnv")], 2);
-  EXPECT_EQ(after[Series("mll_rpc_duration_seconds_count", "StepEnv")],
-            kSteps);
+  EXPECT_EQ(after[Series("mll_rpc_duration_seconds_count", "StepEnv")], kSteps);
   EXPECT_EQ(after[Series("mll_rpc_duration_seconds_count", "StepBatch")],
             kBatches);
   EXPECT_EQ(after[Series("mll_rpc_duration_seconds_count", "Session")], 4);
   EXPECT_GT(after[Series("mll_rpc_duration_seconds_sum", "StepEnv")], 0);
-  EXPECT_EQ(
-      after["mll_rpc_errors_total{method=\"GetEnv\",code=\"NOT_FOUND\"}"], 1);
+  EXPECT_EQ(after["mll_rpc_errors_total{method=\"GetEnv\",code=\"NOT_FOUND\"}"],
+            1);
   EXPECT_EQ(after["mll_rpc_errors_total{method=\"Session\","
                   "code=\"INVALID_ARGUMENT\"}"],
             1);
@@ -288,9 +288,10 @@ TEST_F(MetricsServerTest, OnlyMetricsIsServed) {
 }
 
 TEST(MetricsAddressTest, BadOrBusyAddressIsAnErrorNamingTheFlag) {
-  ExpectListenerRefusesBadAndBusyAddresses(
-      "--metrics_address", &ServerOptions::metrics_address, &Server::metrics_port);
+  ExpectListenerRefusesBadAndBusyAddresses("--metrics_address",
+                                           &ServerOptions::metrics_address,
+                                           &Server::metrics_port);
 }
 
 }  // namespace
-}  // namespace mll::testing
+}  // namespace mll::service::testing

@@ -14,7 +14,7 @@
 #include "mll/service/convert.h"
 #include "test_util.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 using ::testing::HasSubstr;
@@ -33,8 +33,8 @@ v1::StepData RowAsStepData(const v1::PackedStepData& packed, int e, int n) {
   };
   v1::StepData data;
   const size_t agents = static_cast<size_t>(n);
-  cut(packed.observations(), agents * kObservationSize * 4, e,
-      {n, kObservationSize}, data.mutable_observations());
+  cut(packed.observations(), agents * core::kObservationSize * 4, e,
+      {n, core::kObservationSize}, data.mutable_observations());
   cut(packed.rewards(), agents * 4, e, {n}, data.mutable_rewards());
   cut(packed.terminations(), agents, e, {n}, data.mutable_terminations());
   cut(packed.truncations(), agents, e, {n}, data.mutable_truncations());
@@ -125,9 +125,9 @@ struct CycleActions {
     return continuous.empty() ? DiscreteActions(discrete[e])
                               : ContinuousActions(continuous[e]);
   }
-  ActionsView View(int e) const {
-    return continuous.empty() ? ActionsView{discrete[e], {}}
-                              : ActionsView{{}, continuous[e]};
+  core::ActionsView View(int e) const {
+    return continuous.empty() ? core::ActionsView{discrete[e], {}}
+                              : core::ActionsView{{}, continuous[e]};
   }
   v1::Array Packed(int n) const {
     v1::Array array;
@@ -167,8 +167,7 @@ CycleActions Draw(ActionSource& source, int num_envs) {
 v1::StepBatchRequest PackedRequest(const std::vector<std::string>& names,
                                    const v1::Array& actions) {
   v1::StepBatchRequest request;
-  request.mutable_packed()->mutable_names()->Assign(names.begin(),
-                                                    names.end());
+  request.mutable_packed()->mutable_names()->Assign(names.begin(), names.end());
   *request.mutable_packed()->mutable_actions() = actions;
   return request;
 }
@@ -185,13 +184,13 @@ TEST_P(PackedEquivalenceTest, MatchesStepsFormAndCoreOnOneAndTwoThreads) {
   const int num_envs = static_cast<int>(seeds.size());
   constexpr int kCycles = 130;
 
-  absl::StatusOr<EnvConfig> config =
+  absl::StatusOr<core::EnvConfig> config =
       EnvConfigFromProto(Config(continuous).config());
   ASSERT_TRUE(config.ok());
-  std::vector<std::unique_ptr<Env>> core;
-  StepResult result;
+  std::vector<std::unique_ptr<core::Env>> core;
+  core::StepResult result;
   for (uint64_t seed : seeds) {
-    core.push_back(*Env::Create(*config));
+    core.push_back(*core::Env::Create(*config));
     core.back()->Reset(seed, &result);
   }
 
@@ -256,8 +255,9 @@ TEST_P(PackedEquivalenceTest, MatchesStepsFormAndCoreOnOneAndTwoThreads) {
       ASSERT_EQ(packed_response.results_size(), 0);
       const v1::PackedStepData& packed = packed_response.packed();
       ASSERT_EQ(packed.errors_size(), 0) << packed.errors(0).error().message();
-      EXPECT_THAT(packed.observations().shape(),
-                  ::testing::ElementsAre(num_envs, kLanders, kObservationSize));
+      EXPECT_THAT(
+          packed.observations().shape(),
+          ::testing::ElementsAre(num_envs, kLanders, core::kObservationSize));
       EXPECT_THAT(packed.cycles().shape(), ::testing::ElementsAre(num_envs));
       for (int e = 0; e < num_envs; ++e) {
         ASSERT_TRUE(steps_response.results(e).has_data());
@@ -325,8 +325,9 @@ TEST_F(PackedErrorsTest, RequestLevelErrorsStepNothing) {
   v1::StepEnvRequest* step = both.add_steps();
   step->set_name(a);
   *step->mutable_actions() = DiscreteActions({0, 0, 0});
-  ExpectRejected(both, "steps, packed: both set (1 steps and a packed batch "
-                       "of 2 envs)");
+  ExpectRejected(both,
+                 "steps, packed: both set (1 steps and a packed batch "
+                 "of 2 envs)");
 
   v1::Array bytes;
   const int byte_shape[] = {2, 3};
@@ -375,7 +376,7 @@ TEST_F(PackedErrorsTest, RequestLevelErrorsStepNothing) {
   ASSERT_TRUE(Batch(PackedRequest({}, Int32Array({0, 3}, 0)), &response).ok());
   EXPECT_TRUE(response.has_packed());
   EXPECT_THAT(response.packed().observations().shape(),
-              ::testing::ElementsAre(0, 3, kObservationSize));
+              ::testing::ElementsAre(0, 3, core::kObservationSize));
 }
 
 // Each failing env gets StepEnv's code and message (its field names moved
@@ -407,12 +408,12 @@ TEST_F(PackedErrorsTest, FailingEnvsGetStepEnvsErrorAndLeaveOthersIntact) {
   ASSERT_TRUE(
       StepEnvError(over, DiscreteActions({0, 0, 0})).ok());  // Now over.
 
-  const std::vector<std::string> names = {
-      good0, other_n, other_type, "envs/missing", "bogus",
-      unreset, over, bad_value, good1};
-  std::vector<std::vector<int32_t>> rows = {
-      {2, 1, 3}, {0, 0, 0}, {0, 0, 0}, {0, 0, 0}, {0, 0, 0},
-      {0, 0, 0}, {0, 0, 0}, {0, 7, 0}, {3, 2, 2}};
+  const std::vector<std::string> names = {good0,          other_n,   other_type,
+                                          "envs/missing", "bogus",   unreset,
+                                          over,           bad_value, good1};
+  std::vector<std::vector<int32_t>> rows = {{2, 1, 3}, {0, 0, 0}, {0, 0, 0},
+                                            {0, 0, 0}, {0, 0, 0}, {0, 0, 0},
+                                            {0, 0, 0}, {0, 7, 0}, {3, 2, 2}};
   CycleActions actions;
   actions.discrete = rows;
 
@@ -451,12 +452,13 @@ TEST_F(PackedErrorsTest, FailingEnvsGetStepEnvsErrorAndLeaveOthersIntact) {
     expected.push_back({e, status.error_code(), status.error_message()});
   }
   ASSERT_EQ(packed.errors_size(), static_cast<int>(expected.size()));
-  const grpc::StatusCode codes[] = {
-      grpc::StatusCode::INVALID_ARGUMENT, grpc::StatusCode::INVALID_ARGUMENT,
-      grpc::StatusCode::NOT_FOUND, grpc::StatusCode::INVALID_ARGUMENT,
-      grpc::StatusCode::FAILED_PRECONDITION,
-      grpc::StatusCode::FAILED_PRECONDITION,
-      grpc::StatusCode::INVALID_ARGUMENT};
+  const grpc::StatusCode codes[] = {grpc::StatusCode::INVALID_ARGUMENT,
+                                    grpc::StatusCode::INVALID_ARGUMENT,
+                                    grpc::StatusCode::NOT_FOUND,
+                                    grpc::StatusCode::INVALID_ARGUMENT,
+                                    grpc::StatusCode::FAILED_PRECONDITION,
+                                    grpc::StatusCode::FAILED_PRECONDITION,
+                                    grpc::StatusCode::INVALID_ARGUMENT};
   for (size_t i = 0; i < expected.size(); ++i) {
     SCOPED_TRACE(names[expected[i].index]);
     EXPECT_EQ(expected[i].code, codes[i]);
@@ -538,4 +540,4 @@ TEST(PackedSessionTest, SessionCarriesAPackedBatch) {
 }
 
 }  // namespace
-}  // namespace mll::testing
+}  // namespace mll::service::testing

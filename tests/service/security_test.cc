@@ -17,7 +17,7 @@
 #include "server_process.h"
 #include "test_util.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 using ::testing::AllOf;
@@ -41,8 +41,8 @@ std::string ReadAll(const std::string& path) {
 // The files are per process: ctest runs this file's tests as concurrent
 // processes, which must not overwrite each other's certificate.
 KeyPair MakeKeyPair(const std::string& stem) {
-  const std::string prefix = ::testing::TempDir() + stem + "_" +
-                             std::to_string(getpid());
+  const std::string prefix =
+      ::testing::TempDir() + stem + "_" + std::to_string(getpid());
   KeyPair pair{prefix + "_cert.pem", prefix + "_key.pem", ""};
   const std::string command =
       "openssl req -x509 -newkey ec -pkeyopt ec_paramgen_curve:prime256v1 "
@@ -120,10 +120,10 @@ TEST_F(TlsTest, PlaintextAndUntrustingClientsCannotConnect) {
       Server::Start(TlsOptions(*server_pair_));
   ASSERT_TRUE(server.ok()) << server.status();
   const std::string target = "127.0.0.1:" + std::to_string((*server)->port());
-  EXPECT_EQ(TryCreate(grpc::CreateChannel(
-                          target, grpc::InsecureChannelCredentials()))
-                .error_code(),
-            grpc::StatusCode::UNAVAILABLE);
+  EXPECT_EQ(
+      TryCreate(grpc::CreateChannel(target, grpc::InsecureChannelCredentials()))
+          .error_code(),
+      grpc::StatusCode::UNAVAILABLE);
   // A client that trusts another certificate rejects the server's.
   EXPECT_EQ(TryCreate(TlsChannel(target, other_pair_->cert_pem)).error_code(),
             grpc::StatusCode::UNAVAILABLE);
@@ -172,11 +172,11 @@ TEST_F(TlsTest, BinaryWithTlsTokensAndMetrics) {
   const std::string tokens = ::testing::TempDir() + "mll_binary_tokens.txt";
   std::ofstream(tokens) << "# two trainers\nsecret-one\n\nsecret-two\n";
   const std::string log = ::testing::TempDir() + "mll_binary_security.log";
-  ServerProcess process({"--tls_cert=" + server_pair_->cert_file,
-                         "--tls_key=" + server_pair_->key_file,
-                         "--auth_token_file=" + tokens,
-                         "--metrics_address=127.0.0.1:0", "--threads=1"},
-                        log);
+  ServerProcess process(
+      {"--tls_cert=" + server_pair_->cert_file,
+       "--tls_key=" + server_pair_->key_file, "--auth_token_file=" + tokens,
+       "--metrics_address=127.0.0.1:0", "--threads=1"},
+      log);
   const int port = process.WaitForPort();
   ASSERT_GT(port, 0);
   const std::string line = WaitForLogLine(log, "mll_server: TLS ");
@@ -186,8 +186,8 @@ TEST_F(TlsTest, BinaryWithTlsTokensAndMetrics) {
   EXPECT_THAT(ReadAll(log), AllOf(Not(HasSubstr("secret-one")),
                                   Not(HasSubstr("secret-two"))));
 
-  auto channel = TlsChannel("localhost:" + std::to_string(port),
-                            server_pair_->cert_pem);
+  auto channel =
+      TlsChannel("localhost:" + std::to_string(port), server_pair_->cert_pem);
   EXPECT_TRUE(TryCreate(channel, "secret-two").ok());
   const grpc::Status no_token = TryCreate(channel);
   EXPECT_EQ(no_token.error_code(), grpc::StatusCode::UNAUTHENTICATED);
@@ -235,4 +235,4 @@ TEST(SecurityFlagsTest, BinaryRejectsBadSecurityFlags) {
 }
 
 }  // namespace
-}  // namespace mll::testing
+}  // namespace mll::service::testing

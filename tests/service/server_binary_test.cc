@@ -12,7 +12,7 @@
 #include "server_process.h"
 #include "test_util.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 using ::testing::HasSubstr;
@@ -146,15 +146,14 @@ TEST(ServerBinaryTest, HelpListsEveryFlagAndExitsZero) {
   EXPECT_EQ(code, 0);
   // No build paths: flags are listed by name, not by the file defining them.
   EXPECT_THAT(output, Not(HasSubstr(".cc")));
-  for (const char* flag : {"--address", "--port_file", "--threads",
-                           "--max_envs", "--max_envs_per_token",
-                           "--idle_timeout_s",
-                           "--max_message_mb", "--tls_cert", "--tls_key",
-                           "--auth_token_file", "--metrics_address",
-                           "--shutdown_grace_s", "--parent_pid"}) {
+  for (const char* flag :
+       {"--address", "--port_file", "--threads", "--max_envs",
+        "--max_envs_per_token", "--idle_timeout_s", "--max_message_mb",
+        "--tls_cert", "--tls_key", "--auth_token_file", "--metrics_address",
+        "--shutdown_grace_s", "--parent_pid"}) {
     EXPECT_THAT(output, HasSubstr(flag));
   }
 }
 
 }  // namespace
-}  // namespace mll::testing
+}  // namespace mll::service::testing

@@ -16,7 +16,7 @@
 
 extern char** environ;
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 constexpr char kServerPath[] = MLL_SERVER_PATH;
@@ -25,8 +25,8 @@ constexpr char kServerPath[] = MLL_SERVER_PATH;
 
 ServerProcess::ServerProcess(std::vector<std::string> flags,
                              const std::string& log_file) {
-  port_file_ = ::testing::TempDir() + "mll_server_port_" +
-               std::to_string(getpid());
+  port_file_ =
+      ::testing::TempDir() + "mll_server_port_" + std::to_string(getpid());
   std::remove(port_file_.c_str());
   std::vector<std::string> args = {kServerPath, "--address=127.0.0.1:0",
                                    "--port_file=" + port_file_};
@@ -40,9 +40,9 @@ ServerProcess::ServerProcess(std::vector<std::string> flags,
     posix_spawn_file_actions_addopen(&actions, STDERR_FILENO, log_file.c_str(),
                                      O_WRONLY | O_CREAT | O_TRUNC, 0644);
   }
-  EXPECT_EQ(posix_spawn(&pid_, kServerPath, &actions, nullptr, argv.data(),
-                        environ),
-            0);
+  EXPECT_EQ(
+      posix_spawn(&pid_, kServerPath, &actions, nullptr, argv.data(), environ),
+      0);
   posix_spawn_file_actions_destroy(&actions);
 }
 
@@ -123,4 +123,4 @@ std::string HealthCheck(const std::shared_ptr<grpc::Channel>& channel,
   return bytes;
 }
 
-}  // namespace mll::testing
+}  // namespace mll::service::testing

@@ -12,7 +12,7 @@
 
 #include "grpcpp/grpcpp.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 
 // mll_server on 127.0.0.1:0 with --port_file and `flags`; killed (SIGKILL)
 // on destruction unless it has exited. With `log_file`, its stderr goes
@@ -47,6 +47,6 @@ std::pair<int, std::string> RunServer(const std::string& flags);
 std::string HealthCheck(const std::shared_ptr<grpc::Channel>& channel,
                         grpc::Status* status);
 
-}  // namespace mll::testing
+}  // namespace mll::service::testing
 
 #endif  // MLL_TESTS_SERVICE_SERVER_PROCESS_H_

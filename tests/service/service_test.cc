@@ -10,17 +10,17 @@
 #include "mll/service/convert.h"
 #include "test_util.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 using ::testing::HasSubstr;
 
-#define EXPECT_STATUS(status, code, substring)                      \
-  do {                                                              \
-    const grpc::Status status_ = (status);                          \
-    EXPECT_EQ(status_.error_code(), grpc::StatusCode::code)         \
-        << status_.error_message();                                 \
-    EXPECT_THAT(status_.error_message(), HasSubstr(substring));     \
+#define EXPECT_STATUS(status, code, substring)                  \
+  do {                                                          \
+    const grpc::Status status_ = (status);                      \
+    EXPECT_EQ(status_.error_code(), grpc::StatusCode::code)     \
+        << status_.error_message();                             \
+    EXPECT_THAT(status_.error_message(), HasSubstr(substring)); \
   } while (0)
 
 class ServiceTest : public ::testing::Test {
@@ -41,8 +41,7 @@ class ServiceTest : public ::testing::Test {
     *request.mutable_actions() = actions;
     return s_.stub->StepEnv(&context, request, out);
   }
-  grpc::Status Agent(const std::string& name,
-                     std::optional<int32_t> discrete,
+  grpc::Status Agent(const std::string& name, std::optional<int32_t> discrete,
                      v1::StepAgentResponse* out,
                      std::optional<int32_t> agent = std::nullopt) {
     grpc::ClientContext context;
@@ -123,15 +122,15 @@ TEST_F(ServiceTest, CreateEnvRejectsBadConfig) {
     v1::CreateEnvRequest request;
     request.mutable_config()->set_gravity(std::nan(""));
     grpc::ClientContext context;
-    EXPECT_STATUS(s_.stub->CreateEnv(&context, request, &env),
-                  INVALID_ARGUMENT, "gravity");
+    EXPECT_STATUS(s_.stub->CreateEnv(&context, request, &env), INVALID_ARGUMENT,
+                  "gravity");
   }
   {
     v1::CreateEnvRequest request;
     request.mutable_config()->set_render_mode(static_cast<v1::RenderMode>(9));
     grpc::ClientContext context;
-    EXPECT_STATUS(s_.stub->CreateEnv(&context, request, &env),
-                  INVALID_ARGUMENT, "render_mode: 9 is not a RenderMode");
+    EXPECT_STATUS(s_.stub->CreateEnv(&context, request, &env), INVALID_ARGUMENT,
+                  "render_mode: 9 is not a RenderMode");
   }
 }
 
@@ -234,8 +233,9 @@ TEST_F(ServiceTest, StepEnvValidatesActions) {
                 "actions: shape [2] does not match [3] (one int32 per agent "
                 "of n_landers = 3)");
   EXPECT_STATUS(Step(name, ContinuousActions({0, 0, 0, 0, 0, 0}), &response),
-                INVALID_ARGUMENT, "actions: dtype DTYPE_FLOAT32 does not "
-                                  "match DTYPE_INT32");
+                INVALID_ARGUMENT,
+                "actions: dtype DTYPE_FLOAT32 does not "
+                "match DTYPE_INT32");
   v1::Array short_data = DiscreteActions({0, 0, 0});
   short_data.mutable_data()->resize(8);
   EXPECT_STATUS(Step(name, short_data, &response), INVALID_ARGUMENT,
@@ -335,8 +335,7 @@ TEST_F(ServiceTest, StepAgentFollowsTheTurnOrder) {
     grpc::ClientContext context;
     v1::StepAgentRequest request;
     request.set_name(name);
-    *request.mutable_action()->mutable_continuous() =
-        ContinuousActions({0, 0});
+    *request.mutable_action()->mutable_continuous() = ContinuousActions({0, 0});
     EXPECT_STATUS(s_.stub->StepAgent(&context, request, &response),
                   INVALID_ARGUMENT, "action.continuous given");
   }
@@ -345,8 +344,8 @@ TEST_F(ServiceTest, StepAgentFollowsTheTurnOrder) {
   EXPECT_FALSE(response.aec().world_stepped());
   // The parallel API cannot interleave with a half-finished AEC cycle.
   v1::StepEnvResponse step;
-  EXPECT_STATUS(Step(name, DiscreteActions({0, 0}), &step),
-                FAILED_PRECONDITION, "is stepped with StepAgent");
+  EXPECT_STATUS(Step(name, DiscreteActions({0, 0}), &step), FAILED_PRECONDITION,
+                "is stepped with StepAgent");
   ASSERT_TRUE(Agent(name, 0, &response, /*agent=*/1).ok());
   EXPECT_TRUE(response.aec().world_stepped());
   EXPECT_EQ(response.aec().agent_selection(), 0);
@@ -451,4 +450,4 @@ TEST(StatusMappingTest, CanonicalCodesKeepTheirNumberOthersAreInternal) {
 }
 
 }  // namespace
-}  // namespace mll::testing
+}  // namespace mll::service::testing

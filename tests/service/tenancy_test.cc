@@ -11,7 +11,7 @@
 #include "gtest/gtest.h"
 #include "test_util.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 namespace {
 
 using ::testing::AllOf;
@@ -28,8 +28,7 @@ grpc::Status CreateAs(v1::MultiLunarLander::Stub& stub,
   grpc::ClientContext context;
   if (!token.empty()) AddToken(token, &context);
   v1::Env env;
-  const grpc::Status status =
-      stub.CreateEnv(&context, CreateRequest(1), &env);
+  const grpc::Status status = stub.CreateEnv(&context, CreateRequest(1), &env);
   if (name != nullptr) *name = env.name();
   return status;
 }
@@ -88,11 +87,11 @@ TEST(TenancyTest, OneTenantCannotTakeEveryEnvironment) {
   }
   const grpc::Status refused = CreateAs(*s.stub, kAlpha);
   EXPECT_EQ(refused.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED);
-  EXPECT_THAT(refused.error_message(),
-              AllOf(HasSubstr("tenant token#1"),
-                    HasSubstr("--max_envs_per_token=3"),
-                    HasSubstr("the server hosts 3 of --max_envs=10"),
-                    Not(HasSubstr(kAlpha))));
+  EXPECT_THAT(
+      refused.error_message(),
+      AllOf(HasSubstr("tenant token#1"), HasSubstr("--max_envs_per_token=3"),
+            HasSubstr("the server hosts 3 of --max_envs=10"),
+            Not(HasSubstr(kAlpha))));
   // The other tenants still get their shares.
   for (int i = 0; i < 3; ++i) {
     EXPECT_TRUE(CreateAs(*s.stub, kBeta).ok());
@@ -119,10 +118,10 @@ TEST(TenancyTest, ExplicitQuotaAppliesToTheAnonymousTenantToo) {
   ASSERT_TRUE(CreateAs(*s.stub, "").ok());
   const grpc::Status refused = CreateAs(*s.stub, "");
   EXPECT_EQ(refused.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED);
-  EXPECT_THAT(refused.error_message(),
-              AllOf(HasSubstr("tenant anonymous"),
-                    HasSubstr("--max_envs_per_token=2"),
-                    HasSubstr("--max_envs=10")));
+  EXPECT_THAT(
+      refused.error_message(),
+      AllOf(HasSubstr("tenant anonymous"), HasSubstr("--max_envs_per_token=2"),
+            HasSubstr("--max_envs=10")));
 }
 
 TEST(TenancyTest, MetricsCountLiveEnvsPerTenantWithoutTokens) {
@@ -164,17 +163,17 @@ TEST(TenancyTest, KeepAliveRenewsLeasesAndReportsUnknownNames) {
   // `idle` was reclaimed; NOT_FOUND says so and what to do.
   const grpc::Status gone = GetAs(*s.stub, kAlpha, idle);
   EXPECT_EQ(gone.error_code(), grpc::StatusCode::NOT_FOUND);
-  EXPECT_THAT(gone.error_message(),
-              AllOf(HasSubstr(idle),
-                    HasSubstr("reclaimed after being idle 0.6 s"),
-                    HasSubstr("keep the client's env object alive"),
-                    HasSubstr("raise the server's --idle_timeout_s")));
+  EXPECT_THAT(
+      gone.error_message(),
+      AllOf(HasSubstr(idle), HasSubstr("reclaimed after being idle 0.6 s"),
+            HasSubstr("keep the client's env object alive"),
+            HasSubstr("raise the server's --idle_timeout_s")));
   // To another tenant the reclaimed name is just unknown.
   const grpc::Status elsewhere = GetAs(*s.stub, kBeta, idle);
   EXPECT_EQ(elsewhere.error_code(), grpc::StatusCode::NOT_FOUND);
-  EXPECT_THAT(elsewhere.error_message(),
-              AllOf(HasSubstr("does not exist"),
-                    Not(HasSubstr("was reclaimed"))));
+  EXPECT_THAT(
+      elsewhere.error_message(),
+      AllOf(HasSubstr("does not exist"), Not(HasSubstr("was reclaimed"))));
 }
 
 TEST(TenancyTest, EnvReportsTheIdleTimeoutAndKeepAliveIsBounded) {
@@ -197,4 +196,4 @@ TEST(TenancyTest, EnvReportsTheIdleTimeoutAndKeepAliveIsBounded) {
 }
 
 }  // namespace
-}  // namespace mll::testing
+}  // namespace mll::service::testing

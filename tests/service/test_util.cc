@@ -8,7 +8,7 @@
 #include "gtest/gtest.h"
 #include "mll/service/convert.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 
 namespace {
 
@@ -67,7 +67,7 @@ std::string CreateEnv(v1::MultiLunarLander::Stub& stub,
 }
 
 std::vector<float> Observations(const v1::StepData& data, int n) {
-  const int shape[] = {n, kObservationSize};
+  const int shape[] = {n, core::kObservationSize};
   absl::StatusOr<std::vector<float>> values =
       DecodeArray<float>(data.observations(), shape, "observations");
   EXPECT_TRUE(values.ok()) << values.status();
@@ -128,4 +128,4 @@ void ExpectListenerRefusesBadAndBusyAddresses(
               ::testing::HasSubstr(absl::StrCat(flag, ": cannot listen on")));
 }
 
-}  // namespace mll::testing
+}  // namespace mll::service::testing

@@ -12,7 +12,7 @@
 #include "mll/service/server.h"
 #include "mll/v1/multi_lunar_lander.grpc.pb.h"
 
-namespace mll::testing {
+namespace mll::service::testing {
 
 // A server listening nowhere, with a stub on an in-process channel.
 struct InProcess {
@@ -57,6 +57,6 @@ void ExpectListenerRefusesBadAndBusyAddresses(
     const std::string& flag, std::string ServerOptions::*address,
     int (Server::*port)() const);
 
-}  // namespace mll::testing
+}  // namespace mll::service::testing
 
 #endif  // MLL_TESTS_SERVICE_TEST_UTIL_H_

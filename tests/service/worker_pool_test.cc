@@ -12,7 +12,7 @@
 #include "absl/synchronization/notification.h"
 #include "gtest/gtest.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 // Runs one ParallelFor and waits for its done().
@@ -110,4 +110,4 @@ TEST(WorkerPoolTest, ConcurrentBatchesEachRunTheirOwnIndices) {
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::service

@@ -28,8 +28,8 @@
 // (one RemoteEnv at a time per env, as the server serialises each env anyway).
 // A session client serialises its calls on its one stream.
 //
-// Names do not clash with the core (mll::Env, mll::StepResult, mll::Outcome,
-// mll::Frame): a program may link both, as the equivalence test does.
+// Everything here is in namespace mll::client; the simulation core's types
+// are in mll::core, so a program may link both, as the equivalence test does.
 #ifndef MLL_CLIENT_H_
 #define MLL_CLIENT_H_
 
@@ -47,11 +47,11 @@
 #include "absl/strings/string_view.h"
 #include "absl/types/span.h"
 
-namespace mll {
+namespace mll::client {
 
-namespace client_internal {
+namespace internal {
 class Transport;
-}  // namespace client_internal
+}  // namespace internal
 
 // How the client reaches the server.
 struct ClientOptions {
@@ -110,19 +110,19 @@ struct SpaceSpec {
 // server's default; the server validates every value (INVALID_ARGUMENT naming
 // the field, the value and the range).
 struct RemoteEnvConfig {
-  std::optional<int> n_landers;            // 1..32, default 3.
-  std::optional<bool> continuous;          // Default false (Discrete(4)).
-  std::optional<int> max_cycles;           // >= 1, default 500.
-  std::optional<double> gravity;           // (-12, 0), default -10.
-  std::optional<bool> enable_wind;         // Default false.
-  std::optional<double> wind_power;        // [0, 20], default 15.
-  std::optional<double> turbulence_power;  // [0, 2], default 1.5.
-  std::optional<bool> remove_on_damage;    // Default true.
+  std::optional<int> n_landers;             // 1..32, default 3.
+  std::optional<bool> continuous;           // Default false (Discrete(4)).
+  std::optional<int> max_cycles;            // >= 1, default 500.
+  std::optional<double> gravity;            // (-12, 0), default -10.
+  std::optional<bool> enable_wind;          // Default false.
+  std::optional<double> wind_power;         // [0, 20], default 15.
+  std::optional<double> turbulence_power;   // [0, 2], default 1.5.
+  std::optional<bool> remove_on_damage;     // Default true.
   std::optional<bool> terminate_on_damage;  // Default true.
-  std::optional<bool> shared_reward;       // Default true.
-  std::optional<double> damage_reward;     // Finite, default -100.
+  std::optional<bool> shared_reward;        // Default true.
+  std::optional<double> damage_reward;      // Finite, default -100.
   std::optional<double> successful_reward;  // Finite, default +100.
-  std::optional<double> terminate_reward;  // Finite, default -100.
+  std::optional<double> terminate_reward;   // Finite, default -100.
   // render_mode rgb_array (frames through Render) instead of none.
   bool render_rgb_array = false;
   // The step after an episode ends starts a new one instead of failing.
@@ -314,8 +314,8 @@ class RemoteEnv {
 
  private:
   friend class Client;
-  RemoteEnv(std::shared_ptr<client_internal::Transport> transport,
-            EnvInfo info, bool owned);
+  RemoteEnv(std::shared_ptr<internal::Transport> transport, EnvInfo info,
+            bool owned);
   // The action of one AEC step: none (dead step), discrete or continuous.
   struct AgentMove {
     enum class Kind { kDead, kDiscrete, kContinuous };
@@ -325,7 +325,7 @@ class RemoteEnv {
   };
   absl::Status StepAgentImpl(const AgentMove& move);
 
-  std::shared_ptr<client_internal::Transport> transport_;
+  std::shared_ptr<internal::Transport> transport_;
   EnvInfo info_;
   bool owned_ = false;
   AecState aec_;
@@ -375,12 +375,12 @@ class Client {
   // by the threads using this client); the handle owns it. `detached`
   // matters on a session only: the env outlives the stream.
   absl::StatusOr<RemoteEnv> CreateEnv(const RemoteEnvConfig& config = {},
-                                       bool detached = false) const;
+                                      bool detached = false) const;
   // Creates an environment on server `server`; INVALID_ARGUMENT when it is
   // not in 0..server_count()-1.
   absl::StatusOr<RemoteEnv> CreateEnvOn(int server,
-                                         const RemoteEnvConfig& config = {},
-                                         bool detached = false) const;
+                                        const RemoteEnvConfig& config = {},
+                                        bool detached = false) const;
   // A handle to an existing environment that does not own it.
   absl::StatusOr<RemoteEnv> Attach(absl::string_view name) const;
   // With several servers, each is asked in order until one does not answer
@@ -404,22 +404,21 @@ class Client {
 
  private:
   friend class RemoteEnv;
-  explicit Client(
-      std::vector<std::shared_ptr<client_internal::Transport>> transports);
+  explicit Client(std::vector<std::shared_ptr<internal::Transport>> transports);
   absl::StatusOr<RemoteEnv> CreateEnvAt(size_t server,
-                                         const RemoteEnvConfig& config,
-                                         bool detached) const;
+                                        const RemoteEnvConfig& config,
+                                        bool detached) const;
   // Index of the server whose transport `env` uses; INVALID_ARGUMENT naming
   // `what` when it is not a live handle or none of this client's servers has
   // its address.
   absl::StatusOr<size_t> ServerOf(const RemoteEnv* env,
                                   absl::string_view what) const;
 
-  std::vector<std::shared_ptr<client_internal::Transport>> transports_;
+  std::vector<std::shared_ptr<internal::Transport>> transports_;
   // Round-robin placement counter; on the heap because atomics cannot move.
   std::shared_ptr<std::atomic<uint64_t>> next_server_;
 };
 
-}  // namespace mll
+}  // namespace mll::client
 
 #endif  // MLL_CLIENT_H_

@@ -6,7 +6,7 @@
 #include "absl/strings/str_cat.h"
 #include "engine_command.h"
 
-namespace mll {
+namespace mll::core {
 
 // The step and its helpers follow pettingzoo.AECEnv (utils/env.py) and the
 // buffered-action pattern of pettingzoo's sisl/multiwalker step() line by
@@ -52,9 +52,10 @@ absl::Status AecEnv::Step(const std::optional<AgentAction>& action) {
     return absl::OkStatus();
   }
   if (!action.has_value()) {
-    return absl::FailedPreconditionError(absl::StrCat(
-        AgentName(agent), " is active: an action is required (a step without "
-                          "one is only for done agents)"));
+    return absl::FailedPreconditionError(
+        absl::StrCat(AgentName(agent),
+                     " is active: an action is required (a step without "
+                     "one is only for done agents)"));
   }
   if (absl::Status status = internal::ValidateAgentAction(
           env_->config().continuous, agent, *action);
@@ -169,4 +170,4 @@ absl::Span<const float> AecEnv::observe(int agent) const {
 
 const Env& AecEnv::env() const { return *env_; }
 
-}  // namespace mll
+}  // namespace mll::core

@@ -1,6 +1,6 @@
 #include "collision.h"
 
-namespace mll {
+namespace mll::core {
 namespace internal {
 namespace {
 
@@ -41,4 +41,4 @@ FixtureTag DecodeFixtureTag(uintptr_t pointer) {
 }
 
 }  // namespace internal
-}  // namespace mll
+}  // namespace mll::core

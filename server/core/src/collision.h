@@ -15,7 +15,7 @@
 
 #include "box2d/box2d.h"
 
-namespace mll {
+namespace mll::core {
 namespace internal {
 
 inline constexpr uint16_t kMoonCategory = 0x0001;
@@ -62,6 +62,6 @@ inline bool IsLanderPart(Part part) {
 }
 
 }  // namespace internal
-}  // namespace mll
+}  // namespace mll::core
 
 #endif  // MLL_CORE_SRC_COLLISION_H_

@@ -8,7 +8,7 @@
 
 #include <array>
 
-namespace mll {
+namespace mll::core {
 namespace internal {
 
 inline constexpr int kFps = 50;
@@ -19,8 +19,8 @@ inline constexpr double kSideEnginePower = 0.6;
 inline constexpr double kInitialRandom = 1000.0;  // Push force bound, N.
 
 // Body polygon in pixels, counter-clockwise.
-inline constexpr std::array<std::array<double, 2>, 6> kLanderPoly = {{
-    {-14, +17}, {-17, 0}, {-17, -10}, {+17, -10}, {+17, 0}, {+14, +17}}};
+inline constexpr std::array<std::array<double, 2>, 6> kLanderPoly = {
+    {{-14, +17}, {-17, 0}, {-17, -10}, {+17, -10}, {+17, 0}, {+14, +17}}};
 inline constexpr double kLegAway = 20.0;
 inline constexpr double kLegDown = 18.0;
 inline constexpr double kLegW = 2.0;
@@ -76,6 +76,6 @@ inline constexpr double kMainFuelCost = 0.30;
 inline constexpr double kSideFuelCost = 0.03;
 
 }  // namespace internal
-}  // namespace mll
+}  // namespace mll::core
 
 #endif  // MLL_CORE_SRC_CONSTANTS_H_

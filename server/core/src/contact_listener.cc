@@ -2,7 +2,7 @@
 
 #include "collision.h"
 
-namespace mll {
+namespace mll::core {
 namespace internal {
 
 void ContactListener::BeginContact(b2Contact* contact) {
@@ -39,4 +39,4 @@ void ContactListener::End(b2Fixture* self, b2Fixture* other) {
 }
 
 }  // namespace internal
-}  // namespace mll
+}  // namespace mll::core

@@ -9,7 +9,7 @@
 
 #include "box2d/box2d.h"
 
-namespace mll {
+namespace mll::core {
 namespace internal {
 
 struct LanderContacts {
@@ -40,6 +40,6 @@ class ContactListener : public b2ContactListener {
 };
 
 }  // namespace internal
-}  // namespace mll
+}  // namespace mll::core
 
 #endif  // MLL_CORE_SRC_CONTACT_LISTENER_H_

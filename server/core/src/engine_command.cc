@@ -5,7 +5,7 @@
 
 #include "absl/strings/str_cat.h"
 
-namespace mll {
+namespace mll::core {
 namespace internal {
 
 EngineCommand DecodeDiscrete(int32_t action) {
@@ -43,10 +43,11 @@ absl::Status ValidateContinuousAction(int agent, float main, float lateral) {
   const char* names[kContinuousActionSize] = {"main", "lateral"};
   for (int i = 0; i < kContinuousActionSize; ++i) {
     if (!std::isfinite(values[i])) {
-      return absl::InvalidArgumentError(absl::StrCat(
-          "action of ", AgentName(agent), " [", i, "] (", names[i], ") = ",
-          values[i], " is not finite: allowed any finite value, clipped to "
-          "[-1, 1]"));
+      return absl::InvalidArgumentError(
+          absl::StrCat("action of ", AgentName(agent), " [", i, "] (", names[i],
+                       ") = ", values[i],
+                       " is not finite: allowed any finite value, clipped to "
+                       "[-1, 1]"));
     }
   }
   return absl::OkStatus();
@@ -60,4 +61,4 @@ absl::Status ValidateAgentAction(bool continuous, int agent,
 }
 
 }  // namespace internal
-}  // namespace mll
+}  // namespace mll::core

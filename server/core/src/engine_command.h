@@ -9,7 +9,7 @@
 #include "absl/status/status.h"
 #include "mll/core/env.h"
 
-namespace mll {
+namespace mll::core {
 namespace internal {
 
 struct EngineCommand {
@@ -32,6 +32,6 @@ absl::Status ValidateAgentAction(bool continuous, int agent,
                                  const AgentAction& action);
 
 }  // namespace internal
-}  // namespace mll
+}  // namespace mll::core
 
 #endif  // MLL_CORE_SRC_ENGINE_COMMAND_H_

@@ -36,7 +36,7 @@
 #include "engine_command.h"
 #include "rng.h"
 
-namespace mll {
+namespace mll::core {
 
 using internal::EngineCommand;
 using internal::FixtureTag;
@@ -189,8 +189,8 @@ class Env::Impl {
   // Wind, engines and one world step for the active landers.
   void Advance(const std::vector<EngineCommand>& commands);
   void FireEngines(Lander& lander, const EngineCommand& command);
-  void CreateParticle(double mass, const b2Vec2& position, const b2Vec2& impulse,
-                      double ttl);
+  void CreateParticle(double mass, const b2Vec2& position,
+                      const b2Vec2& impulse, double ttl);
   void RemoveExpiredParticles();
   Measurement Measure(int agent, const std::vector<uint8_t>& stepped) const;
   // The parts of Step, in the order it runs them.
@@ -239,7 +239,8 @@ void Env::Impl::DestroyWorlds() {
 void Env::Impl::BuildTerrain() {
   std::array<double, kChunks + 1> height;
   for (double& h : height) h = rng_.Uniform(0.0, kH / 2);
-  for (int i = kChunks / 2 - 2; i <= kChunks / 2 + 2; ++i) height[i] = kHelipadY;
+  for (int i = kChunks / 2 - 2; i <= kChunks / 2 + 2; ++i)
+    height[i] = kHelipadY;
   for (int i = 0; i < kChunks; ++i) {
     // Python's height[-1] is height[kChunks]: the first point wraps around.
     const double left = height[i == 0 ? kChunks : i - 1];
@@ -311,8 +312,8 @@ void Env::Impl::CreateLander(int agent) {
     const double side = leg == 0 ? -1.0 : 1.0;  // Gymnasium's i.
     b2BodyDef leg_def;
     leg_def.type = b2_dynamicBody;
-    leg_def.position.Set(
-        static_cast<float>(spawn.x - side * kLegAway / kScale), spawn.y);
+    leg_def.position.Set(static_cast<float>(spawn.x - side * kLegAway / kScale),
+                         spawn.y);
     leg_def.angle = static_cast<float>(side * 0.05);
     b2Body* leg_body = world_->CreateBody(&leg_def);
     b2PolygonShape leg_shape;
@@ -517,8 +518,9 @@ void Env::Impl::RemoveExpiredParticles() {
   for (const Particle& p : particles_) {
     if (expired(p)) decoration_world_->DestroyBody(p.body);
   }
-  particles_.erase(std::remove_if(particles_.begin(), particles_.end(), expired),
-                   particles_.end());
+  particles_.erase(
+      std::remove_if(particles_.begin(), particles_.end(), expired),
+      particles_.end());
 }
 
 void Env::Impl::AgeParticlesForFrame() {
@@ -557,8 +559,8 @@ Measurement Env::Impl::Measure(int agent,
   for (int j = 0; j < config_.n_landers; ++j) {
     if (j == agent || !stepped[j]) continue;
     const b2Vec2 d = landers_[j].body->GetPosition() - pos;
-    const double d2 = static_cast<double>(d.x) * d.x +
-                      static_cast<double>(d.y) * d.y;
+    const double d2 =
+        static_cast<double>(d.x) * d.x + static_cast<double>(d.y) * d.y;
     if (d2 < nearest_d2[0]) {
       nearest = {j, nearest[0]};
       nearest_d2 = {d2, nearest_d2[0]};
@@ -585,8 +587,7 @@ absl::Status Env::Impl::ValidateActions(const ActionsView& actions) const {
     if (actions.continuous.size() != static_cast<size_t>(2 * n)) {
       return absl::InvalidArgumentError(absl::StrCat(
           "continuous actions have ", actions.continuous.size(),
-          " values: expected ", 2 * n, " (2 per lander, n_landers = ", n,
-          ")"));
+          " values: expected ", 2 * n, " (2 per lander, n_landers = ", n, ")"));
     }
   } else if (actions.discrete.size() != static_cast<size_t>(n)) {
     return absl::InvalidArgumentError(
@@ -629,7 +630,8 @@ absl::Status Env::Impl::Step(const ActionsView& actions, StepResult* result) {
 
   std::vector<double> rewards(n, 0.0);
   std::vector<uint8_t> damaged(n, 0);
-  const bool any_damaged = ObserveLanders(stepped, commands, &rewards, &damaged);
+  const bool any_damaged =
+      ObserveLanders(stepped, commands, &rewards, &damaged);
   ApplyOutcomes(stepped, damaged, any_damaged, &rewards);
   ++cycles_;
   if (cycles_ >= config_.max_cycles) TruncateActiveLanders();
@@ -831,8 +833,7 @@ absl::Status Env::Impl::SetLanderState(int agent, double x, double y,
     const b2Transform placed = b2Mul(new_body, relative);
     leg->SetTransform(placed.p, new_body.q.GetAngle() + relative.q.GetAngle());
     const b2Vec2 r = placed.p - position;
-    leg->SetLinearVelocity(velocity +
-                           b2Cross(static_cast<float>(omega), r));
+    leg->SetLinearVelocity(velocity + b2Cross(static_cast<float>(omega), r));
     leg->SetAngularVelocity(static_cast<float>(omega));
     leg->SetAwake(true);
   }
@@ -900,4 +901,4 @@ absl::Status Env::SetLanderStateForTest(int agent, double x, double y,
   return impl_->SetLanderState(agent, x, y, angle, vx, vy, omega);
 }
 
-}  // namespace mll
+}  // namespace mll::core

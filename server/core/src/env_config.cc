@@ -4,7 +4,7 @@
 
 #include "absl/strings/str_cat.h"
 
-namespace mll {
+namespace mll::core {
 
 bool OptionRange::Contains(double value) const {
   switch (kind_) {
@@ -72,4 +72,4 @@ absl::string_view RenderModeName(RenderMode mode) {
   return "unknown";
 }
 
-}  // namespace mll
+}  // namespace mll::core

@@ -3,7 +3,7 @@
 #include <algorithm>
 #include <cmath>
 
-namespace mll {
+namespace mll::core {
 
 // Gymnasium's heuristic(env, s) from lunar_lander.py, on s = observation[0:8].
 AgentAction HeuristicAction(absl::Span<const float> observation,
@@ -37,4 +37,4 @@ AgentAction HeuristicAction(absl::Span<const float> observation,
   return action;
 }
 
-}  // namespace mll
+}  // namespace mll::core

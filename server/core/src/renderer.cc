@@ -22,7 +22,7 @@
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 struct Rgb {
@@ -102,19 +102,20 @@ std::array<uint8_t, 3> HsvToRgb(double hue_degrees, double s, double v) {
   const double c = v * s;
   const double x = c * (1.0 - std::fabs(std::fmod(h, 2.0) - 1.0));
   const double m = v - c;
-  double r = 0, g = 0, b = 0;
-  switch (static_cast<int>(h)) {
-    case 0: r = c, g = x; break;
-    case 1: r = x, g = c; break;
-    case 2: g = c, b = x; break;
-    case 3: g = x, b = c; break;
-    case 4: r = x, b = c; break;
-    default: r = c, b = x; break;
-  }
+  // Which channels get the chroma c and the second component x in each 60
+  // degree sector of the hue circle (the third channel is 0); sector 5 also
+  // takes any hue outside [0, 300).
+  constexpr int kSectorChannels[6][2] = {{0, 1}, {1, 0}, {1, 2},
+                                         {2, 1}, {2, 0}, {0, 2}};
+  int sector = static_cast<int>(h);
+  if (sector < 0 || sector > 4) sector = 5;
+  double rgb[3] = {0, 0, 0};
+  rgb[kSectorChannels[sector][0]] = c;
+  rgb[kSectorChannels[sector][1]] = x;
   auto to_byte = [m](double u) {
     return static_cast<uint8_t>(std::lround((u + m) * 255.0));
   };
-  return {to_byte(r), to_byte(g), to_byte(b)};
+  return {to_byte(rgb[0]), to_byte(rgb[1]), to_byte(rgb[2])};
 }
 
 // One ARGB32 surface per thread, reused across frames: creating a 600x400
@@ -534,8 +535,7 @@ Vec2 VertexMean(const ScenePolygon& polygon) {
 
 Vec2 WorldToFrame(const Scene& scene, const Vec2& world) {
   const double scale = kFrameHeight / (scene.height + kViewTopMargin);
-  return {(world.x + kViewMarginX) * scale,
-          kFrameHeight - world.y * scale};
+  return {(world.x + kViewMarginX) * scale, kFrameHeight - world.y * scale};
 }
 
 Frame RenderScene(const Scene& scene, const RenderOptions& options) {
@@ -642,4 +642,4 @@ absl::StatusOr<std::string> EncodePng(const Frame& frame) {
   return out;
 }
 
-}  // namespace mll
+}  // namespace mll::core

@@ -1,6 +1,6 @@
 #include "rng.h"
 
-namespace mll {
+namespace mll::core {
 namespace internal {
 
 double Rng::Uniform01() {
@@ -24,4 +24,4 @@ int64_t Rng::Integer(int64_t low, int64_t high) {
 }
 
 }  // namespace internal
-}  // namespace mll
+}  // namespace mll::core

@@ -8,7 +8,7 @@
 #include <cstdint>
 #include <random>
 
-namespace mll {
+namespace mll::core {
 namespace internal {
 
 class Rng {
@@ -29,6 +29,6 @@ class Rng {
 };
 
 }  // namespace internal
-}  // namespace mll
+}  // namespace mll::core
 
 #endif  // MLL_CORE_SRC_RNG_H_

@@ -8,7 +8,7 @@
 
 namespace {
 // The defaults come from EnvConfig itself, so they cannot drift from the core.
-constexpr mll::EnvConfig kDefaults{};
+constexpr mll::core::EnvConfig kDefaults{};
 }  // namespace
 
 #define MLL_DEFINE_OPTION_FLAG(type, name, default_value, range, help) \
@@ -16,10 +16,10 @@ constexpr mll::EnvConfig kDefaults{};
 MLL_ENV_OPTIONS(MLL_DEFINE_OPTION_FLAG)
 #undef MLL_DEFINE_OPTION_FLAG
 ABSL_FLAG(std::string, render_mode,
-          std::string(mll::RenderModeName(kDefaults.render_mode)),
+          std::string(mll::core::RenderModeName(kDefaults.render_mode)),
           "none or rgb_array.");
 
-namespace mll {
+namespace mll::core {
 
 absl::StatusOr<RenderMode> ParseRenderMode(const std::string& name) {
   for (RenderMode mode : {RenderMode::kNone, RenderMode::kRgbArray}) {
@@ -46,4 +46,4 @@ absl::StatusOr<EnvConfig> EnvConfigFromFlags() {
   return config;
 }
 
-}  // namespace mll
+}  // namespace mll::core

@@ -17,7 +17,7 @@ MLL_ENV_OPTIONS(MLL_DECLARE_OPTION_FLAG)
 #undef MLL_DECLARE_OPTION_FLAG
 ABSL_DECLARE_FLAG(std::string, render_mode);
 
-namespace mll {
+namespace mll::core {
 
 // "none" or "rgb_array" (RenderModeName's spellings); else INVALID_ARGUMENT
 // naming render_mode and the value.
@@ -27,6 +27,6 @@ absl::StatusOr<RenderMode> ParseRenderMode(const std::string& name);
 // INVALID_ARGUMENT naming the first bad field, its value and the range.
 absl::StatusOr<EnvConfig> EnvConfigFromFlags();
 
-}  // namespace mll
+}  // namespace mll::core
 
 #endif  // MLL_CORE_TOOLS_CONFIG_FLAGS_H_

@@ -38,7 +38,7 @@ ABSL_FLAG(std::string, frames_dir, "",
           "If set, writes <episode>_<step>.png per step there (created if "
           "missing); implies render_mode=rgb_array.");
 
-namespace mll {
+namespace mll::core {
 namespace {
 
 enum class Policy { kHeuristic, kRandom };
@@ -92,10 +92,10 @@ class Pilot {
   ActionsView Act(const Env& env) {
     for (int agent = 0; agent < env.n_landers(); ++agent) {
       if (!env.is_active(agent)) continue;
-      AgentAction action = policy_ == Policy::kHeuristic
-                               ? HeuristicAction(env.observation(agent),
-                                                 continuous_)
-                               : RandomAction();
+      AgentAction action =
+          policy_ == Policy::kHeuristic
+              ? HeuristicAction(env.observation(agent), continuous_)
+              : RandomAction();
       discrete_[agent] = action.discrete;
       for (int i = 0; i < kContinuousActionSize; ++i) {
         continuous_actions_[kContinuousActionSize * agent + i] =
@@ -119,8 +119,8 @@ class Pilot {
         value = static_cast<float>(rng_.Uniform(-1.0, 1.0));
       }
     } else {
-      action.discrete = static_cast<int32_t>(
-          rng_.Integer(0, kDiscreteActionCount - 1));
+      action.discrete =
+          static_cast<int32_t>(rng_.Integer(0, kDiscreteActionCount - 1));
     }
     return action;
   }
@@ -183,9 +183,9 @@ absl::Status Run(const Options& options) {
     std::error_code error;
     std::filesystem::create_directories(options.frames_dir, error);
     if (error) {
-      return absl::UnavailableError(absl::StrCat(
-          "cannot create frames_dir \"", options.frames_dir,
-          "\": ", error.message()));
+      return absl::UnavailableError(absl::StrCat("cannot create frames_dir \"",
+                                                 options.frames_dir,
+                                                 "\": ", error.message()));
     }
   }
   StepResult result;
@@ -214,71 +214,67 @@ absl::Status Run(const Options& options) {
       totals.agent_steps += env.episode_length(agent);
     }
     totals.steps += step;
-    std::cout << absl::StrCat(
-                     "{\"episode\":", episode, ",\"seed\":", seed,
-                     ",\"steps\":", step, ",\"returns\":",
-                     PerAgentJson(n,
-                                  [&](int a) {
-                                    return JsonNumber(env.episode_return(a));
-                                  }),
-                     ",\"lengths\":",
-                     PerAgentJson(n,
-                                  [&](int a) { return env.episode_length(a); }),
-                     ",\"outcomes\":",
-                     PerAgentJson(n,
-                                  [&](int a) {
-                                    return absl::StrCat(
-                                        "\"", OutcomeName(env.outcome(a)),
-                                        "\"");
-                                  }),
-                     "}")
-              << std::endl;
+    std::cout
+        << absl::StrCat(
+               "{\"episode\":", episode, ",\"seed\":", seed,
+               ",\"steps\":", step, ",\"returns\":",
+               PerAgentJson(
+                   n, [&](int a) { return JsonNumber(env.episode_return(a)); }),
+               ",\"lengths\":",
+               PerAgentJson(n, [&](int a) { return env.episode_length(a); }),
+               ",\"outcomes\":",
+               PerAgentJson(n,
+                            [&](int a) {
+                              return absl::StrCat(
+                                  "\"", OutcomeName(env.outcome(a)), "\"");
+                            }),
+               "}")
+        << std::endl;
   }
   const double seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
           .count();
 
   const double episodes = options.episodes;
-  std::cout << absl::StrCat(
-                   "{\"summary\":true,\"episodes\":", options.episodes,
-                   ",\"mean_return\":",
-                   PerAgentJson(n,
-                                [&](int a) {
-                                  return JsonNumber(totals.returns[a] /
-                                                    episodes);
-                                }),
-                   ",\"landing_rate\":",
-                   JsonNumber(static_cast<double>(totals.landed) /
-                              (episodes * n)),
-                   ",\"mean_steps\":", JsonNumber(totals.steps / episodes),
-                   ",\"agent_steps\":", totals.agent_steps,
-                   ",\"agent_steps_per_second\":",
-                   JsonNumber(seconds > 0 ? totals.agent_steps / seconds : 0.0),
-                   "}")
-            << std::endl;
+  std::cout
+      << absl::StrCat(
+             "{\"summary\":true,\"episodes\":", options.episodes,
+             ",\"mean_return\":",
+             PerAgentJson(n,
+                          [&](int a) {
+                            return JsonNumber(totals.returns[a] / episodes);
+                          }),
+             ",\"landing_rate\":",
+             JsonNumber(static_cast<double>(totals.landed) / (episodes * n)),
+             ",\"mean_steps\":", JsonNumber(totals.steps / episodes),
+             ",\"agent_steps\":", totals.agent_steps,
+             ",\"agent_steps_per_second\":",
+             JsonNumber(seconds > 0 ? totals.agent_steps / seconds : 0.0), "}")
+      << std::endl;
   return absl::OkStatus();
 }
 
 }  // namespace
-}  // namespace mll
+}  // namespace mll::core
 
 int main(int argc, char** argv) {
-  mll::tools::ParseFlagsOnly(argc, argv, "mll_rollout", [] {
+  mll::core::tools::ParseFlagsOnly(argc, argv, "mll_rollout", [] {
     return absl::StrCat(
         "mll_rollout: runs Multi Lunar Lander episodes in-process; prints one "
         "JSON line per episode and a summary line.\n"
         "Usage: mll_rollout [--flags]\n\nFlags:\n",
-        mll::tools::DescribeFlags(mll::tools::FlagsDefinedIn("mll_rollout.cc")),
+        mll::core::tools::DescribeFlags(
+            mll::core::tools::FlagsDefinedIn("mll_rollout.cc")),
         "\nEnvironment options:\n",
-        mll::tools::DescribeFlags(
-            mll::tools::FlagsDefinedIn("config_flags.cc")));
+        mll::core::tools::DescribeFlags(
+            mll::core::tools::FlagsDefinedIn("config_flags.cc")));
   });
-  absl::StatusOr<mll::Options> options = mll::OptionsFromFlags();
+  absl::StatusOr<mll::core::Options> options = mll::core::OptionsFromFlags();
   if (!options.ok()) {
     std::cerr << "mll_rollout: " << options.status().message() << std::endl;
     return 2;
   }
-  absl::Status status = mll::Run(*options);
+  absl::Status status = mll::core::Run(*options);
   if (!status.ok()) {
     std::cerr << "mll_rollout: " << status.ToString() << std::endl;
     // The core re-validates the config in Env::Create: still a usage error.

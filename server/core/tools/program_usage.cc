@@ -12,7 +12,7 @@
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
 
-namespace mll::tools {
+namespace mll::core::tools {
 namespace {
 
 constexpr int kExitUsage = 2;
@@ -107,4 +107,4 @@ void ParseFlagsOnly(int argc, char** argv, absl::string_view program,
   }
 }
 
-}  // namespace mll::tools
+}  // namespace mll::core::tools

@@ -12,7 +12,7 @@
 #include "absl/functional/function_ref.h"
 #include "absl/strings/string_view.h"
 
-namespace mll::tools {
+namespace mll::core::tools {
 
 // The flags defined in the source file with this base name (e.g.
 // "config_flags.cc"), sorted by name.
@@ -25,7 +25,8 @@ std::vector<const absl::CommandLineFlag*> FlagsNamed(
     const std::vector<absl::string_view>& names);
 
 // One block per flag: "  --name=DEFAULT" and its description indented below.
-std::string DescribeFlags(const std::vector<const absl::CommandLineFlag*>& flags);
+std::string DescribeFlags(
+    const std::vector<const absl::CommandLineFlag*>& flags);
 
 // absl::ParseCommandLine, except that --help, -h, --helpfull and --helpshort
 // print help(arguments) to stdout and exit 0, where `arguments` are the
@@ -40,6 +41,6 @@ std::vector<std::string> ParseCommandLine(
 void ParseFlagsOnly(int argc, char** argv, absl::string_view program,
                     absl::FunctionRef<std::string()> help);
 
-}  // namespace mll::tools
+}  // namespace mll::core::tools
 
 #endif  // MLL_CORE_TOOLS_PROGRAM_USAGE_H_

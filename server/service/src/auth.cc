@@ -11,15 +11,15 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 constexpr absl::string_view kScheme = "Bearer ";
 
 absl::Status Unauthenticated(absl::string_view problem) {
   return absl::UnauthenticatedError(absl::StrCat(
-      "metadata ", kAuthorizationKey, ": ", problem,
-      "; this server expects `", kAuthorizationKey,
+      "metadata ", kAuthorizationKey, ": ", problem, "; this server expects `",
+      kAuthorizationKey,
       ": Bearer <token>` with a token from its --auth_token_file"));
 }
 
@@ -27,8 +27,8 @@ bool IsTokenChar(char c) { return c > ' ' && c <= '~'; }
 
 }  // namespace
 
-absl::StatusOr<std::vector<std::string>> ReadTokenFile(
-    const std::string& path, absl::string_view flag) {
+absl::StatusOr<std::vector<std::string>> ReadTokenFile(const std::string& path,
+                                                       absl::string_view flag) {
   std::ifstream in(path);
   if (!in.is_open()) {
     return absl::InvalidArgumentError(
@@ -89,18 +89,17 @@ absl::StatusOr<absl::string_view> Authenticator::Authenticate(
                               kScheme)) {
     return Unauthenticated("not of the form `Bearer <token>`");
   }
-  const Digest presented = Sha256(
-      absl::StripAsciiWhitespace(authorization->substr(kScheme.size())));
+  const Digest presented =
+      Sha256(absl::StripAsciiWhitespace(authorization->substr(kScheme.size())));
   // Every digest is compared, so the time does not tell which one matched.
   int match = -1;
   for (int i = 0; i < static_cast<int>(digests_.size()); ++i) {
-    const bool equal =
-        CRYPTO_memcmp(presented.data(), digests_[i].data(), presented.size()) ==
-        0;
+    const bool equal = CRYPTO_memcmp(presented.data(), digests_[i].data(),
+                                     presented.size()) == 0;
     match = equal ? i : match;
   }
   if (match < 0) return Unauthenticated("the token is not accepted");
   return absl::string_view(owners_[match]);
 }
 
-}  // namespace mll
+}  // namespace mll::service

@@ -7,7 +7,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 size_t ElementSize(v1::DType dtype) {
@@ -60,7 +60,7 @@ void LoadAll(const std::string& bytes, std::vector<T>* out) {
 
 // Each agent's return and length so far in this episode, into row `row` of
 // n float32 and n int32.
-void WriteEpisodeColumns(const Env& env, size_t row,
+void WriteEpisodeColumns(const core::Env& env, size_t row,
                          const ByteColumn<float>& returns,
                          const ByteColumn<int32_t>& lengths) {
   const size_t n = static_cast<size_t>(env.n_landers());
@@ -71,7 +71,7 @@ void WriteEpisodeColumns(const Env& env, size_t row,
 }
 
 // The same as two [n] arrays.
-void FillEpisodeColumns(const Env& env, v1::Array* returns,
+void FillEpisodeColumns(const core::Env& env, v1::Array* returns,
                         v1::Array* lengths) {
   const int rows[] = {env.n_landers()};
   WriteEpisodeColumns(env, 0, SizeArray<float>(rows, returns),
@@ -99,11 +99,11 @@ absl::Status CheckByteSize(const v1::Array& array, v1::DType dtype,
 // Every agent's latest observation as one [n, 12] row-major matrix.
 template <typename ObservationOf>
 std::vector<float> ObservationMatrix(int n, ObservationOf observation_of) {
-  std::vector<float> matrix(static_cast<size_t>(n) * kObservationSize);
+  std::vector<float> matrix(static_cast<size_t>(n) * core::kObservationSize);
   for (int i = 0; i < n; ++i) {
     absl::Span<const float> row = observation_of(i);
     std::copy(row.begin(), row.end(),
-              matrix.begin() + static_cast<size_t>(i) * kObservationSize);
+              matrix.begin() + static_cast<size_t>(i) * core::kObservationSize);
   }
   return matrix;
 }
@@ -140,10 +140,9 @@ absl::Status CheckDTypeAndShape(int got_dtype, absl::Span<const int> got_shape,
                                 absl::string_view field,
                                 absl::string_view what) {
   if (got_dtype != dtype) {
-    return absl::InvalidArgumentError(
-        absl::StrCat(field, ": dtype ", DTypeName(got_dtype),
-                     " does not match ", v1::DType_Name(dtype), " (", what,
-                     ")"));
+    return absl::InvalidArgumentError(absl::StrCat(
+        field, ": dtype ", DTypeName(got_dtype), " does not match ",
+        v1::DType_Name(dtype), " (", what, ")"));
   }
   if (got_shape != shape) {
     return absl::InvalidArgumentError(
@@ -156,15 +155,14 @@ absl::Status CheckDTypeAndShape(int got_dtype, absl::Span<const int> got_shape,
 absl::Status CheckArray(const v1::Array& array, v1::DType dtype,
                         absl::Span<const int> shape, absl::string_view field,
                         absl::string_view what) {
-  absl::Status status =
-      CheckDTypeAndShape(array.dtype(), ShapeOf(array), dtype, shape, field,
-                         what);
+  absl::Status status = CheckDTypeAndShape(array.dtype(), ShapeOf(array), dtype,
+                                           shape, field, what);
   if (!status.ok()) return status;
   return CheckByteSize(array, dtype, shape, field);
 }
 
-absl::StatusOr<EnvConfig> EnvConfigFromProto(const v1::EnvConfig& proto) {
-  EnvConfig config;  // The core's defaults fill every unset field.
+absl::StatusOr<core::EnvConfig> EnvConfigFromProto(const v1::EnvConfig& proto) {
+  core::EnvConfig config;  // The core's defaults fill every unset field.
 #define MLL_COPY_IF_SET(type, name, default_value, range, help) \
   if (proto.has_##name()) config.name = proto.name();
   MLL_ENV_OPTIONS(MLL_COPY_IF_SET)
@@ -172,29 +170,29 @@ absl::StatusOr<EnvConfig> EnvConfigFromProto(const v1::EnvConfig& proto) {
   switch (proto.render_mode()) {
     case v1::RENDER_MODE_UNSPECIFIED:
     case v1::RENDER_MODE_NONE:
-      config.render_mode = RenderMode::kNone;
+      config.render_mode = core::RenderMode::kNone;
       break;
     case v1::RENDER_MODE_RGB_ARRAY:
-      config.render_mode = RenderMode::kRgbArray;
+      config.render_mode = core::RenderMode::kRgbArray;
       break;
     default:
-      return absl::InvalidArgumentError(absl::StrCat(
-          "render_mode: ", proto.render_mode(),
-          " is not a RenderMode (allowed: RENDER_MODE_NONE = 1, "
-          "RENDER_MODE_RGB_ARRAY = 2)"));
+      return absl::InvalidArgumentError(
+          absl::StrCat("render_mode: ", proto.render_mode(),
+                       " is not a RenderMode (allowed: RENDER_MODE_NONE = 1, "
+                       "RENDER_MODE_RGB_ARRAY = 2)"));
   }
-  absl::Status status = ValidateEnvConfig(config);
+  absl::Status status = core::ValidateEnvConfig(config);
   if (!status.ok()) return status;
   return config;
 }
 
-v1::EnvConfig EnvConfigToProto(const EnvConfig& config, bool auto_reset) {
+v1::EnvConfig EnvConfigToProto(const core::EnvConfig& config, bool auto_reset) {
   v1::EnvConfig proto;
 #define MLL_SET(type, name, default_value, range, help) \
   proto.set_##name(config.name);
   MLL_ENV_OPTIONS(MLL_SET)
 #undef MLL_SET
-  proto.set_render_mode(config.render_mode == RenderMode::kRgbArray
+  proto.set_render_mode(config.render_mode == core::RenderMode::kRgbArray
                             ? v1::RENDER_MODE_RGB_ARRAY
                             : v1::RENDER_MODE_NONE);
   proto.set_auto_reset(auto_reset);
@@ -205,37 +203,37 @@ v1::Space ObservationSpace() {
   v1::Space space;
   space.set_kind(v1::Space::KIND_BOX);
   space.set_dtype(v1::DTYPE_FLOAT32);
-  space.add_shape(kObservationSize);
-  for (int i = 0; i < kObservationSize; ++i) {
+  space.add_shape(core::kObservationSize);
+  for (int i = 0; i < core::kObservationSize; ++i) {
     space.add_low(-std::numeric_limits<double>::infinity());
     space.add_high(std::numeric_limits<double>::infinity());
   }
   return space;
 }
 
-v1::Space ActionSpace(const EnvConfig& config) {
+v1::Space ActionSpace(const core::EnvConfig& config) {
   v1::Space space;
   if (config.continuous) {
     space.set_kind(v1::Space::KIND_BOX);
     space.set_dtype(v1::DTYPE_FLOAT32);
-    space.add_shape(kContinuousActionSize);
-    for (int i = 0; i < kContinuousActionSize; ++i) {
+    space.add_shape(core::kContinuousActionSize);
+    for (int i = 0; i < core::kContinuousActionSize; ++i) {
       space.add_low(-1.0);
       space.add_high(1.0);
     }
   } else {
     space.set_kind(v1::Space::KIND_DISCRETE);
     space.set_dtype(v1::DTYPE_INT32);
-    space.set_n(kDiscreteActionCount);
+    space.set_n(core::kDiscreteActionCount);
   }
   return space;
 }
 
 absl::Status CheckActionLayout(int dtype, absl::Span<const int> shape,
-                               const EnvConfig& config,
+                               const core::EnvConfig& config,
                                absl::string_view field) {
   const int n = config.n_landers;
-  const int dims[] = {n, kContinuousActionSize};
+  const int dims[] = {n, core::kContinuousActionSize};
   const absl::Span<const int> want(dims, config.continuous ? 2 : 1);
   const v1::DType want_dtype =
       config.continuous ? v1::DTYPE_FLOAT32 : v1::DTYPE_INT32;
@@ -245,12 +243,11 @@ absl::Status CheckActionLayout(int dtype, absl::Span<const int> shape,
       dtype, shape, want_dtype, want, field,
       config.continuous
           ? absl::StrCat(
-                "one float32 [main, lateral] pair per agent of n_landers = ",
-                n)
+                "one float32 [main, lateral] pair per agent of n_landers = ", n)
           : absl::StrCat("one int32 per agent of n_landers = ", n));
 }
 
-absl::Status ParseActions(const v1::Array& array, const EnvConfig& config,
+absl::Status ParseActions(const v1::Array& array, const core::EnvConfig& config,
                           absl::string_view field, ActionBuffer* out) {
   absl::Status status =
       CheckActionLayout(array.dtype(), ShapeOf(array), config, field);
@@ -275,13 +272,12 @@ absl::StatusOr<PackedActions> PackedActions::Parse(
   const v1::Array& array = packed.actions();
   const int num_envs = packed.names_size();
   const auto expected = [num_envs] {
-    return absl::StrCat("expected int32 [", num_envs,
-                        ", n_landers] for discrete actions or float32 [",
-                        num_envs,
-                        ", n_landers, 2] for continuous ones: num_envs = "
-                        "len(packed.names) = ",
-                        num_envs, ", n_landers ", kMinLanders, "..",
-                        kMaxLanders);
+    return absl::StrCat(
+        "expected int32 [", num_envs,
+        ", n_landers] for discrete actions or float32 [", num_envs,
+        ", n_landers, 2] for continuous ones: num_envs = "
+        "len(packed.names) = ",
+        num_envs, ", n_landers ", core::kMinLanders, "..", core::kMaxLanders);
   };
   PackedActions actions;
   switch (array.dtype()) {
@@ -299,12 +295,11 @@ absl::StatusOr<PackedActions> PackedActions::Parse(
   const absl::Span<const int> shape = ShapeOf(array);
   const size_t rank = actions.continuous_ ? 3 : 2;
   if (shape.size() != rank || shape[0] != num_envs ||
-      (actions.continuous_ && shape[2] != kContinuousActionSize) ||
-      shape[1] < kMinLanders || shape[1] > kMaxLanders) {
-    return absl::InvalidArgumentError(
-        absl::StrCat(kField, ": shape ", ShapeString(shape), " of ",
-                     DTypeName(array.dtype()), " does not fit (", expected(),
-                     ")"));
+      (actions.continuous_ && shape[2] != core::kContinuousActionSize) ||
+      shape[1] < core::kMinLanders || shape[1] > core::kMaxLanders) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        kField, ": shape ", ShapeString(shape), " of ",
+        DTypeName(array.dtype()), " does not fit (", expected(), ")"));
   }
   absl::Status status = CheckByteSize(array, array.dtype(), shape, kField);
   if (!status.ok()) return status;
@@ -319,40 +314,40 @@ absl::StatusOr<PackedActions> PackedActions::Parse(
   return actions;
 }
 
-absl::Status PackedActions::CheckFits(int e, const EnvConfig& config) const {
+absl::Status PackedActions::CheckFits(int e,
+                                      const core::EnvConfig& config) const {
   if (config.n_landers == n_landers_ && config.continuous == continuous_) {
     return absl::OkStatus();
   }
-  const int dims[] = {n_landers_, kContinuousActionSize};
-  return CheckActionLayout(
-      continuous_ ? v1::DTYPE_FLOAT32 : v1::DTYPE_INT32,
-      absl::MakeConstSpan(dims, continuous_ ? 2 : 1), config,
-      absl::StrCat("packed.actions[", e, "]"));
+  const int dims[] = {n_landers_, core::kContinuousActionSize};
+  return CheckActionLayout(continuous_ ? v1::DTYPE_FLOAT32 : v1::DTYPE_INT32,
+                           absl::MakeConstSpan(dims, continuous_ ? 2 : 1),
+                           config, absl::StrCat("packed.actions[", e, "]"));
 }
 
-ActionsView PackedActions::Row(int e) const {
+core::ActionsView PackedActions::Row(int e) const {
   const size_t agents = static_cast<size_t>(n_landers_);
   if (continuous_) {
-    const size_t size = agents * kContinuousActionSize;
-    return ActionsView{{}, absl::MakeConstSpan(
-                               values_.continuous.data() + e * size, size)};
+    const size_t size = agents * core::kContinuousActionSize;
+    return core::ActionsView{
+        {}, absl::MakeConstSpan(values_.continuous.data() + e * size, size)};
   }
-  return ActionsView{
+  return core::ActionsView{
       absl::MakeConstSpan(values_.discrete.data() + e * agents, agents), {}};
 }
 
-absl::StatusOr<std::optional<AgentAction>> ParseAgentAction(
-    const v1::StepAgentRequest& request, const EnvConfig& config) {
-  if (!request.has_action()) return std::optional<AgentAction>();
+absl::StatusOr<std::optional<core::AgentAction>> ParseAgentAction(
+    const v1::StepAgentRequest& request, const core::EnvConfig& config) {
+  if (!request.has_action()) return std::optional<core::AgentAction>();
   const v1::AgentAction& proto = request.action();
-  AgentAction action;
+  core::AgentAction action;
   switch (proto.action_case()) {
     case v1::AgentAction::kDiscrete:
       if (config.continuous) {
-        return absl::InvalidArgumentError(absl::StrCat(
-            "action.discrete: ", proto.discrete(),
-            " given but the env has continuous actions (set "
-            "action.continuous to float32 [2])"));
+        return absl::InvalidArgumentError(
+            absl::StrCat("action.discrete: ", proto.discrete(),
+                         " given but the env has continuous actions (set "
+                         "action.continuous to float32 [2])"));
       }
       action.discrete = proto.discrete();
       break;
@@ -362,7 +357,7 @@ absl::StatusOr<std::optional<AgentAction>> ParseAgentAction(
             "action.continuous given but the env has Discrete(4) actions "
             "(set action.discrete to 0..3)");
       }
-      const int shape[] = {kContinuousActionSize};
+      const int shape[] = {core::kContinuousActionSize};
       absl::Status status =
           CheckArray(proto.continuous(), v1::DTYPE_FLOAT32, shape,
                      "action.continuous", "[main, lateral]");
@@ -376,24 +371,26 @@ absl::StatusOr<std::optional<AgentAction>> ParseAgentAction(
           "action: neither discrete nor continuous is set (leave action "
           "unset for a dead step)");
   }
-  return std::optional<AgentAction>(action);
+  return std::optional<core::AgentAction>(action);
 }
 
 // The core's outcome codes travel as they are: they are the wire's Outcome
 // values, which the clients name.
-static_assert(sizeof(Outcome) == 1, "outcomes travel as uint8");
-static_assert(static_cast<int>(Outcome::kNone) == v1::OUTCOME_UNSPECIFIED);
-static_assert(static_cast<int>(Outcome::kLanded) == v1::OUTCOME_LANDED);
-static_assert(static_cast<int>(Outcome::kCrashed) == v1::OUTCOME_CRASHED);
-static_assert(static_cast<int>(Outcome::kOutOfBounds) ==
+static_assert(sizeof(core::Outcome) == 1, "outcomes travel as uint8");
+static_assert(static_cast<int>(core::Outcome::kNone) ==
+              v1::OUTCOME_UNSPECIFIED);
+static_assert(static_cast<int>(core::Outcome::kLanded) == v1::OUTCOME_LANDED);
+static_assert(static_cast<int>(core::Outcome::kCrashed) == v1::OUTCOME_CRASHED);
+static_assert(static_cast<int>(core::Outcome::kOutOfBounds) ==
               v1::OUTCOME_OUT_OF_BOUNDS);
-static_assert(static_cast<int>(Outcome::kTruncated) == v1::OUTCOME_TRUNCATED);
-static_assert(static_cast<int>(Outcome::kAborted) == v1::OUTCOME_ABORTED);
+static_assert(static_cast<int>(core::Outcome::kTruncated) ==
+              v1::OUTCOME_TRUNCATED);
+static_assert(static_cast<int>(core::Outcome::kAborted) == v1::OUTCOME_ABORTED);
 
-void AgentColumns::Write(size_t row, const StepResult& result,
-                         const Env& env) const {
+void AgentColumns::Write(size_t row, const core::StepResult& result,
+                         const core::Env& env) const {
   const size_t first = row * static_cast<size_t>(env.n_landers());
-  observations.StoreAll(first * kObservationSize, result.observations);
+  observations.StoreAll(first * core::kObservationSize, result.observations);
   rewards.StoreAll(first, result.rewards);
   terminations.StoreAll(first, result.terminations);
   truncations.StoreAll(first, result.truncations);
@@ -411,7 +408,7 @@ template <typename Columns>
 AgentColumns SizeAgentColumns(absl::Span<const int> lead, int n_landers,
                               Columns* out) {
   int rows_dims[2] = {0, n_landers};
-  int matrix_dims[3] = {0, n_landers, kObservationSize};
+  int matrix_dims[3] = {0, n_landers, core::kObservationSize};
   std::copy(lead.begin(), lead.end(), rows_dims);
   std::copy(lead.begin(), lead.end(), matrix_dims);
   const size_t skip = 1 - lead.size();  // 0 or 1.
@@ -425,15 +422,15 @@ AgentColumns SizeAgentColumns(absl::Span<const int> lead, int n_landers,
       SizeArray<uint8_t>(rows, out->mutable_terminations()),
       SizeArray<uint8_t>(rows, out->mutable_truncations()),
       SizeArray<uint8_t>(rows, out->mutable_stepped()),
-      SizeArray<Outcome, uint8_t>(rows, out->mutable_outcomes()),
+      SizeArray<core::Outcome, uint8_t>(rows, out->mutable_outcomes()),
       SizeArray<float>(rows, out->mutable_episode_returns()),
       SizeArray<int32_t>(rows, out->mutable_episode_lengths())};
 }
 
 }  // namespace
 
-void FillStepData(const StepResult& result, const Env& env, bool auto_reset,
-                  v1::StepData* out) {
+void FillStepData(const core::StepResult& result, const core::Env& env,
+                  bool auto_reset, v1::StepData* out) {
   SizeAgentColumns({}, env.n_landers(), out).Write(0, result, env);
   out->set_episode_over(result.episode_over);
   out->set_auto_reset(auto_reset);
@@ -449,8 +446,8 @@ PackedColumns::PackedColumns(int num_envs, int n_landers,
   cycles_ = SizeArray<int32_t>(envs, out->mutable_cycles());
 }
 
-void PackedColumns::Write(int e, const StepResult& result, const Env& env,
-                          bool auto_reset) const {
+void PackedColumns::Write(int e, const core::StepResult& result,
+                          const core::Env& env, bool auto_reset) const {
   const size_t row = static_cast<size_t>(e);
   agents_.Write(row, result, env);
   episode_over_.Store(row, result.episode_over);
@@ -458,8 +455,9 @@ void PackedColumns::Write(int e, const StepResult& result, const Env& env,
   cycles_.Store(row, static_cast<int32_t>(env.cycles()));
 }
 
-void FillAecState(const AecEnv& aec, bool world_stepped, v1::AecState* out) {
-  const Env& env = aec.env();
+void FillAecState(const core::AecEnv& aec, bool world_stepped,
+                  v1::AecState* out) {
+  const core::Env& env = aec.env();
   const int n = env.n_landers();
   std::vector<uint8_t> in_cycle(n, 0);
   for (int agent : aec.agents()) in_cycle[agent] = 1;
@@ -469,39 +467,34 @@ void FillAecState(const AecEnv& aec, bool world_stepped, v1::AecState* out) {
   const std::vector<float> observations =
       ObservationMatrix(n, [&](int i) { return aec.observe(i); });
   const int rows[] = {n};
-  const int matrix[] = {n, kObservationSize};
+  const int matrix[] = {n, core::kObservationSize};
   // The adapter's per-agent state is only defined for agents in the cycle;
   // the others read as zero.
   FillArray<float>(observations, matrix, out->mutable_observations());
-  FillArray<float>(PerAgent<float>(n,
-                                   [&](int i) {
-                                     return in_cycle[i] ? aec.reward(i) : 0.0f;
-                                   }),
-                   rows, out->mutable_rewards());
-  FillArray<float>(PerAgent<float>(n,
-                                   [&](int i) {
-                                     return in_cycle[i]
-                                                ? aec.cumulative_reward(i)
-                                                : 0.0f;
-                                   }),
-                   rows, out->mutable_cumulative_rewards());
+  FillArray<float>(
+      PerAgent<float>(
+          n, [&](int i) { return in_cycle[i] ? aec.reward(i) : 0.0f; }),
+      rows, out->mutable_rewards());
+  FillArray<float>(
+      PerAgent<float>(
+          n,
+          [&](int i) { return in_cycle[i] ? aec.cumulative_reward(i) : 0.0f; }),
+      rows, out->mutable_cumulative_rewards());
   FillArray<uint8_t>(
-      PerAgent<uint8_t>(n,
-                        [&](int i) { return in_cycle[i] && aec.terminated(i); }),
+      PerAgent<uint8_t>(
+          n, [&](int i) { return in_cycle[i] && aec.terminated(i); }),
       rows, out->mutable_terminations());
   FillArray<uint8_t>(
       PerAgent<uint8_t>(n,
                         [&](int i) { return in_cycle[i] && aec.truncated(i); }),
       rows, out->mutable_truncations());
-  FillArray<uint8_t>(PerAgent<uint8_t>(n,
-                                       [&](int i) {
-                                         return static_cast<uint8_t>(
-                                             env.outcome(i));
-                                       }),
-                     rows, out->mutable_outcomes());
+  FillArray<uint8_t>(
+      PerAgent<uint8_t>(
+          n, [&](int i) { return static_cast<uint8_t>(env.outcome(i)); }),
+      rows, out->mutable_outcomes());
   FillEpisodeColumns(env, out->mutable_episode_returns(),
                      out->mutable_episode_lengths());
   out->set_world_stepped(world_stepped);
 }
 
-}  // namespace mll
+}  // namespace mll::service

@@ -1,9 +1,8 @@
 #include "mll/service/dashboard.h"
 
-#include <csignal>
-
 #include <algorithm>
 #include <chrono>
+#include <csignal>
 #include <cstdio>
 #include <optional>
 #include <string>
@@ -16,10 +15,11 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
 #include "absl/strings/strip.h"
+#include "http_listener.h"
 #include "httplib.h"
 #include "mll/core/renderer.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 // The port the address error's examples show.
@@ -129,6 +129,8 @@ DashboardServer::~DashboardServer() {
   listener_.reset();
 }
 
+int DashboardServer::port() const { return listener_->port(); }
+
 void DashboardServer::AddRoutes(httplib::Server& http) {
   http.Get("/", [](const httplib::Request&, httplib::Response& res) {
     res.set_header("Cache-Control", "no-store");
@@ -174,8 +176,7 @@ void DashboardServer::ListEnvs(const httplib::Request& req,
                                httplib::Response& res) {
   std::optional<std::string> owner = Owner(req, res);
   if (!owner.has_value()) return;
-  absl::StatusOr<Registry::Page> page =
-      registry_->List(kMaxListed, "", *owner);
+  absl::StatusOr<Registry::Page> page = registry_->List(kMaxListed, "", *owner);
   if (!page.ok()) {
     SetError(res, 500, page.status().message());
     return;
@@ -187,16 +188,15 @@ void DashboardServer::ListEnvs(const httplib::Request& req,
     {
       absl::MutexLock lock(&slot->mu);
       if (slot->env == nullptr) continue;
-      const Env& env = *slot->env;
+      const core::Env& env = *slot->env;
       const bool started = env.episode_started();
-      absl::StrAppend(&entry, "{\"name\":", JsonString(slot->name),
-                      ",\"landers\":", slot->config.n_landers,
-                      ",\"continuous\":",
-                      slot->config.continuous ? "true" : "false",
-                      ",\"episode\":", slot->episodes,
-                      ",\"step\":", started ? env.cycles() : 0,
-                      ",\"active\":", started ? env.num_active() : 0,
-                      ",\"returns\":[");
+      absl::StrAppend(
+          &entry, "{\"name\":", JsonString(slot->name),
+          ",\"landers\":", slot->config.n_landers,
+          ",\"continuous\":", slot->config.continuous ? "true" : "false",
+          ",\"episode\":", slot->episodes,
+          ",\"step\":", started ? env.cycles() : 0,
+          ",\"active\":", started ? env.num_active() : 0, ",\"returns\":[");
       for (int i = 0; i < slot->config.n_landers; ++i) {
         char value[32];
         std::snprintf(value, sizeof(value), "%.2f",
@@ -207,15 +207,15 @@ void DashboardServer::ListEnvs(const httplib::Request& req,
       for (int i = 0; i < slot->config.n_landers; ++i) {
         absl::StrAppend(
             &entry, i > 0 ? "," : "",
-            JsonString(started ? OutcomeName(env.outcome(i)) : "none"));
+            JsonString(started ? core::OutcomeName(env.outcome(i)) : "none"));
       }
       absl::StrAppend(&entry, "]}");
     }
     absl::StrAppend(&json, first ? "" : ",", entry);
     first = false;
   }
-  absl::StrAppend(&json, "],\"auth\":",
-                  authenticator_->enabled() ? "true" : "false", "}");
+  absl::StrAppend(
+      &json, "],\"auth\":", authenticator_->enabled() ? "true" : "false", "}");
   res.set_header("Cache-Control", "no-store");
   res.set_content(json, "application/json");
 }
@@ -283,9 +283,8 @@ void DashboardServer::StreamFrames(const httplib::Request& req,
   res.set_header("Cache-Control", "no-store");
   res.set_header("X-Accel-Buffering", "no");
   res.set_chunked_content_provider(
-      "text/event-stream",
-      [this, viewer, watched, cache, name, period](size_t,
-                                                   httplib::DataSink& sink) {
+      "text/event-stream", [this, viewer, watched, cache, name, period](
+                               size_t, httplib::DataSink& sink) {
         Version sent;
         auto last_write = std::chrono::steady_clock::now();
         auto next = last_write;
@@ -306,7 +305,7 @@ void DashboardServer::StreamFrames(const httplib::Request& req,
                 kMinFramePeriod;
             if (cache->event == nullptr ||
                 (cache->version != *version && cache->time_slot != time_slot)) {
-              Scene scene;
+              core::Scene scene;
               Version drawn;
               {
                 absl::MutexLock env_lock(&slot->mu);
@@ -314,11 +313,11 @@ void DashboardServer::StreamFrames(const httplib::Request& req,
                 scene = slot->env->scene();
                 drawn = {slot->episodes, slot->env->cycles()};
               }
-              RenderOptions options;
+              core::RenderOptions options;
               options.overlay = true;
               options.caption = absl::StrCat(name, "  episode ", drawn.episode);
               absl::StatusOr<std::string> png =
-                  EncodePng(RenderScene(scene, options));
+                  core::EncodePng(core::RenderScene(scene, options));
               if (!png.ok()) return false;
               cache->event = std::make_shared<const std::string>(absl::StrCat(
                   "event: frame\nid: ", drawn.episode, ".", drawn.cycles,
@@ -346,4 +345,4 @@ void DashboardServer::StreamFrames(const httplib::Request& req,
       });
 }
 
-}  // namespace mll
+}  // namespace mll::service

@@ -3,7 +3,7 @@
 // one env's frames from the /api/frames event stream beside its table.
 #include "mll/service/dashboard.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 constexpr char kPage[] = R"html(<!doctype html>
@@ -155,4 +155,4 @@ timer = setInterval(refresh, 1000);
 
 const char* DashboardPage() { return kPage; }
 
-}  // namespace mll
+}  // namespace mll::service

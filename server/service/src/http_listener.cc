@@ -1,4 +1,4 @@
-#include "mll/service/http_listener.h"
+#include "http_listener.h"
 
 #include <sys/socket.h>
 
@@ -8,9 +8,9 @@
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
 #include "httplib.h"
-#include "mll/service/listen_address.h"
+#include "listen_address.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 constexpr int kIoTimeoutS = 5;
@@ -69,4 +69,4 @@ HttpListener::~HttpListener() {
   if (thread_.joinable()) thread_.join();
 }
 
-}  // namespace mll
+}  // namespace mll::service

@@ -1,10 +1,10 @@
-#include "mll/service/listen_address.h"
+#include "listen_address.h"
 
 #include "absl/status/status.h"
 #include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 constexpr int kMaxPort = 65535;
@@ -40,4 +40,4 @@ absl::StatusOr<ListenAddress> ParseListenAddress(absl::string_view flag,
   return parsed;
 }
 
-}  // namespace mll
+}  // namespace mll::service

@@ -7,15 +7,14 @@
 
 #include "absl/strings/str_cat.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 constexpr std::memory_order kRelaxed = std::memory_order_relaxed;
 
 constexpr absl::string_view kMethodNames[kMethodCount] = {
-    "CreateEnv", "GetEnv",    "ListEnvs",  "DeleteEnv", "ResetEnv",
-    "StepEnv",   "StepAgent", "StepBatch", "RenderEnv", "Session",
-    "KeepAlive"};
+    "CreateEnv", "GetEnv",    "ListEnvs",  "DeleteEnv", "ResetEnv", "StepEnv",
+    "StepAgent", "StepBatch", "RenderEnv", "Session",   "KeepAlive"};
 
 // The methods that step environments, the only ones with step counters.
 constexpr Method kStepMethods[] = {Method::kStepEnv, Method::kStepAgent,
@@ -23,8 +22,8 @@ constexpr Method kStepMethods[] = {Method::kStepEnv, Method::kStepAgent,
 
 void Family(absl::string_view name, absl::string_view type,
             absl::string_view help, std::string* out) {
-  absl::StrAppend(out, "# HELP ", name, " ", help, "\n# TYPE ", name, " ",
-                  type, "\n");
+  absl::StrAppend(out, "# HELP ", name, " ", help, "\n# TYPE ", name, " ", type,
+                  "\n");
 }
 
 std::string MethodLabel(Method method) {
@@ -52,14 +51,13 @@ absl::string_view MethodName(Method method) {
 void Metrics::RecordCall(Method method, absl::StatusCode code,
                          int64_t latency_ns) {
   PerMethod& m = of(method);
-  const int bucket = static_cast<int>(
-      std::lower_bound(kBucketBoundsNs.begin(), kBucketBoundsNs.end(),
-                       latency_ns) -
-      kBucketBoundsNs.begin());
+  const int bucket =
+      static_cast<int>(std::lower_bound(kBucketBoundsNs.begin(),
+                                        kBucketBoundsNs.end(), latency_ns) -
+                       kBucketBoundsNs.begin());
   m.buckets[bucket].fetch_add(1, kRelaxed);
-  m.latency_sum_ns.fetch_add(static_cast<uint64_t>(std::max<int64_t>(
-                                 latency_ns, 0)),
-                             kRelaxed);
+  m.latency_sum_ns.fetch_add(
+      static_cast<uint64_t>(std::max<int64_t>(latency_ns, 0)), kRelaxed);
   const int code_index = static_cast<int>(code);
   if (code != absl::StatusCode::kOk && code_index >= 0 && code_index < kCodes) {
     m.errors[code_index].fetch_add(1, kRelaxed);
@@ -126,13 +124,12 @@ std::string Metrics::Render(
          &out);
   for (const auto& [tenant, count] : live_by_tenant) {
     absl::StrAppend(&out, "mll_tenant_envs_live{tenant=\"",
-                    tenant.empty() ? "anonymous" : tenant, "\"} ", count,
-                    "\n");
+                    tenant.empty() ? "anonymous" : tenant, "\"} ", count, "\n");
   }
   Family("mll_episodes_started_total", "counter",
          "Episodes started, by ResetEnv or by an auto_reset step.", &out);
-  absl::StrAppend(&out, "mll_episodes_started_total ",
-                  episodes_.load(kRelaxed), "\n");
+  absl::StrAppend(&out, "mll_episodes_started_total ", episodes_.load(kRelaxed),
+                  "\n");
   Family("mll_steps_total", "counter",
          "Environment steps (StepAgent: agent turns), by method.", &out);
   for (Method method : kStepMethods) {
@@ -160,8 +157,8 @@ std::string Metrics::Render(
       cumulative += m.buckets[b].load(kRelaxed);
       const std::string le =
           b < kBuckets - 1 ? absl::StrCat(kBucketBoundsNs[b] * 1e-9) : "+Inf";
-      absl::StrAppend(&out, "mll_rpc_duration_seconds_bucket{", label,
-                      ",le=\"", le, "\"} ", cumulative, "\n");
+      absl::StrAppend(&out, "mll_rpc_duration_seconds_bucket{", label, ",le=\"",
+                      le, "\"} ", cumulative, "\n");
     }
     absl::StrAppend(&out, "mll_rpc_duration_seconds_sum{", label, "} ",
                     m.latency_sum_ns.load(kRelaxed) * 1e-9, "\n");
@@ -179,8 +176,8 @@ std::string Metrics::Render(
       absl::StrAppend(
           &out, "mll_rpc_errors_total{", MethodLabel(static_cast<Method>(i)),
           ",code=\"",
-          absl::StatusCodeToString(static_cast<absl::StatusCode>(code)),
-          "\"} ", count, "\n");
+          absl::StatusCodeToString(static_cast<absl::StatusCode>(code)), "\"} ",
+          count, "\n");
     }
   }
   Family("process_resident_memory_bytes", "gauge",
@@ -190,4 +187,4 @@ std::string Metrics::Render(
   return out;
 }
 
-}  // namespace mll
+}  // namespace mll::service

@@ -1,10 +1,10 @@
-#include "mll/service/metrics_http.h"
+#include "metrics_http.h"
 
 #include <utility>
 
 #include "httplib.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 // The port the address error's examples show.
@@ -21,15 +21,15 @@ absl::StatusOr<std::unique_ptr<MetricsHttpServer>> MetricsHttpServer::Start(
   absl::StatusOr<std::unique_ptr<HttpListener>> listener = HttpListener::Start(
       "--metrics_address", address, kExamplePort, kHttpThreads,
       [&render](httplib::Server& http) {
-        http.Get("/metrics", [render = std::move(render)](
-                                 const httplib::Request&,
-                                 httplib::Response& res) {
-          res.set_content(render(), kContentType);
-        });
+        http.Get("/metrics",
+                 [render = std::move(render)](const httplib::Request&,
+                                              httplib::Response& res) {
+                   res.set_content(render(), kContentType);
+                 });
       });
   if (!listener.ok()) return listener.status();
   return std::unique_ptr<MetricsHttpServer>(
       new MetricsHttpServer(*std::move(listener)));
 }
 
-}  // namespace mll
+}  // namespace mll::service

@@ -14,7 +14,7 @@
 #include "mll/core/renderer.h"
 #include "mll/service/convert.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 // Starts a new episode through the AEC adapter, which resets the Env and the
@@ -52,8 +52,9 @@ absl::Status CheckMode(const EnvSlot& slot, StepMode mode)
 // emit(result, env, auto_reset) while the env is still locked. The one step
 // of StepEnv and of both StepBatch forms.
 absl::Status StepSlot(
-    EnvSlot& slot, const ActionsView& actions,
-    absl::FunctionRef<void(const StepResult&, const Env&, bool)> emit) {
+    EnvSlot& slot, const core::ActionsView& actions,
+    absl::FunctionRef<void(const core::StepResult&, const core::Env&, bool)>
+        emit) {
   absl::MutexLock lock(&slot.mu);
   absl::Status status = CheckStarted(slot);
   if (!status.ok()) return status;
@@ -110,10 +111,10 @@ absl::Status CheckDistinctNames(int count, NameOf name_of, ItemOf item_of,
   for (int i = 0; i < count; ++i) {
     auto [it, inserted] = first_index.emplace(name_of(i), i);
     if (!inserted) {
-      return absl::InvalidArgumentError(absl::StrCat(
-          item_of(i).view(), name_suffix, ": ", name_of(i),
-          " also appears at ", item_of(it->second).view(),
-          "; the envs of one batch must be distinct"));
+      return absl::InvalidArgumentError(
+          absl::StrCat(item_of(i).view(), name_suffix, ": ", name_of(i),
+                       " also appears at ", item_of(it->second).view(),
+                       "; the envs of one batch must be distinct"));
     }
   }
   return absl::OkStatus();
@@ -127,7 +128,7 @@ void FillEnvLocked(const EnvSlot& slot, absl::Duration idle_timeout,
   out->set_name(slot.name);
   *out->mutable_config() = EnvConfigToProto(slot.config, slot.auto_reset);
   for (int i = 0; i < slot.config.n_landers; ++i) {
-    out->add_possible_agents(AgentName(i));
+    out->add_possible_agents(core::AgentName(i));
   }
   *out->mutable_observation_space() = ObservationSpace();
   *out->mutable_action_space() = ActionSpace(slot.config);
@@ -148,7 +149,7 @@ Operations::Operations(Registry* registry, WorkerPool* pool)
 absl::Status Operations::CreateEnv(const v1::CreateEnvRequest& request,
                                    bool session_bound, v1::Env* out,
                                    absl::string_view owner) {
-  absl::StatusOr<EnvConfig> config = EnvConfigFromProto(request.config());
+  absl::StatusOr<core::EnvConfig> config = EnvConfigFromProto(request.config());
   if (!config.ok()) return config.status();
   absl::StatusOr<std::shared_ptr<EnvSlot>> slot = registry_->Create(
       *config, request.config().auto_reset(), session_bound, owner);
@@ -158,8 +159,8 @@ absl::Status Operations::CreateEnv(const v1::CreateEnvRequest& request,
   return absl::OkStatus();
 }
 
-absl::Status Operations::GetEnv(const v1::GetEnvRequest& request,
-                                v1::Env* out, absl::string_view owner) {
+absl::Status Operations::GetEnv(const v1::GetEnvRequest& request, v1::Env* out,
+                                absl::string_view owner) {
   absl::StatusOr<std::shared_ptr<EnvSlot>> slot =
       registry_->Find(request.name(), "name", owner);
   if (!slot.ok()) return slot.status();
@@ -244,11 +245,10 @@ absl::Status Operations::StepEnv(const v1::StepEnvRequest& request,
   absl::Status status = ParseActions(request.actions(), slot.config,
                                      absl::StrCat(field, "actions"), &actions);
   if (!status.ok()) return status;
-  return StepSlot(slot, actions.view(),
-                  [out](const StepResult& result, const Env& env,
-                        bool auto_reset) {
-                    FillStepData(result, env, auto_reset, out);
-                  });
+  return StepSlot(
+      slot, actions.view(),
+      [out](const core::StepResult& result, const core::Env& env,
+            bool auto_reset) { FillStepData(result, env, auto_reset, out); });
 }
 
 absl::Status Operations::StepAgent(const v1::StepAgentRequest& request,
@@ -258,18 +258,17 @@ absl::Status Operations::StepAgent(const v1::StepAgentRequest& request,
       registry_->Find(request.name(), "name", owner);
   if (!found.ok()) return found.status();
   EnvSlot& slot = **found;
-  absl::StatusOr<std::optional<AgentAction>> action =
+  absl::StatusOr<std::optional<core::AgentAction>> action =
       ParseAgentAction(request, slot.config);
   if (!action.ok()) return action.status();
 
   absl::MutexLock lock(&slot.mu);
   absl::Status status = CheckStarted(slot);
   if (!status.ok()) return status;
-  if (request.has_agent() &&
-      request.agent() != slot.aec->agent_selection()) {
-    return absl::FailedPreconditionError(absl::StrCat(
-        "agent: ", request.agent(), " is not agent_selection (",
-        slot.aec->agent_selection(), ") of ", slot.name));
+  if (request.has_agent() && request.agent() != slot.aec->agent_selection()) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("agent: ", request.agent(), " is not agent_selection (",
+                     slot.aec->agent_selection(), ") of ", slot.name));
   }
   status = CheckMode(slot, StepMode::kAec);
   if (!status.ok()) return status;
@@ -285,25 +284,25 @@ absl::Status Operations::StepAgent(const v1::StepAgentRequest& request,
 absl::Status Operations::RenderEnv(const v1::RenderEnvRequest& request,
                                    v1::Frame* out, absl::string_view owner) {
   if (!v1::FrameFormat_IsValid(request.format())) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "format: ", request.format(),
-        " is not a FrameFormat (allowed: FRAME_FORMAT_RGB = 1, "
-        "FRAME_FORMAT_PNG = 2)"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("format: ", request.format(),
+                     " is not a FrameFormat (allowed: FRAME_FORMAT_RGB = 1, "
+                     "FRAME_FORMAT_PNG = 2)"));
   }
   absl::StatusOr<std::shared_ptr<EnvSlot>> found =
       registry_->Find(request.name(), "name", owner);
   if (!found.ok()) return found.status();
-  absl::StatusOr<Frame> frame;
+  absl::StatusOr<core::Frame> frame;
   {
     absl::MutexLock lock(&(*found)->mu);
-    frame = mll::RenderEnv(*(*found)->env);
+    frame = mll::core::RenderEnv(*(*found)->env);
   }
   if (!frame.ok()) return frame.status();
   out->set_width(frame->width);
   out->set_height(frame->height);
   if (request.format() == v1::FRAME_FORMAT_PNG) {
     // Encoding is pure and slow: done after the env is released.
-    absl::StatusOr<std::string> png = EncodePng(*frame);
+    absl::StatusOr<std::string> png = core::EncodePng(*frame);
     if (!png.ok()) return png.status();
     out->set_format(v1::FRAME_FORMAT_PNG);
     out->set_data(*std::move(png));
@@ -327,8 +326,7 @@ void Operations::StepBatch(const v1::StepBatchRequest& request,
           " envs); a StepBatchRequest carries exactly one of the two forms")));
       return;
     }
-    StepPacked(request.packed(), out->mutable_packed(), std::move(done),
-               owner);
+    StepPacked(request.packed(), out->mutable_packed(), std::move(done), owner);
     return;
   }
   absl::Status status = CheckDistinctNames(
@@ -388,16 +386,16 @@ void Operations::StepPacked(const v1::PackedSteps& request,
       num_envs,
       [this, &request, batch, owner](int e) {
         batch->statuses[e] = [&]() -> absl::Status {
-          absl::StatusOr<std::shared_ptr<EnvSlot>> found = registry_->Find(
-              request.names(e), ItemField("packed.names[", e, "]").view(),
-              owner);
+          absl::StatusOr<std::shared_ptr<EnvSlot>> found =
+              registry_->Find(request.names(e),
+                              ItemField("packed.names[", e, "]").view(), owner);
           if (!found.ok()) return found.status();
           EnvSlot& slot = **found;
           absl::Status status = batch->actions.CheckFits(e, slot.config);
           if (!status.ok()) return status;
           return StepSlot(slot, batch->actions.Row(e),
-                          [&](const StepResult& result, const Env& env,
-                              bool auto_reset) {
+                          [&](const core::StepResult& result,
+                              const core::Env& env, bool auto_reset) {
                             batch->columns.Write(e, result, env, auto_reset);
                           });
         }();
@@ -414,4 +412,4 @@ void Operations::StepPacked(const v1::PackedSteps& request,
       });
 }
 
-}  // namespace mll
+}  // namespace mll::service

@@ -9,7 +9,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 constexpr absl::string_view kNamePrefix = "envs/";
@@ -42,8 +42,9 @@ std::mt19937_64 SeededFromEntropy() {
 
 }  // namespace
 
-EnvSlot::EnvSlot(std::string name, uint64_t serial, std::unique_ptr<Env> env,
-                 bool auto_reset, bool session_bound, std::string owner)
+EnvSlot::EnvSlot(std::string name, uint64_t serial,
+                 std::unique_ptr<core::Env> env, bool auto_reset,
+                 bool session_bound, std::string owner)
     : name(std::move(name)),
       serial(serial),
       config(env->config()),
@@ -51,7 +52,7 @@ EnvSlot::EnvSlot(std::string name, uint64_t serial, std::unique_ptr<Env> env,
       session_bound(session_bound),
       owner(std::move(owner)),
       env(std::move(env)) {
-  aec = std::make_unique<AecEnv>(this->env.get());
+  aec = std::make_unique<core::AecEnv>(this->env.get());
   Touch(*this);
 }
 
@@ -77,14 +78,13 @@ std::string Registry::NewNameLocked() {
   for (;;) {
     const uint64_t high = random_();
     const uint64_t low = random_();
-    std::string name =
-        absl::StrFormat("%s%016x%016x", kNamePrefix, high, low);
+    std::string name = absl::StrFormat("%s%016x%016x", kNamePrefix, high, low);
     if (!by_name_.contains(name)) return name;
   }
 }
 
 absl::StatusOr<std::shared_ptr<EnvSlot>> Registry::Create(
-    const EnvConfig& config, bool auto_reset, bool session_bound,
+    const core::EnvConfig& config, bool auto_reset, bool session_bound,
     absl::string_view owner) {
   {
     absl::MutexLock lock(&mu_);
@@ -110,7 +110,7 @@ absl::StatusOr<std::shared_ptr<EnvSlot>> Registry::Create(
     ++pending_;
   }
   // Building a Box2D world takes a while: not under the registry's lock.
-  absl::StatusOr<std::unique_ptr<Env>> env = Env::Create(config);
+  absl::StatusOr<std::unique_ptr<core::Env>> env = core::Env::Create(config);
   absl::MutexLock lock(&mu_);
   --pending_;
   if (!env.ok()) {
@@ -118,9 +118,9 @@ absl::StatusOr<std::shared_ptr<EnvSlot>> Registry::Create(
     return env.status();
   }
   const std::string name = NewNameLocked();
-  auto slot = std::make_shared<EnvSlot>(name, next_serial_++, *std::move(env),
-                                        auto_reset, session_bound,
-                                        std::string(owner));
+  auto slot =
+      std::make_shared<EnvSlot>(name, next_serial_++, *std::move(env),
+                                auto_reset, session_bound, std::string(owner));
   by_name_.emplace(name, slot);
   by_serial_.emplace(slot->serial, slot);
   return slot;
@@ -182,9 +182,9 @@ absl::StatusOr<Registry::Page> Registry::List(int page_size,
                                               absl::string_view page_token,
                                               absl::string_view owner) {
   if (page_size < 0) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "page_size: ", page_size, " is negative (allowed: 0 for ",
-        kDefaultPageSize, ", up to ", kMaxPageSize, ")"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("page_size: ", page_size, " is negative (allowed: 0 for ",
+                     kDefaultPageSize, ", up to ", kMaxPageSize, ")"));
   }
   if (page_size == 0) page_size = kDefaultPageSize;
   page_size = std::min(page_size, kMaxPageSize);
@@ -194,9 +194,9 @@ absl::StatusOr<Registry::Page> Registry::List(int page_size,
   if (!page_token.empty() &&
       (!absl::StartsWith(page_token, "s") ||
        !absl::SimpleAtoi(page_token.substr(1), &first))) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("page_token: \"", page_token,
-                     "\" is not a token from ListEnvsResponse.next_page_token"));
+    return absl::InvalidArgumentError(absl::StrCat(
+        "page_token: \"", page_token,
+        "\" is not a token from ListEnvsResponse.next_page_token"));
   }
   Page page;
   absl::MutexLock lock(&mu_);
@@ -287,4 +287,4 @@ void Registry::ReapLoop() {
   }
 }
 
-}  // namespace mll
+}  // namespace mll::service

@@ -9,9 +9,10 @@
 #include "absl/time/clock.h"
 #include "grpcpp/ext/proto_server_reflection_plugin.h"
 #include "grpcpp/health_check_service_interface.h"
-#include "mll/service/listen_address.h"
+#include "listen_address.h"
+#include "metrics_http.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 constexpr int kMaxMessageMb = 2047;  // gRPC sizes messages in an int.
@@ -24,9 +25,8 @@ constexpr absl::Duration kRefusalPeriod = absl::Milliseconds(100);
 
 absl::Status OutOfRange(absl::string_view flag, double value,
                         absl::string_view allowed) {
-  return absl::InvalidArgumentError(
-      absl::StrCat("--", flag, ": ", value, " is out of range (allowed: ",
-                   allowed, ")"));
+  return absl::InvalidArgumentError(absl::StrCat(
+      "--", flag, ": ", value, " is out of range (allowed: ", allowed, ")"));
 }
 
 absl::StatusOr<std::string> ReadPemFile(absl::string_view flag,
@@ -52,7 +52,8 @@ absl::StatusOr<std::shared_ptr<grpc::ServerCredentials>> Credentials(
   absl::StatusOr<std::string> cert =
       ReadPemFile("tls_cert", options.tls_cert_file);
   if (!cert.ok()) return cert.status();
-  absl::StatusOr<std::string> key = ReadPemFile("tls_key", options.tls_key_file);
+  absl::StatusOr<std::string> key =
+      ReadPemFile("tls_key", options.tls_key_file);
   if (!key.ok()) return key.status();
   grpc::SslServerCredentialsOptions ssl;
   ssl.pem_key_cert_pairs.push_back({*std::move(key), *std::move(cert)});
@@ -60,9 +61,9 @@ absl::StatusOr<std::shared_ptr<grpc::ServerCredentials>> Credentials(
 }
 
 gpr_timespec ToGprDeadline(absl::Duration from_now) {
-  return gpr_time_add(gpr_now(GPR_CLOCK_MONOTONIC),
-                      gpr_time_from_nanos(absl::ToInt64Nanoseconds(from_now),
-                                          GPR_TIMESPAN));
+  return gpr_time_add(
+      gpr_now(GPR_CLOCK_MONOTONIC),
+      gpr_time_from_nanos(absl::ToInt64Nanoseconds(from_now), GPR_TIMESPAN));
 }
 
 }  // namespace
@@ -93,11 +94,11 @@ absl::Status ValidateServerOptions(const ServerOptions& options) {
     if (!address.ok()) return address;
   }
   if (options.tls_cert_file.empty() != options.tls_key_file.empty()) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        options.tls_cert_file.empty() ? "--tls_key" : "--tls_cert",
-        " is set without ",
-        options.tls_cert_file.empty() ? "--tls_cert" : "--tls_key",
-        " (allowed: both, for TLS, or neither, for plaintext)"));
+    return absl::InvalidArgumentError(
+        absl::StrCat(options.tls_cert_file.empty() ? "--tls_key" : "--tls_cert",
+                     " is set without ",
+                     options.tls_cert_file.empty() ? "--tls_cert" : "--tls_key",
+                     " (allowed: both, for TLS, or neither, for plaintext)"));
   }
   return absl::OkStatus();
 }
@@ -139,8 +140,7 @@ absl::StatusOr<std::unique_ptr<Server>> Server::Start(
     return absl::UnavailableError(absl::StrCat(
         "--address: cannot listen on ", options.address,
         " (in use, or not host:port of a local interface",
-        server->tls_ ? "; or --tls_cert and --tls_key do not match" : "",
-        ")"));
+        server->tls_ ? "; or --tls_cert and --tls_key do not match" : "", ")"));
   }
   if (!options.metrics_address.empty()) {
     MultiLunarLanderService* service = server->service_.get();
@@ -197,4 +197,4 @@ void Server::Shutdown(absl::Duration grace) {
   metrics_http_.reset();
 }
 
-}  // namespace mll
+}  // namespace mll::service

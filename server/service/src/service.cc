@@ -11,7 +11,7 @@
 #include "absl/strings/str_cat.h"
 #include "mll/service/convert.h"
 
-namespace mll {
+namespace mll::service {
 namespace {
 
 int64_t SteadyNowNs() {
@@ -277,11 +277,10 @@ class StepBatchMessages final
     : public grpc::MessageHolder<v1::StepBatchRequest, v1::StepBatchResponse> {
  public:
   StepBatchMessages() : arena_(Options()) {
-    set_request(google::protobuf::Arena::CreateMessage<v1::StepBatchRequest>(
-        &arena_));
+    set_request(
+        google::protobuf::Arena::CreateMessage<v1::StepBatchRequest>(&arena_));
     set_response(
-        google::protobuf::Arena::CreateMessage<v1::StepBatchResponse>(
-            &arena_));
+        google::protobuf::Arena::CreateMessage<v1::StepBatchResponse>(&arena_));
   }
   void Release() override { delete this; }
 
@@ -308,8 +307,8 @@ MultiLunarLanderService::StepBatchArenas::AllocateMessages() {
 int EffectiveMaxEnvsPerToken(const ServiceOptions& options) {
   if (options.max_envs_per_token > 0) return options.max_envs_per_token;
   if (options.auth_tokens.empty()) return 0;
-  return std::max(1, options.max_envs /
-                         static_cast<int>(options.auth_tokens.size()));
+  return std::max(
+      1, options.max_envs / static_cast<int>(options.auth_tokens.size()));
 }
 
 MultiLunarLanderService::MultiLunarLanderService(const ServiceOptions& options)
@@ -365,9 +364,9 @@ grpc::ServerUnaryReactor* MultiLunarLanderService::ListEnvs(
 grpc::ServerUnaryReactor* MultiLunarLanderService::DeleteEnv(
     grpc::CallbackServerContext* context, const v1::DeleteEnvRequest* request,
     v1::DeleteEnvResponse* /*response*/) {
-  return RunUnary(
-      context, Admit(*context), &operations_, &metrics_, Method::kDeleteEnv,
-      [&](const Dispatch& run) { return run.DeleteEnv(*request); });
+  return RunUnary(context, Admit(*context), &operations_, &metrics_,
+                  Method::kDeleteEnv,
+                  [&](const Dispatch& run) { return run.DeleteEnv(*request); });
 }
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::ResetEnv(
@@ -437,4 +436,4 @@ MultiLunarLanderService::Session(grpc::CallbackServerContext* context) {
                             Admit(*context));
 }
 
-}  // namespace mll
+}  // namespace mll::service

@@ -5,7 +5,7 @@
 #include <memory>
 #include <utility>
 
-namespace mll {
+namespace mll::service {
 
 WorkerPool::WorkerPool(int threads) : queues_(std::max(threads, 1)) {
   const int count = static_cast<int>(queues_.size());
@@ -89,4 +89,4 @@ void WorkerPool::ParallelFor(int count, std::function<void(int)> body,
   for (int r = 0; r < runners; ++r) queues_[r].wake.Signal();
 }
 
-}  // namespace mll
+}  // namespace mll::service

@@ -11,27 +11,28 @@ int main(int argc, char** argv) {
     std::cerr << "usage: consumer host:port" << std::endl;
     return 2;
   }
-  absl::StatusOr<mll::Client> client = mll::Client::Create(argv[1]);
+  absl::StatusOr<mll::client::Client> client =
+      mll::client::Client::Create(argv[1]);
   if (!client.ok()) {
     std::cerr << client.status() << std::endl;
     return 1;
   }
-  mll::RemoteEnvConfig config;
+  mll::client::RemoteEnvConfig config;
   config.n_landers = 2;
   config.max_cycles = 200;
-  absl::StatusOr<mll::RemoteEnv> env = client->CreateEnv(config);
+  absl::StatusOr<mll::client::RemoteEnv> env = client->CreateEnv(config);
   if (!env.ok()) {
     std::cerr << env.status() << std::endl;
     return 1;
   }
-  absl::StatusOr<mll::StepData> data = env->Reset(1);
+  absl::StatusOr<mll::client::StepData> data = env->Reset(1);
   int steps = 0;
   std::vector<int32_t> actions(env->n_landers());
   while (data.ok() && !data->episode_over) {
     for (int agent = 0; agent < env->n_landers(); ++agent) {
       actions[agent] = data->observation(agent)[3] < -0.2f ? 2 : 0;
     }
-    data = env->Step(mll::Actions::Discrete(actions));
+    data = env->Step(mll::client::Actions::Discrete(actions));
     ++steps;
   }
   if (!data.ok()) {
@@ -39,8 +40,8 @@ int main(int argc, char** argv) {
     return 1;
   }
   std::cout << env->name() << " ended after " << steps << " steps:";
-  for (mll::LanderOutcome outcome : data->outcomes) {
-    std::cout << " " << mll::LanderOutcomeName(outcome);
+  for (mll::client::LanderOutcome outcome : data->outcomes) {
+    std::cout << " " << mll::client::LanderOutcomeName(outcome);
   }
   std::cout << std::endl;
   return 0;

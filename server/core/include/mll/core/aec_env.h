@@ -14,7 +14,7 @@
 #include "absl/types/span.h"
 #include "mll/core/env.h"
 
-namespace mll {
+namespace mll::core {
 
 class AecEnv {
  public:
@@ -78,6 +78,6 @@ class AecEnv {
   StepResult step_result_;
 };
 
-}  // namespace mll
+}  // namespace mll::core
 
 #endif  // MLL_CORE_AEC_ENV_H_

@@ -28,7 +28,7 @@
 #include "mll/core/env_config.h"
 #include "mll/core/scene.h"
 
-namespace mll {
+namespace mll::core {
 
 inline constexpr int kObservationSize = 12;
 inline constexpr int kDiscreteActionCount = 4;
@@ -155,6 +155,6 @@ class Env {
   std::unique_ptr<Impl> impl_;
 };
 
-}  // namespace mll
+}  // namespace mll::core
 
 #endif  // MLL_CORE_ENV_H_

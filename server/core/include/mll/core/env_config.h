@@ -16,7 +16,7 @@
 #include "absl/status/status.h"
 #include "absl/strings/string_view.h"
 
-namespace mll {
+namespace mll::core {
 
 inline constexpr int kMinLanders = 1;
 inline constexpr int kMaxLanders = 32;
@@ -64,34 +64,35 @@ class OptionRange {
 // its unit and (in words) its range; `range` is what ValidateEnvConfig
 // checks. render_mode (below) is the one option that is not a number or a
 // flag; the service's auto_reset is the service's, not the simulation's.
-#define MLL_ENV_OPTIONS(X)                                                \
-  X(int, n_landers, 3,                                                    \
-    ::mll::OptionRange::Integers(::mll::kMinLanders, ::mll::kMaxLanders), \
-    "Number of landers (agents lander_0..lander_{n-1}), 1..32.")          \
-  X(bool, continuous, false, ::mll::OptionRange::Any(),                   \
-    "Continuous Box(-1, 1, (2,)) actions instead of Discrete(4).")        \
-  X(int, max_cycles, 500, ::mll::OptionRange::AtLeast(1),                 \
-    "Steps after which every active lander is truncated, >= 1.")          \
-  X(double, gravity, -10.0, ::mll::OptionRange::Open(-12.0, 0.0),         \
-    "Gravity along y in m/s^2, in (-12, 0).")                             \
-  X(bool, enable_wind, false, ::mll::OptionRange::Any(),                  \
-    "Wind and turbulence on landers whose legs do not touch the ground.") \
-  X(double, wind_power, 15.0, ::mll::OptionRange::Closed(0.0, 20.0),      \
-    "Peak wind force in N, [0, 20].")                                     \
-  X(double, turbulence_power, 1.5, ::mll::OptionRange::Closed(0.0, 2.0),  \
-    "Peak turbulence torque in N*m, [0, 2].")                             \
-  X(bool, remove_on_damage, true, ::mll::OptionRange::Any(),              \
-    "Destroy a damaged lander's bodies (else it stays as a wreck).")      \
-  X(bool, terminate_on_damage, true, ::mll::OptionRange::Any(),           \
-    "Terminate every other active lander when one is damaged.")           \
-  X(bool, shared_reward, true, ::mll::OptionRange::Any(),                 \
-    "Each stepped lander receives the mean reward of those stepped.")     \
-  X(double, damage_reward, -100.0, ::mll::OptionRange::Finite(),          \
-    "Added to a damaged lander's reward, any finite value.")              \
-  X(double, successful_reward, 100.0, ::mll::OptionRange::Finite(),       \
-    "Added to a landed lander's reward, any finite value.")               \
-  X(double, terminate_reward, -100.0, ::mll::OptionRange::Finite(),       \
-    "Added to a lander terminated by damage (its own or, with "           \
+#define MLL_ENV_OPTIONS(X)                                                     \
+  X(int, n_landers, 3,                                                         \
+    ::mll::core::OptionRange::Integers(::mll::core::kMinLanders,               \
+                                       ::mll::core::kMaxLanders),              \
+    "Number of landers (agents lander_0..lander_{n-1}), 1..32.")               \
+  X(bool, continuous, false, ::mll::core::OptionRange::Any(),                  \
+    "Continuous Box(-1, 1, (2,)) actions instead of Discrete(4).")             \
+  X(int, max_cycles, 500, ::mll::core::OptionRange::AtLeast(1),                \
+    "Steps after which every active lander is truncated, >= 1.")               \
+  X(double, gravity, -10.0, ::mll::core::OptionRange::Open(-12.0, 0.0),        \
+    "Gravity along y in m/s^2, in (-12, 0).")                                  \
+  X(bool, enable_wind, false, ::mll::core::OptionRange::Any(),                 \
+    "Wind and turbulence on landers whose legs do not touch the ground.")      \
+  X(double, wind_power, 15.0, ::mll::core::OptionRange::Closed(0.0, 20.0),     \
+    "Peak wind force in N, [0, 20].")                                          \
+  X(double, turbulence_power, 1.5, ::mll::core::OptionRange::Closed(0.0, 2.0), \
+    "Peak turbulence torque in N*m, [0, 2].")                                  \
+  X(bool, remove_on_damage, true, ::mll::core::OptionRange::Any(),             \
+    "Destroy a damaged lander's bodies (else it stays as a wreck).")           \
+  X(bool, terminate_on_damage, true, ::mll::core::OptionRange::Any(),          \
+    "Terminate every other active lander when one is damaged.")                \
+  X(bool, shared_reward, true, ::mll::core::OptionRange::Any(),                \
+    "Each stepped lander receives the mean reward of those stepped.")          \
+  X(double, damage_reward, -100.0, ::mll::core::OptionRange::Finite(),         \
+    "Added to a damaged lander's reward, any finite value.")                   \
+  X(double, successful_reward, 100.0, ::mll::core::OptionRange::Finite(),      \
+    "Added to a landed lander's reward, any finite value.")                    \
+  X(double, terminate_reward, -100.0, ::mll::core::OptionRange::Finite(),      \
+    "Added to a lander terminated by damage (its own or, with "                \
     "terminate_on_damage, another's), any finite value.")
 
 // How frames are produced. Particles (engine exhaust) exist only when a render
@@ -117,6 +118,6 @@ absl::Status ValidateEnvConfig(const EnvConfig& config);
 // "none" or "rgb_array".
 absl::string_view RenderModeName(RenderMode mode);
 
-}  // namespace mll
+}  // namespace mll::core
 
 #endif  // MLL_CORE_ENV_CONFIG_H_

@@ -7,13 +7,13 @@
 #include "absl/types/span.h"
 #include "mll/core/env.h"
 
-namespace mll {
+namespace mll::core {
 
 // `observation` holds at least 8 values. Fills the member of the returned
 // action that matches `continuous`.
 AgentAction HeuristicAction(absl::Span<const float> observation,
                             bool continuous);
 
-}  // namespace mll
+}  // namespace mll::core
 
 #endif  // MLL_CORE_HEURISTIC_H_

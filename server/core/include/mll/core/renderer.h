@@ -17,7 +17,7 @@
 #include "mll/core/env.h"
 #include "mll/core/scene.h"
 
-namespace mll {
+namespace mll::core {
 
 inline constexpr int kFrameWidth = 600;
 inline constexpr int kFrameHeight = 400;
@@ -69,6 +69,6 @@ absl::StatusOr<Frame> RenderEnv(Env& env, const RenderOptions& options = {});
 // PNG bytes of `frame`, with a fast compression level.
 absl::StatusOr<std::string> EncodePng(const Frame& frame);
 
-}  // namespace mll
+}  // namespace mll::core
 
 #endif  // MLL_CORE_RENDERER_H_

@@ -7,7 +7,7 @@
 #include <cstdint>
 #include <vector>
 
-namespace mll {
+namespace mll::core {
 
 enum class Outcome : uint8_t;  // env.h
 
@@ -21,11 +21,11 @@ struct ScenePolygon {
 };
 
 struct SceneLander {
-  int agent = 0;                      // Agent index, picks the colour.
-  bool wreck = false;                 // Damaged but kept (remove_on_damage off).
-  std::vector<ScenePolygon> parts;    // Body first, then the two legs.
-  Vec2 position;                      // The body's origin.
-  double angle = 0.0;                 // The body's angle, rad.
+  int agent = 0;                    // Agent index, picks the colour.
+  bool wreck = false;               // Damaged but kept (remove_on_damage off).
+  std::vector<ScenePolygon> parts;  // Body first, then the two legs.
+  Vec2 position;                    // The body's origin.
+  double angle = 0.0;               // The body's angle, rad.
   // The engines fired in the latest step (0: off), drawn as flames. Powers
   // are 0.5..1 when on; side_direction is -1 (left engine), +1 or 0.
   double main_power = 0.0;
@@ -64,6 +64,6 @@ struct Scene {
   int cycles = 0;  // World steps this episode (Env::cycles()).
 };
 
-}  // namespace mll
+}  // namespace mll::core
 
 #endif  // MLL_CORE_SCENE_H_

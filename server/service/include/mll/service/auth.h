@@ -15,7 +15,7 @@
 #include "absl/status/statusor.h"
 #include "absl/strings/string_view.h"
 
-namespace mll {
+namespace mll::service {
 
 // The owner of every env on a server without tokens.
 inline constexpr absl::string_view kAnonymousOwner = "";
@@ -38,7 +38,6 @@ class Authenticator {
   explicit Authenticator(const std::vector<std::string>& tokens);
 
   bool enabled() const { return !digests_.empty(); }
-  int token_count() const { return static_cast<int>(digests_.size()); }
 
   // The owner that the `authorization` metadata value (nullopt: absent)
   // authenticates, valid as long as this object. UNAUTHENTICATED, saying
@@ -57,6 +56,6 @@ class Authenticator {
   std::vector<std::string> owners_;
 };
 
-}  // namespace mll
+}  // namespace mll::service
 
 #endif  // MLL_SERVICE_AUTH_H_

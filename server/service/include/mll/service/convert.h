@@ -20,7 +20,7 @@
 #include "mll/core/env_config.h"
 #include "mll/v1/multi_lunar_lander.pb.h"
 
-namespace mll {
+namespace mll::service {
 
 // Arrays travel as little-endian bytes; copying them verbatim is only right
 // on a little-endian host, which is all the platforms we build for.
@@ -39,11 +39,17 @@ void FillItemError(const absl::Status& status, v1::ItemError* out);
 template <typename T>
 constexpr v1::DType DTypeOf();
 template <>
-constexpr v1::DType DTypeOf<float>() { return v1::DTYPE_FLOAT32; }
+constexpr v1::DType DTypeOf<float>() {
+  return v1::DTYPE_FLOAT32;
+}
 template <>
-constexpr v1::DType DTypeOf<uint8_t>() { return v1::DTYPE_UINT8; }
+constexpr v1::DType DTypeOf<uint8_t>() {
+  return v1::DTYPE_UINT8;
+}
 template <>
-constexpr v1::DType DTypeOf<int32_t>() { return v1::DTYPE_INT32; }
+constexpr v1::DType DTypeOf<int32_t>() {
+  return v1::DTYPE_INT32;
+}
 
 // "[3, 12]".
 std::string ShapeString(absl::Span<const int> shape);
@@ -78,8 +84,8 @@ template <typename T>
 absl::StatusOr<std::vector<T>> DecodeArray(const v1::Array& array,
                                            absl::Span<const int> shape,
                                            absl::string_view field) {
-  absl::Status status = CheckArray(array, DTypeOf<T>(), shape, field,
-                                   "as the server sends it");
+  absl::Status status =
+      CheckArray(array, DTypeOf<T>(), shape, field, "as the server sends it");
   if (!status.ok()) return status;
   std::vector<T> values(array.data().size() / sizeof(T));
   std::memcpy(values.data(), array.data().data(), array.data().size());
@@ -88,32 +94,34 @@ absl::StatusOr<std::vector<T>> DecodeArray(const v1::Array& array,
 
 // Proto config -> core config, every unset field taking the core's default,
 // validated by the core (INVALID_ARGUMENT naming the field).
-absl::StatusOr<EnvConfig> EnvConfigFromProto(const v1::EnvConfig& proto);
+absl::StatusOr<core::EnvConfig> EnvConfigFromProto(const v1::EnvConfig& proto);
 
 // Core config (+ the service's auto_reset) -> proto with every field set.
-v1::EnvConfig EnvConfigToProto(const EnvConfig& config, bool auto_reset);
+v1::EnvConfig EnvConfigToProto(const core::EnvConfig& config, bool auto_reset);
 
 // The per-agent observation and action spaces of `config`.
 v1::Space ObservationSpace();
-v1::Space ActionSpace(const EnvConfig& config);
+v1::Space ActionSpace(const core::EnvConfig& config);
 
 // Storage for actions decoded from the wire; view() borrows it.
 struct ActionBuffer {
   std::vector<int32_t> discrete;
   std::vector<float> continuous;
-  ActionsView view() const { return ActionsView{discrete, continuous}; }
+  core::ActionsView view() const {
+    return core::ActionsView{discrete, continuous};
+  }
 };
 
 // Checks the dtype and shape of `array` for `config` (int32 [n_landers] or
 // float32 [n_landers, 2]) and copies it into `out`. Values are the core's to
 // check. Errors are INVALID_ARGUMENT naming `field`.
-absl::Status ParseActions(const v1::Array& array, const EnvConfig& config,
+absl::Status ParseActions(const v1::Array& array, const core::EnvConfig& config,
                           absl::string_view field, ActionBuffer* out);
 
 // The dtype/shape check of ParseActions alone, with its messages: whether
 // one env's actions of `dtype` and `shape` fit `config`.
 absl::Status CheckActionLayout(int dtype, absl::Span<const int> shape,
-                               const EnvConfig& config,
+                               const core::EnvConfig& config,
                                absl::string_view field);
 
 // The actions of a packed StepBatch (`PackedSteps.actions`), decoded once for
@@ -130,9 +138,9 @@ class PackedActions {
   bool continuous() const { return continuous_; }
   // OK, or the error a StepEnv with env e's row would give (under the field
   // name `packed.actions[e]`) when the env's config does not match.
-  absl::Status CheckFits(int e, const EnvConfig& config) const;
+  absl::Status CheckFits(int e, const core::EnvConfig& config) const;
   // Env e's actions.
-  ActionsView Row(int e) const;
+  core::ActionsView Row(int e) const;
 
  private:
   int n_landers_ = 0;
@@ -141,8 +149,8 @@ class PackedActions {
 };
 
 // The AEC action of a StepAgentRequest: nullopt when absent (a dead step).
-absl::StatusOr<std::optional<AgentAction>> ParseAgentAction(
-    const v1::StepAgentRequest& request, const EnvConfig& config);
+absl::StatusOr<std::optional<core::AgentAction>> ParseAgentAction(
+    const v1::StepAgentRequest& request, const core::EnvConfig& config);
 
 // A column of T elements kept as the little-endian bytes of a proto `bytes`
 // field. Elements go in with memcpy, by element index, never through a T*
@@ -178,20 +186,21 @@ struct AgentColumns {
   ByteColumn<uint8_t> terminations;
   ByteColumn<uint8_t> truncations;
   ByteColumn<uint8_t> stepped;
-  ByteColumn<Outcome> outcomes;  // The codes of mll.v1.Outcome.
+  ByteColumn<core::Outcome> outcomes;  // The codes of mll.v1.Outcome.
   ByteColumn<float> episode_returns;
   ByteColumn<int32_t> episode_lengths;
 
   // THE conversion of a step (or reset) result to the wire's per-agent
   // columns: writes `result` into row `row`; the episode bookkeeping
   // (returns, lengths) comes from `env`.
-  void Write(size_t row, const StepResult& result, const Env& env) const;
+  void Write(size_t row, const core::StepResult& result,
+             const core::Env& env) const;
 };
 
 // Step (or reset) results as a StepData: sizes its arrays, writes row 0 and
 // the per-env fields.
-void FillStepData(const StepResult& result, const Env& env, bool auto_reset,
-                  v1::StepData* out);
+void FillStepData(const core::StepResult& result, const core::Env& env,
+                  bool auto_reset, v1::StepData* out);
 
 // The result columns of a packed batch of `num_envs` envs with `n_landers`
 // landers each, every column sized once (one allocation per column) and
@@ -201,7 +210,7 @@ class PackedColumns {
  public:
   PackedColumns(int num_envs, int n_landers, v1::PackedStepData* out);
   // Env e's result, as FillStepData writes a StepData.
-  void Write(int e, const StepResult& result, const Env& env,
+  void Write(int e, const core::StepResult& result, const core::Env& env,
              bool auto_reset) const;
 
  private:
@@ -212,8 +221,9 @@ class PackedColumns {
 };
 
 // The state of a PettingZoo AECEnv, as `aec` holds it.
-void FillAecState(const AecEnv& aec, bool world_stepped, v1::AecState* out);
+void FillAecState(const core::AecEnv& aec, bool world_stepped,
+                  v1::AecState* out);
 
-}  // namespace mll
+}  // namespace mll::service
 
 #endif  // MLL_SERVICE_CONVERT_H_

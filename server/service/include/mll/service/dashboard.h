@@ -26,7 +26,6 @@
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
 #include "mll/service/auth.h"
-#include "mll/service/http_listener.h"
 #include "mll/service/registry.h"
 
 namespace httplib {
@@ -35,7 +34,9 @@ struct Request;
 struct Response;
 }  // namespace httplib
 
-namespace mll {
+namespace mll::service {
+
+class HttpListener;
 
 class DashboardServer {
  public:
@@ -57,7 +58,7 @@ class DashboardServer {
   DashboardServer(const DashboardServer&) = delete;
   DashboardServer& operator=(const DashboardServer&) = delete;
 
-  int port() const { return listener_->port(); }
+  int port() const;
   // Streams open now.
   int viewers() const { return viewers_.load(); }
   // Frames drawn since the start (shared frames count once).
@@ -92,6 +93,6 @@ class DashboardServer {
 // The dashboard's single page (dashboard_page.cc).
 const char* DashboardPage();
 
-}  // namespace mll
+}  // namespace mll::service
 
 #endif  // MLL_SERVICE_DASHBOARD_H_

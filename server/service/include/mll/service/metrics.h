@@ -16,7 +16,7 @@
 #include "absl/strings/string_view.h"
 #include "mll/v1/multi_lunar_lander.pb.h"
 
-namespace mll {
+namespace mll::service {
 
 // The RPC methods of mll.v1.MultiLunarLander, as metric labels.
 enum class Method {
@@ -42,9 +42,9 @@ class Metrics {
   // 1 s in 1-2.5-5 steps: loopback calls take 40-300 us, batches and
   // renders milliseconds. A +Inf bucket follows.
   static constexpr std::array<int64_t, 15> kBucketBoundsNs = {
-      25'000,      50'000,      100'000,    250'000,     500'000,
-      1'000'000,   2'500'000,   5'000'000,  10'000'000,  25'000'000,
-      50'000'000,  100'000'000, 250'000'000, 500'000'000, 1'000'000'000};
+      25'000,     50'000,      100'000,     250'000,     500'000,
+      1'000'000,  2'500'000,   5'000'000,   10'000'000,  25'000'000,
+      50'000'000, 100'000'000, 250'000'000, 500'000'000, 1'000'000'000};
 
   Metrics() = default;
   Metrics(const Metrics&) = delete;
@@ -69,10 +69,9 @@ class Metrics {
   // `live_by_tenant` (owner, envs; auth.h's owners, never a token) as the
   // per-tenant gauge and the process's resident memory read from
   // /proc/self/statm.
-  std::string Render(
-      int live_envs,
-      const std::vector<std::pair<std::string, int>>& live_by_tenant = {})
-      const;
+  std::string Render(int live_envs,
+                     const std::vector<std::pair<std::string, int>>&
+                         live_by_tenant = {}) const;
 
  private:
   static constexpr int kBuckets = kBucketBoundsNs.size() + 1;  // With +Inf.
@@ -80,8 +79,7 @@ class Metrics {
 
   // One env's successful step (or auto-reset), whatever form carried it;
   // `stepped` is its StepData.stepped bytes.
-  void RecordEnvStep(Method method, bool auto_reset,
-                     absl::string_view stepped);
+  void RecordEnvStep(Method method, bool auto_reset, absl::string_view stepped);
 
   struct alignas(64) PerMethod {
     std::atomic<uint64_t> buckets[kBuckets] = {};
@@ -97,6 +95,6 @@ class Metrics {
   std::atomic<uint64_t> episodes_{0};
 };
 
-}  // namespace mll
+}  // namespace mll::service
 
 #endif  // MLL_SERVICE_METRICS_H_

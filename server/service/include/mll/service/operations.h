@@ -14,7 +14,7 @@
 #include "mll/service/worker_pool.h"
 #include "mll/v1/multi_lunar_lander.pb.h"
 
-namespace mll {
+namespace mll::service {
 
 class Operations {
  public:
@@ -76,6 +76,6 @@ class Operations {
   WorkerPool* pool_;
 };
 
-}  // namespace mll
+}  // namespace mll::service
 
 #endif  // MLL_SERVICE_OPERATIONS_H_

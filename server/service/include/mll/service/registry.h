@@ -29,7 +29,7 @@
 #include "mll/core/env_config.h"
 #include "mll/service/auth.h"
 
-namespace mll {
+namespace mll::service {
 
 // Which API steps an env in its current episode. The AEC adapter buffers
 // actions between world steps, so the two step APIs cannot interleave within
@@ -39,28 +39,28 @@ enum class StepMode { kUnset, kParallel, kAec };
 // One hosted environment. Immutable members may be read without the lock;
 // everything else needs `mu`.
 struct EnvSlot {
-  EnvSlot(std::string name, uint64_t serial, std::unique_ptr<Env> env,
+  EnvSlot(std::string name, uint64_t serial, std::unique_ptr<core::Env> env,
           bool auto_reset, bool session_bound, std::string owner);
 
-  const std::string name;      // envs/{id}
-  const uint64_t serial;       // Creation order, for ListEnvs.
-  const EnvConfig config;      // Copy of env->config(), readable unlocked.
-  const bool auto_reset;       // EnvConfig.auto_reset of the proto.
-  const bool session_bound;    // Dies with the session that created it.
+  const std::string name;        // envs/{id}
+  const uint64_t serial;         // Creation order, for ListEnvs.
+  const core::EnvConfig config;  // Copy of env->config(), readable unlocked.
+  const bool auto_reset;         // EnvConfig.auto_reset of the proto.
+  const bool session_bound;      // Dies with the session that created it.
   // Who created it (auth.h); only the same owner can find it.
   const std::string owner;
   // Steady-clock nanoseconds of the last lookup; read by the reaper.
   std::atomic<int64_t> last_touched_ns{0};
 
   absl::Mutex mu;
-  std::unique_ptr<Env> env ABSL_PT_GUARDED_BY(mu);
-  std::unique_ptr<AecEnv> aec ABSL_PT_GUARDED_BY(mu);
+  std::unique_ptr<core::Env> env ABSL_PT_GUARDED_BY(mu);
+  std::unique_ptr<core::AecEnv> aec ABSL_PT_GUARDED_BY(mu);
   StepMode mode ABSL_GUARDED_BY(mu) = StepMode::kUnset;
   int64_t episodes ABSL_GUARDED_BY(mu) = 0;
   // Reset has seeded the generator (explicitly or with a drawn seed).
   bool seeded ABSL_GUARDED_BY(mu) = false;
   // Reused by every step so that stepping does not allocate.
-  StepResult scratch ABSL_GUARDED_BY(mu);
+  core::StepResult scratch ABSL_GUARDED_BY(mu);
 };
 
 class Registry {
@@ -82,7 +82,7 @@ class Registry {
   // max_envs or at the owner's max_envs_per_owner; INVALID_ARGUMENT for a
   // bad config (from the core).
   absl::StatusOr<std::shared_ptr<EnvSlot>> Create(
-      const EnvConfig& config, bool auto_reset, bool session_bound,
+      const core::EnvConfig& config, bool auto_reset, bool session_bound,
       absl::string_view owner = kAnonymousOwner);
 
   // The env called `name` (touching it: its idle clock restarts). `field`
@@ -114,15 +114,13 @@ class Registry {
   int size();
   // Live envs of each owner that has any, sorted by owner.
   std::vector<std::pair<std::string, int>> SizeByOwner();
-  int max_envs() const { return max_envs_; }
   absl::Duration idle_timeout() const { return idle_timeout_; }
 
  private:
   void ReapLoop();
   // Removes expired envs into `expired` (destroyed by the caller, unlocked);
   // returns when the next one can expire.
-  absl::Time ReapExpiredLocked(
-      std::vector<std::shared_ptr<EnvSlot>>* expired)
+  absl::Time ReapExpiredLocked(std::vector<std::shared_ptr<EnvSlot>>* expired)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   std::string NewNameLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   // Counts an env of `owner` out (it left the map, or was never built).
@@ -151,12 +149,11 @@ class Registry {
   absl::flat_hash_map<std::string, int> live_by_owner_ ABSL_GUARDED_BY(mu_);
   // Names the reaper destroyed recently -> their owner, so NOT_FOUND can say
   // why; `reclaimed_order_` holds them oldest first.
-  absl::flat_hash_map<std::string, std::string> reclaimed_
-      ABSL_GUARDED_BY(mu_);
+  absl::flat_hash_map<std::string, std::string> reclaimed_ ABSL_GUARDED_BY(mu_);
   std::deque<std::string> reclaimed_order_ ABSL_GUARDED_BY(mu_);
   std::thread reaper_;
 };
 
-}  // namespace mll
+}  // namespace mll::service
 
 #endif  // MLL_SERVICE_REGISTRY_H_

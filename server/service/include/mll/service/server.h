@@ -13,10 +13,11 @@
 #include "absl/time/time.h"
 #include "grpcpp/grpcpp.h"
 #include "mll/service/dashboard.h"
-#include "mll/service/metrics_http.h"
 #include "mll/service/service.h"
 
-namespace mll {
+namespace mll::service {
+
+class MetricsHttpServer;
 
 struct ServerOptions {
   // host:port to listen on (--address); port 0 picks a free port; empty
@@ -84,6 +85,6 @@ class Server {
   bool shut_down_ = false;
 };
 
-}  // namespace mll
+}  // namespace mll::service
 
 #endif  // MLL_SERVICE_SERVER_H_

@@ -19,7 +19,7 @@
 #include "mll/service/worker_pool.h"
 #include "mll/v1/multi_lunar_lander.grpc.pb.h"
 
-namespace mll {
+namespace mll::service {
 
 struct ServiceOptions {
   // Worker threads for StepBatch (--threads). >= 1.
@@ -120,6 +120,6 @@ class MultiLunarLanderService final
   WorkerPool pool_;
 };
 
-}  // namespace mll
+}  // namespace mll::service
 
 #endif  // MLL_SERVICE_SERVICE_H_

@@ -12,7 +12,7 @@
 #include "absl/base/thread_annotations.h"
 #include "absl/synchronization/mutex.h"
 
-namespace mll {
+namespace mll::service {
 
 class WorkerPool {
  public:
@@ -51,6 +51,6 @@ class WorkerPool {
   std::vector<std::thread> workers_;
 };
 
-}  // namespace mll
+}  // namespace mll::service
 
 #endif  // MLL_SERVICE_WORKER_POOL_H_

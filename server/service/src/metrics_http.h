@@ -1,8 +1,8 @@
 // The Prometheus scrape endpoint: GET /metrics over plain HTTP on its own
 // address (--metrics_address), served by cpp-httplib on two threads of its
 // own so that scrapes never wait behind RPCs and RPCs never wait for them.
-#ifndef MLL_SERVICE_METRICS_HTTP_H_
-#define MLL_SERVICE_METRICS_HTTP_H_
+#ifndef MLL_SERVICE_SRC_METRICS_HTTP_H_
+#define MLL_SERVICE_SRC_METRICS_HTTP_H_
 
 #include <functional>
 #include <memory>
@@ -10,9 +10,9 @@
 #include <utility>
 
 #include "absl/status/statusor.h"
-#include "mll/service/http_listener.h"
+#include "http_listener.h"
 
-namespace mll {
+namespace mll::service {
 
 class MetricsHttpServer {
  public:
@@ -31,6 +31,6 @@ class MetricsHttpServer {
   std::unique_ptr<HttpListener> listener_;
 };
 
-}  // namespace mll
+}  // namespace mll::service
 
-#endif  // MLL_SERVICE_METRICS_HTTP_H_
+#endif  // MLL_SERVICE_SRC_METRICS_HTTP_H_

@@ -2,8 +2,8 @@
 // checked and bound the same way for every HTTP listener of mll_server
 // (--metrics_address, --http_address), so a malformed or busy address fails
 // with one line naming the flag.
-#ifndef MLL_SERVICE_HTTP_LISTENER_H_
-#define MLL_SERVICE_HTTP_LISTENER_H_
+#ifndef MLL_SERVICE_SRC_HTTP_LISTENER_H_
+#define MLL_SERVICE_SRC_HTTP_LISTENER_H_
 
 #include <atomic>
 #include <functional>
@@ -18,7 +18,7 @@ namespace httplib {
 class Server;
 }  // namespace httplib
 
-namespace mll {
+namespace mll::service {
 
 class HttpListener {
  public:
@@ -49,6 +49,6 @@ class HttpListener {
   std::atomic<bool> listening_{false};
 };
 
-}  // namespace mll
+}  // namespace mll::service
 
-#endif  // MLL_SERVICE_HTTP_LISTENER_H_
+#endif  // MLL_SERVICE_SRC_HTTP_LISTENER_H_

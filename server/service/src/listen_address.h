@@ -1,15 +1,15 @@
 // The host:port of a listening flag (--address, --metrics_address), checked
 // before anything binds: gRPC would otherwise listen on a random port for
 // an out-of-range one, and cpp-httplib would wrap it around.
-#ifndef MLL_SERVICE_LISTEN_ADDRESS_H_
-#define MLL_SERVICE_LISTEN_ADDRESS_H_
+#ifndef MLL_SERVICE_SRC_LISTEN_ADDRESS_H_
+#define MLL_SERVICE_SRC_LISTEN_ADDRESS_H_
 
 #include <string>
 
 #include "absl/status/statusor.h"
 #include "absl/strings/string_view.h"
 
-namespace mll {
+namespace mll::service {
 
 struct ListenAddress {
   // As written, IPv6 brackets included ("[::1]"); never empty.
@@ -25,6 +25,6 @@ absl::StatusOr<ListenAddress> ParseListenAddress(absl::string_view flag,
                                                  absl::string_view address,
                                                  int example_port);
 
-}  // namespace mll
+}  // namespace mll::service
 
-#endif  // MLL_SERVICE_LISTEN_ADDRESS_H_
+#endif  // MLL_SERVICE_SRC_LISTEN_ADDRESS_H_
