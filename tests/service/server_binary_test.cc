@@ -169,6 +169,11 @@ TEST(ServerBinaryTest, ServesOnAUnixSocketAndRefusesABusyOne) {
 
     ExpectOneLineRefusal("--address=" + address, "--address",
                          "cannot listen on " + address + " (in use");
+    // The socket is still the first server's: a new connection reaches it.
+    auto again =
+        grpc::CreateChannel(address, grpc::InsecureChannelCredentials());
+    EXPECT_EQ(HealthCheck(again, &health_status), std::string("\x08\x01", 2));
+    again.reset();
     stub.reset();
     channel.reset();
     EXPECT_EQ(process.SignalAndWait(SIGTERM), 0);
