@@ -33,14 +33,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import pathlib
 
 import numpy as np
 
-from bench_client import bench_core
+from bench_client import Halves, add_binary_arguments, bench_core
 from bench_trainer_envs import alternate
 
-REPO = pathlib.Path(__file__).resolve().parents[2]
 ENVPOOL_TASK = "LunarLander-v3"
 
 
@@ -57,33 +55,9 @@ class EnvPoolAsync:
         self.env.send(actions, info["env_id"])
 
 
-class Halves:
-    """Two vector envs of half the size in EnvPool's async pattern: each call sends one half's
-    actions (step_async) and waits for the other half's results (step_wait), so the server steps
-    one half while the client handles the other."""
-
-    def __init__(self, mll, address: str, envs: int):
-        self.halves = [mll.vector_env(envs // 2, address=address, n_landers=1) for _ in range(2)]
-        for half in self.halves:
-            half.reset(seed=0)
-        self.sending = 0
-        self.halves[1].step_async(np.zeros((envs // 2, 1), np.int32))
-
-    def step(self, actions: np.ndarray) -> None:
-        self.halves[self.sending].step_async(actions)
-        self.sending = 1 - self.sending
-        self.halves[self.sending].step_wait()
-
-    def close(self) -> None:
-        self.halves[1 - self.sending].step_wait()
-        for half in self.halves:
-            half.close()
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--server", default=os.environ.get("MLL_SERVER_BIN", str(REPO / "build/server/service/mll_server")))
-    parser.add_argument("--core_timing", default=str(REPO / "build/bench/python/mll_core_batch_timing"))
+    add_binary_arguments(parser)
     parser.add_argument("--envs", type=int, default=64)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--async_batch", type=int, default=32, help="EnvPool's batch_size in its async API")
@@ -112,7 +86,7 @@ def main() -> int:
                 for name, server in (("tcp", tcp), ("unix", unix))}
         for env in ours.values():
             env.reset(seed=0)
-        halves = Halves(mll, unix.address, args.envs)
+        halves = Halves(mll, unix.address, args.envs, 1)
         raw = mll.vector_env(args.envs, address=unix.address, n_landers=args.gym_n_landers)
         gym_env = mll.gym_vector_env(args.envs, address=unix.address, n_landers=args.gym_n_landers)
         raw.reset(seed=0)
