@@ -6,16 +6,16 @@
    (`step`, all envs per call) and its async API (`recv` of `--async_batch` envs, then `send` of
    their actions). The faster of the two is the floor.
    Ours: `vector_env(--envs, n_landers=1)`, the same random discrete actions, auto-reset, on an
-   `mll_server --threads=--threads`, over loopback TCP and over a Unix-domain socket (what the
-   embedded server, address=None, listens on); and on the socket as two vector envs of half the
-   size stepped alternately with step_async/step_wait (each call sends one half's actions and
-   returns the other half's results: EnvPool's async pattern with the same batch).
+   `mll_server --threads=--threads`, over loopback TCP (what the embedded server uses) and over
+   a Unix-domain socket (`mll_server --address=unix:PATH`); and over TCP as two vector envs of
+   half the size stepped alternately with step_async/step_wait (each call sends one half's
+   actions and returns the other half's results: EnvPool's async pattern with the same batch).
    For reference (not a floor of this comparison): our core stepping the same 64 one-lander envs
    in-process on the same threads (mll_core_batch_timing, as in bench_client.py; it counts the
    env-steps that stepped a lander, i.e. without the auto-reset steps, about 1 in 100), which
    bounds what any transport can reach.
 2. `gym_vector_env` against `vector_env`, `--envs` envs x `--gym_n_landers` landers, on the same
-   socket server: target >= 90%.
+   TCP server: target >= 90%.
 
 Counting: env-steps per second on every side, i.e. calls x envs per call / wall seconds (an
 EnvPool step and a vector_env step of one env are both one env-step, auto-resets included). Beside
@@ -86,9 +86,9 @@ def main() -> int:
                 for name, server in (("tcp", tcp), ("unix", unix))}
         for env in ours.values():
             env.reset(seed=0)
-        halves = Halves(mll, unix.address, args.envs, 1)
-        raw = mll.vector_env(args.envs, address=unix.address, n_landers=args.gym_n_landers)
-        gym_env = mll.gym_vector_env(args.envs, address=unix.address, n_landers=args.gym_n_landers)
+        halves = Halves(mll, tcp.address, args.envs, 1)
+        raw = mll.vector_env(args.envs, address=tcp.address, n_landers=args.gym_n_landers)
+        gym_env = mll.gym_vector_env(args.envs, address=tcp.address, n_landers=args.gym_n_landers)
         raw.reset(seed=0)
         gym_env.reset(seed=0)
         column = table[..., None]
@@ -97,9 +97,9 @@ def main() -> int:
             "envpool_async": (pool_async.step, half_table, args.async_batch, None),
             "vector_env_tcp": (ours["tcp"].step, column, args.envs, tcp.pid),
             "vector_env_unix": (ours["unix"].step, column, args.envs, unix.pid),
-            "vector_env_unix_halves": (halves.step, half_table[..., None], args.async_batch, unix.pid),
-            "raw_vector_env_x3": (raw.step, gym_table.reshape(256, args.envs, args.gym_n_landers), args.envs, unix.pid),
-            "gym_vector_env_x3": (gym_env.step, gym_table, args.envs, unix.pid),
+            "vector_env_tcp_halves": (halves.step, half_table[..., None], args.async_batch, tcp.pid),
+            "raw_vector_env_x3": (raw.step, gym_table.reshape(256, args.envs, args.gym_n_landers), args.envs, tcp.pid),
+            "gym_vector_env_x3": (gym_env.step, gym_table, args.envs, tcp.pid),
         }
         alternate(sides, 1, 50, args.seconds)  # Warm-up.
         rates = {name: [] for name in (*sides, "core_in_process")}
@@ -132,7 +132,7 @@ def main() -> int:
               f"({', '.join(f'{value:.2f}' for value in ratios)}) | {np.median(cpu_us[name]):.1f} "
               f"| {np.median(cpu_ratios):.2f} |")
 
-    for name in ("envpool_sync", "envpool_async", "vector_env_tcp", "vector_env_unix", "vector_env_unix_halves",
+    for name in ("envpool_sync", "envpool_async", "vector_env_tcp", "vector_env_unix", "vector_env_tcp_halves",
                  "core_in_process"):
         row(name, floor, floor_cpu)
     print("| (floor above: EnvPool's faster API per round; below: raw_vector_env_x3) | | | | |")

@@ -7,9 +7,8 @@ it (SIGTERM, then SIGKILL after a grace period) on `stop()`, when garbage-collec
 interpreter exit (`weakref.finalize`, which registers with atexit). When started from the main thread on Linux
 the child also gets PR_SET_PDEATHSIG, so a parent killed with SIGKILL does not leave it behind.
 
-The embedded default of the environments (`address=None`) is ONE server per Python process on a
-Unix-domain socket (a round trip skips the TCP stack: see docs/benchmarks.md), shared by every
-environment that uses it and reference-counted: `acquire_embedded()` starts it
+The embedded default of the environments (`address=None`) is ONE server per Python process,
+shared by every environment that uses it and reference-counted: `acquire_embedded()` starts it
 on first use, and it stops when the last lease is released (the environment's `close()`, or its
 garbage collection).
 """
@@ -247,17 +246,6 @@ class ServerProcess:
         self.stop()
 
 
-def _start_embedded() -> ServerProcess:
-    """The embedded server: on a Unix-domain socket, or on a loopback port when the temporary
-    directory's path is too long for a socket's."""
-    try:
-        return ServerProcess(unix_socket=True)
-    except MLLError as error:
-        if error.code != grpc.StatusCode.INVALID_ARGUMENT:
-            raise
-        return ServerProcess()
-
-
 class _SharedServer:
     """The process-wide embedded server and its reference count."""
 
@@ -269,7 +257,7 @@ class _SharedServer:
     def acquire(self) -> "Lease":
         with self._lock:
             if self._server is None or not self._server.running:
-                self._server = _start_embedded()
+                self._server = ServerProcess()
             self._leases += 1
             return Lease(self, self._server.address)
 

@@ -1,5 +1,4 @@
-"""The embedded default (address=None): one shared, reference-counted server per process, on a
-Unix-domain socket (on TCP when the temporary directory's path is too long for a socket's), that
+"""The embedded default (address=None): one shared, reference-counted server per process that
 stops with its last user, at interpreter exit, and with a killed parent."""
 
 import gc
@@ -7,7 +6,6 @@ import os
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 
 import grpc
@@ -38,7 +36,6 @@ def test_shared_server_starts_with_the_first_env_and_stops_with_the_last():
     assert server is not None and server.running
     second = mll.parallel_env(continuous=True)
     assert mll.embedded_server() is server and second.address == first.address == server.address
-    assert server.address.startswith("unix:/") and "--port_file" not in " ".join(server.args)
     second.reset(seed=1)
     first.close()
     assert server.running  # Still leased by `second`.
@@ -124,19 +121,3 @@ def test_the_server_installed_beside_python_is_found_off_path(monkeypatch, tmp_p
     installed.write_text("#!/bin/sh\nexit 0\n")
     installed.chmod(0o755)
     assert mll.find_server_binary() == str(installed)
-
-
-def test_a_temporary_directory_too_long_for_a_socket_path_falls_back_to_tcp(monkeypatch, tmp_path):
-    long_dir = tmp_path / ("d" * 100)
-    long_dir.mkdir()
-    monkeypatch.setattr(tempfile, "tempdir", str(long_dir))
-    with pytest.raises(mll.MLLError) as caught:
-        mll.ServerProcess(unix_socket=True)
-    assert caught.value.code == grpc.StatusCode.INVALID_ARGUMENT
-    assert "longer than 107 bytes" in caught.value.message and str(long_dir) in caught.value.message
-    gc.collect()
-    env = mll.parallel_env()
-    assert env.address.startswith("127.0.0.1:")
-    env.reset(seed=0)
-    env.close()
-    assert mll.embedded_server() is None

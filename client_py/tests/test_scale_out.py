@@ -3,6 +3,7 @@ server i mod S) with one StepBatch per server, and the same bits as on one serve
 server listens on TCP or on a Unix-domain socket)."""
 
 import subprocess
+import tempfile
 import urllib.request
 
 import grpc
@@ -27,6 +28,17 @@ def unix_server():
     """A server on a Unix-domain socket, as the embedded one is."""
     with mll.ServerProcess(threads=2, unix_socket=True) as process:
         yield process.address
+
+
+def test_a_socket_path_too_long_for_a_unix_socket_is_invalid_argument(monkeypatch, tmp_path):
+    long_dir = tmp_path / ("d" * 100)
+    long_dir.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(long_dir))
+    with pytest.raises(mll.MLLError) as caught:
+        mll.ServerProcess(unix_socket=True)
+    assert caught.value.code == grpc.StatusCode.INVALID_ARGUMENT
+    assert "longer than 107 bytes" in caught.value.message and str(long_dir) in caught.value.message
+    assert list(long_dir.iterdir()) == []  # Its work directory is removed.
 
 
 def metrics_url(process):
