@@ -14,7 +14,7 @@
    in-process on the same threads (mll_core_batch_timing, as in bench_client.py; it counts the
    env-steps that stepped a lander, i.e. without the auto-reset steps, about 1 in 100), which
    bounds what any transport can reach.
-2. `gym_vector_env` against `vector_env`, `--envs` envs x `--gym_n_landers` landers, on the same
+2. `gym_vector_env` against `vector_env`, `--envs` envs x `--gym_n_landers` landers, on one
    TCP server: target >= 90%.
 
 Counting: env-steps per second on every side, i.e. calls x envs per call / wall seconds (an
@@ -77,8 +77,11 @@ def main() -> int:
     gym_rows = args.envs * args.gym_n_landers
     gym_table = rng.integers(0, 4, size=(256, gym_rows), dtype=np.int32)
     load_before = os.getloadavg()
+    # The TCP and socket sides each have a server of their own with nothing else on it, so that
+    # the two transports are compared on equal servers; the other sides share a third.
     with mll.ServerProcess(args.server, threads=args.threads) as tcp, \
-            mll.ServerProcess(args.server, threads=args.threads, unix_socket=True) as unix:
+            mll.ServerProcess(args.server, threads=args.threads, unix_socket=True) as unix, \
+            mll.ServerProcess(args.server, threads=args.threads) as other:
         sync = envpool.make(ENVPOOL_TASK, env_type="gymnasium", num_envs=args.envs, num_threads=args.threads, seed=0)
         sync.reset()
         pool_async = EnvPoolAsync(envpool, args.envs, args.async_batch, args.threads)
@@ -86,9 +89,9 @@ def main() -> int:
                 for name, server in (("tcp", tcp), ("unix", unix))}
         for env in ours.values():
             env.reset(seed=0)
-        halves = Halves(mll, tcp.address, args.envs, 1)
-        raw = mll.vector_env(args.envs, address=tcp.address, n_landers=args.gym_n_landers)
-        gym_env = mll.gym_vector_env(args.envs, address=tcp.address, n_landers=args.gym_n_landers)
+        halves = Halves(mll, other.address, args.envs, 1)
+        raw = mll.vector_env(args.envs, address=other.address, n_landers=args.gym_n_landers)
+        gym_env = mll.gym_vector_env(args.envs, address=other.address, n_landers=args.gym_n_landers)
         raw.reset(seed=0)
         gym_env.reset(seed=0)
         column = table[..., None]
@@ -97,9 +100,9 @@ def main() -> int:
             "envpool_async": (pool_async.step, half_table, args.async_batch, None),
             "vector_env_tcp": (ours["tcp"].step, column, args.envs, tcp.pid),
             "vector_env_unix": (ours["unix"].step, column, args.envs, unix.pid),
-            "vector_env_tcp_halves": (halves.step, half_table[..., None], args.async_batch, tcp.pid),
-            "raw_vector_env_x3": (raw.step, gym_table.reshape(256, args.envs, args.gym_n_landers), args.envs, tcp.pid),
-            "gym_vector_env_x3": (gym_env.step, gym_table, args.envs, tcp.pid),
+            "vector_env_tcp_halves": (halves.step, half_table[..., None], args.async_batch, other.pid),
+            "raw_vector_env_x3": (raw.step, gym_table.reshape(256, args.envs, args.gym_n_landers), args.envs, other.pid),
+            "gym_vector_env_x3": (gym_env.step, gym_table, args.envs, other.pid),
         }
         alternate(sides, 1, 50, args.seconds)  # Warm-up.
         rates = {name: [] for name in (*sides, "core_in_process")}
