@@ -4,8 +4,9 @@
 --port_file=F`), or with unix_socket=True on a Unix-domain socket in its own temporary directory
 (`--address=unix:DIR/mll.sock`), waits until its gRPC health service answers SERVING, and stops
 it (SIGTERM, then SIGKILL after a grace period) on `stop()`, when garbage-collected, or at
-interpreter exit (`weakref.finalize`, which registers with atexit). When started from the main thread on Linux
-the child also gets PR_SET_PDEATHSIG, so a parent killed with SIGKILL does not leave it behind.
+interpreter exit (`weakref.finalize`, which registers with atexit). When started from the main
+thread on Linux the child also gets PR_SET_PDEATHSIG, so a parent killed with SIGKILL does not
+leave it behind.
 
 The embedded default of the environments (`address=None`) is ONE server per Python process,
 shared by every environment that uses it and reference-counted: `acquire_embedded()` starts it
