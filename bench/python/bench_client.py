@@ -242,54 +242,68 @@ class EchoRunner:
         os.unlink(self._path)
 
 
-class HalvesRunner:
-    """The same 64 envs as two vector envs of 32 stepped alternately with step_async/step_wait:
-    half A's actions go out before half B's results are awaited, so the server steps one half
-    while the client handles the other (EnvPool's async pattern). Same action table as
-    VectorRunner; a round of `steps` steps moves every env `steps` times."""
+class Halves:
+    """The same envs as two vector envs of half the size in EnvPool's async pattern: each call
+    sends one half's actions (step_async) and returns the other half's results (step_wait), so
+    the server steps one half while the client handles the other. `sending` is the half whose
+    actions the next call takes (its rows of the full batch: `rows[sending]`); half 1 starts in
+    flight with no-op actions."""
 
     def __init__(self, mll, address: str, envs: int, n_landers: int):
         split = envs // 2
         self.halves = [mll.vector_env(split, address=address, n_landers=n_landers),
                        mll.vector_env(envs - split, address=address, n_landers=n_landers)]
         self.rows = [slice(0, split), slice(split, envs)]
-        self.table = np.random.default_rng(0).integers(0, 4, size=(256, envs, n_landers), dtype=np.int32)
         for half in self.halves:
             half.reset(seed=0)
+        self.sending = 0
+        self.halves[1].step_async(np.zeros((envs - split, n_landers), np.int32))
+
+    def step(self, actions: np.ndarray):
+        self.halves[self.sending].step_async(actions)
+        self.sending = 1 - self.sending
+        return self.halves[self.sending].step_wait()
+
+    def close(self) -> None:
+        self.halves[1 - self.sending].step_wait()
+        for half in self.halves:
+            half.close()
+
+
+class HalvesRunner:
+    """VectorRunner's envs as Halves, with the same action table; a round of `steps` steps moves
+    every env `steps` times."""
+
+    def __init__(self, mll, address: str, envs: int, n_landers: int):
+        self.halves = Halves(mll, address, envs, n_landers)
+        self.table = np.random.default_rng(0).integers(0, 4, size=(256, envs, n_landers), dtype=np.int32)
         self.done = 0
         self.run(20, 10.0)  # Warm-up.
-
-    def _send(self, half: int) -> None:
-        self.halves[half].step_async(self.table[(self.done + half) % 256][self.rows[half]])
 
     def run(self, steps: int, seconds: float, server_pid: int | None = None) -> dict:
         agent_steps, half_steps = 0, 0
         clock = _RoundClock(server_pid)
         deadline = clock.start + seconds
-        self._send(0)
-        # Invariant: half `half_steps % 2` is in flight, the other is not.
-        while True:
-            half = half_steps % 2
-            last = half_steps + 1 >= 2 * steps or time.perf_counter() >= deadline
-            if not last:
-                self._send(1 - half)
-            agent_steps += int(self.halves[half].step_wait()[4].sum())
+        while half_steps < 2 * steps and time.perf_counter() < deadline:
+            rows = self.halves.rows[self.halves.sending]
+            agent_steps += int(self.halves.step(self.table[self.done % 256][rows])[4].sum())
             half_steps += 1
-            if half == 1:
-                self.done += 1
-            if last:
-                break
+            self.done += half_steps % 2 == 0
         return clock.result(half_steps / 2, agent_steps)
 
     def close(self) -> None:
-        for half in self.halves:
-            half.close()
+        self.halves.close()
+
+
+def add_binary_arguments(parser: argparse.ArgumentParser) -> None:
+    """--server (mll_server) and --core_timing (the in-process floor), built by scripts/build.sh."""
+    parser.add_argument("--server", default=os.environ.get("MLL_SERVER_BIN", str(REPO / "build/server/service/mll_server")))
+    parser.add_argument("--core_timing", default=str(REPO / "build/bench/python/mll_core_batch_timing"))
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--server", default=os.environ.get("MLL_SERVER_BIN", str(REPO / "build/server/service/mll_server")))
-    parser.add_argument("--core_timing", default=str(REPO / "build/bench/python/mll_core_batch_timing"))
+    add_binary_arguments(parser)
     parser.add_argument("--envs", type=int, default=64)
     parser.add_argument("--n_landers", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)

@@ -29,16 +29,35 @@ from bench_client import _process_cpu_s
 REPO = pathlib.Path(__file__).resolve().parents[2]
 
 
-def run(step, actions: np.ndarray, steps: int, seconds: float, server_pid: int) -> tuple[int, float, float]:
-    """(steps done, wall seconds, CPU seconds of this process and the server) of stepping with
-    the rows of `actions` in turn."""
+def run(step, actions: np.ndarray, steps: int, seconds: float, server_pid: int | None) -> tuple[int, float, float]:
+    """(steps done, wall seconds, CPU seconds of this process and the server, if any) of
+    stepping with the rows of `actions` in turn."""
+
+    def cpu_s() -> float:
+        return time.process_time() + (_process_cpu_s(server_pid) if server_pid else 0.0)
+
     deadline = time.perf_counter() + seconds
-    started, cpu = time.perf_counter(), time.process_time() + _process_cpu_s(server_pid)
+    started, cpu = time.perf_counter(), cpu_s()
     done = 0
     while done < steps and time.perf_counter() < deadline:
         step(actions[done % len(actions)])
         done += 1
-    return done, time.perf_counter() - started, time.process_time() + _process_cpu_s(server_pid) - cpu
+    return done, time.perf_counter() - started, cpu_s() - cpu
+
+
+def alternate(sides: dict, rounds: int, steps: int, seconds: float) -> tuple[dict, dict]:
+    """Steps every side in turn in each of `rounds` rounds (so that a change of machine load hits
+    all of them), each bounded by `steps` calls and `seconds`. sides: name -> (step, actions,
+    counted steps per call, server pid or None). Returns per-round lists of counted steps per
+    second and of CPU microseconds per counted step (this process + the server), by name."""
+    rates: dict[str, list[float]] = {name: [] for name in sides}
+    cpu_us: dict[str, list[float]] = {name: [] for name in sides}
+    for _ in range(rounds):
+        for name, (step, actions, per_call, server_pid) in sides.items():
+            done, wall, cpu = run(step, actions, steps, seconds, server_pid)
+            rates[name].append(done * per_call / wall)
+            cpu_us[name].append(cpu * 1e6 / (done * per_call))
+    return rates, cpu_us
 
 
 def main() -> int:
@@ -56,8 +75,6 @@ def main() -> int:
 
     rows = args.envs * args.n_landers
     table = np.random.default_rng(0).integers(0, 4, size=(256, rows), dtype=np.int32)
-    rates: dict[str, list[float]] = {"vector_env": [], "gym_vector_env": [], "sb3_vec_env": []}
-    cpu_us: dict[str, list[float]] = {name: [] for name in rates}  # CPU microseconds per agent-step.
     with mll.ServerProcess(threads=args.threads) as server:
         options = dict(address=server.address, n_landers=args.n_landers)
         raw = mll.vector_env(args.envs, **options)
@@ -68,15 +85,11 @@ def main() -> int:
         sb3_env.seed(0)
         sb3_env.reset()
         sides = {
-            "vector_env": (raw.step, table.reshape(len(table), args.envs, args.n_landers)),
-            "gym_vector_env": (gym_env.step, table),
-            "sb3_vec_env": (sb3_env.step, table),
+            "vector_env": (raw.step, table.reshape(len(table), args.envs, args.n_landers), rows, server.pid),
+            "gym_vector_env": (gym_env.step, table, rows, server.pid),
+            "sb3_vec_env": (sb3_env.step, table, rows, server.pid),
         }
-        for _ in range(args.rounds):
-            for name, (step, actions) in sides.items():
-                done, wall, cpu = run(step, actions, args.steps, args.seconds, server.pid)
-                rates[name].append(done * rows / wall)
-                cpu_us[name].append(cpu * 1e6 / (done * rows))
+        rates, cpu_us = alternate(sides, args.rounds, args.steps, args.seconds)
         for env in (raw, gym_env, sb3_env):
             env.close()
     sides = ("gym_vector_env", "sb3_vec_env")

@@ -1,10 +1,12 @@
 """Finding, starting and stopping `mll_server` processes on loopback.
 
 `ServerProcess` runs one server on a free 127.0.0.1 port (`--address=127.0.0.1:0
---port_file=F`), waits until its gRPC health service answers SERVING, and stops it (SIGTERM,
-then SIGKILL after a grace period) on `stop()`, when garbage-collected, or at interpreter exit
-(`weakref.finalize`, which registers with atexit). When started from the main thread on Linux
-the child also gets PR_SET_PDEATHSIG, so a parent killed with SIGKILL does not leave it behind.
+--port_file=F`), or with unix_socket=True on a Unix-domain socket in its own temporary directory
+(`--address=unix:DIR/mll.sock`), waits until its gRPC health service answers SERVING, and stops
+it (SIGTERM, then SIGKILL after a grace period) on `stop()`, when garbage-collected, or at
+interpreter exit (`weakref.finalize`, which registers with atexit). When started from the main
+thread on Linux the child also gets PR_SET_PDEATHSIG, so a parent killed with SIGKILL does not
+leave it behind.
 
 The embedded default of the environments (`address=None`) is ONE server per Python process,
 shared by every environment that uses it and reference-counted: `acquire_embedded()` starts it
@@ -33,6 +35,8 @@ from ._errors import MLLError
 
 SERVER_BIN_ENV = "MLL_SERVER_BIN"
 SERVER_BIN_NAME = "mll_server"
+# sockaddr_un.sun_path holds 108 bytes with the NUL: the server refuses a longer socket path.
+_MAX_UNIX_PATH_BYTES = 107
 # A source checkout's build tree (scripts/build.sh), seen from client_py/multi_lunar_lander/.
 _CHECKOUT_ROOT = pathlib.Path(__file__).resolve().parents[2]
 _CHECKOUT_BUILD_BIN = _CHECKOUT_ROOT / "build" / "server" / "service" / SERVER_BIN_NAME
@@ -85,6 +89,14 @@ def _terminate(process: subprocess.Popen, workdir: str, grace_s: float) -> None:
     shutil.rmtree(workdir, ignore_errors=True)
 
 
+def _read_port(port_file: str) -> int:
+    """The port in `port_file`; 0 while it is not written (or written partially)."""
+    try:
+        return max(int(pathlib.Path(port_file).read_text().strip()), 0)
+    except (OSError, ValueError):
+        return 0
+
+
 def wait_until_serving(address: str, timeout_s: float, security: Security = Security()) -> None:
     """Blocks until the server's grpc.health.v1 service answers SERVING (over TLS when
     `security` says so; the health service needs no token)."""
@@ -115,7 +127,9 @@ def wait_until_serving(address: str, timeout_s: float, security: Security = Secu
 
 
 class ServerProcess:
-    """One `mll_server` child process on a free loopback port."""
+    """One `mll_server` child process on a free loopback port, or (unix_socket=True) on a
+    Unix-domain socket; `address` is what clients pass as address= ("127.0.0.1:PORT" or
+    "unix:PATH")."""
 
     def __init__(
         self,
@@ -127,6 +141,7 @@ class ServerProcess:
         extra_args: tuple[str, ...] = (),
         startup_timeout_s: float = 30.0,
         grace_s: float = 5.0,
+        unix_socket: bool = False,
         tls_root_cert: str | bytes | None = None,
         tls_server_name: str | None = None,
     ):
@@ -136,8 +151,18 @@ class ServerProcess:
         self.binary = binary or find_server_binary()
         self._workdir = tempfile.mkdtemp(prefix="mll_server_")
         port_file = os.path.join(self._workdir, "port")
+        socket_path = os.path.join(self._workdir, "mll.sock")
+        if unix_socket and len(os.fsencode(socket_path)) > _MAX_UNIX_PATH_BYTES:
+            shutil.rmtree(self._workdir, ignore_errors=True)
+            raise MLLError(
+                grpc.StatusCode.INVALID_ARGUMENT,
+                f"unix_socket=True: the socket path {socket_path!r} is longer than "
+                f"{_MAX_UNIX_PATH_BYTES} bytes; set TMPDIR to a shorter directory",
+            )
         self._log_path = os.path.join(self._workdir, "server.log")
-        args = [self.binary, "--address=127.0.0.1:0", f"--port_file={port_file}"]
+        address_flags = [f"--address=unix:{socket_path}"] if unix_socket else [
+            "--address=127.0.0.1:0", f"--port_file={port_file}"]
+        args = [self.binary, *address_flags]
         if threads is not None:
             args.append(f"--threads={threads}")
         if max_envs is not None:
@@ -166,8 +191,12 @@ class ServerProcess:
                 ) from None
         self._finalizer = weakref.finalize(self, _terminate, self._process, self._workdir, grace_s)
         try:
-            port = self._wait_for_port(port_file, startup_timeout_s)
-            self.address = f"127.0.0.1:{port}"
+            if unix_socket:
+                self._wait_for(lambda: os.path.exists(socket_path), socket_path, startup_timeout_s)
+                self.address = f"unix:{socket_path}"
+            else:
+                self._wait_for(lambda: _read_port(port_file), port_file, startup_timeout_s)
+                self.address = f"127.0.0.1:{_read_port(port_file)}"
             wait_until_serving(self.address, startup_timeout_s, health_security)
         except BaseException:
             self.stop()
@@ -188,7 +217,8 @@ class ServerProcess:
         except OSError:
             return ""
 
-    def _wait_for_port(self, port_file: str, timeout_s: float) -> int:
+    def _wait_for(self, ready, path: str, timeout_s: float) -> None:
+        """Polls `ready()` (the port file written, or the socket made) until it is true."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if self._process.poll() is not None:
@@ -197,16 +227,12 @@ class ServerProcess:
                     f"{' '.join(self.args)} exited with status {self._process.returncode} before "
                     f"serving; its output: {self.log_tail()!r}",
                 )
-            try:
-                text = pathlib.Path(port_file).read_text().strip()
-                if text and int(text) > 0:
-                    return int(text)
-            except (OSError, ValueError):
-                pass  # Not written yet, or written partially.
+            if ready():
+                return
             time.sleep(0.005)
         raise MLLError(
             grpc.StatusCode.UNAVAILABLE,
-            f"{' '.join(self.args)} wrote no port to {port_file} within {timeout_s} s; "
+            f"{' '.join(self.args)} made no {path} within {timeout_s} s; "
             f"its output: {self.log_tail()!r}",
         )
 

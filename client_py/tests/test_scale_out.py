@@ -1,7 +1,9 @@
 """Several servers: envs pinned to one server each, vector_env spread over the servers (env i on
-server i mod S) with one StepBatch per server, and the same bits as on one server."""
+server i mod S) with one StepBatch per server, and the same bits as on one server (whether a
+server listens on TCP or on a Unix-domain socket)."""
 
 import subprocess
+import tempfile
 import urllib.request
 
 import grpc
@@ -19,6 +21,24 @@ from mll_test_helpers import listed_names
 def two_servers():
     with mll.ServerProcess(threads=1) as first, mll.ServerProcess(threads=1) as second:
         yield first.address, second.address
+
+
+@pytest.fixture(scope="module")
+def unix_server():
+    """A server on a Unix-domain socket, as the embedded one is."""
+    with mll.ServerProcess(threads=2, unix_socket=True) as process:
+        yield process.address
+
+
+def test_a_socket_path_too_long_for_a_unix_socket_is_invalid_argument(monkeypatch, tmp_path):
+    long_dir = tmp_path / ("d" * 100)
+    long_dir.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(long_dir))
+    with pytest.raises(mll.MLLError) as caught:
+        mll.ServerProcess(unix_socket=True)
+    assert caught.value.code == grpc.StatusCode.INVALID_ARGUMENT
+    assert "longer than 107 bytes" in caught.value.message and str(long_dir) in caught.value.message
+    assert list(long_dir.iterdir()) == []  # Its work directory is removed.
 
 
 def metrics_url(process):
@@ -83,15 +103,14 @@ def test_each_step_is_one_step_batch_per_server_on_its_session_stream():
             assert metric(url, 'mll_rpc_duration_seconds_count{method="ResetEnv"}') == envs
 
 
-@pytest.mark.parametrize("spec", ["list", "comma_string"])
-def test_two_servers_give_the_same_bits_as_one(address, two_servers, continuous, spec):
+@pytest.mark.parametrize("spec", ["list", "comma_string", "unix_socket_and_tcp"])
+def test_two_servers_give_the_same_bits_as_one(address, two_servers, unix_server, continuous, spec):
     # max_cycles 40 over 90 steps: episodes end and auto-reset on both layouts.
     options = dict(n_landers=3, continuous=continuous, max_cycles=40)
-    spread = mll.vector_env(
-        6, address=list(two_servers) if spec == "list" else ",".join(two_servers), **options
-    )
+    servers = [unix_server, two_servers[1]] if spec == "unix_socket_and_tcp" else list(two_servers)
+    spread = mll.vector_env(6, address=servers if spec != "comma_string" else ",".join(servers), **options)
     single = mll.vector_env(6, address=address, **options)
-    assert len(set(spread.env_addresses)) == 2 and set(single.env_addresses) == {address}
+    assert set(spread.env_addresses) == set(servers) and set(single.env_addresses) == {address}
     ours, reference = rollout(spread, 11, 90), rollout(single, 11, 90)
     assert len(ours) == len(reference)
     for got, expected in zip(ours, reference):

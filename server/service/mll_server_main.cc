@@ -31,9 +31,11 @@
 #include "program_usage.h"
 
 ABSL_FLAG(std::string, address, "127.0.0.1:50051",
-          "host:port to listen on; port 0 picks a free port");
+          "host:port to listen on; port 0 picks a free port; or unix:PATH, a "
+          "Unix-domain socket");
 ABSL_FLAG(std::string, port_file, "",
-          "if set, the bound port is written to this file once listening");
+          "if set, the bound TCP port is written to this file once listening "
+          "(not written for a unix: --address)");
 ABSL_FLAG(int32_t, threads,
           static_cast<int32_t>(std::thread::hardware_concurrency()),
           "worker threads stepping StepBatch's environments (default: cores)");
@@ -163,16 +165,18 @@ absl::StatusOr<mll::service::ServerOptions> ServerOptionsFromFlags() {
 void PrintBanner(const mll::service::Server& server,
                  const mll::service::ServerOptions& options,
                  double shutdown_grace_s) {
-  const std::string host = HostOf(options.address);
+  const std::string listening =
+      server.port() == 0
+          ? options.address
+          : absl::StrCat(HostOf(options.address), ":", server.port());
   const std::string port_file = absl::GetFlag(FLAGS_port_file);
   std::fprintf(stderr,
-               "mll_server: listening on %s:%d (--address=%s --port_file=%s "
+               "mll_server: listening on %s (--address=%s --port_file=%s "
                "--threads=%d --max_envs=%d --max_envs_per_token=%d "
                "--idle_timeout_s=%g --max_message_mb=%d "
                "--shutdown_grace_s=%g)\n",
-               host.c_str(), server.port(), options.address.c_str(),
-               port_file.c_str(), options.service.threads,
-               options.service.max_envs,
+               listening.c_str(), options.address.c_str(), port_file.c_str(),
+               options.service.threads, options.service.max_envs,
                mll::service::EffectiveMaxEnvsPerToken(options.service),
                absl::ToDoubleSeconds(options.service.idle_timeout),
                options.max_message_mb, shutdown_grace_s);
@@ -236,7 +240,8 @@ int main(int argc, char** argv) {
       mll::service::Server::Start(*options);
   if (!server.ok()) return Fail(server.status());
   const std::string port_file = absl::GetFlag(FLAGS_port_file);
-  if (!port_file.empty() && !WritePortFile(port_file, (*server)->port())) {
+  if (!port_file.empty() && (*server)->port() != 0 &&
+      !WritePortFile(port_file, (*server)->port())) {
     return Fail(absl::InternalError(
         absl::StrCat("--port_file: cannot write ", port_file)));
   }

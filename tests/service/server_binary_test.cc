@@ -1,9 +1,13 @@
 // The real mll_server binary on 127.0.0.1:0 with --port_file, driven over
-// TCP: the service, the health service, and a clean exit on SIGTERM.
+// TCP (and a Unix-domain socket): the service, the health service, and a
+// clean exit on SIGTERM.
 #include <signal.h>
+#include <sys/stat.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <chrono>
+#include <cstdio>
 #include <string>
 #include <tuple>
 
@@ -129,6 +133,65 @@ TEST(ServerBinaryTest, RefusesMalformedAndOutOfRangePorts) {
                          "--metrics_address",
                          "\"" + address + "\" is not host:port");
   }
+}
+
+// --address=unix:PATH: the service over a Unix-domain socket (what an
+// embedded server listens on), a second server refused on the same socket
+// rather than taking its path, and malformed unix: addresses refused.
+TEST(ServerBinaryTest, ServesOnAUnixSocketAndRefusesABusyOne) {
+  const std::string dir =
+      ::testing::TempDir() + "mll_unix_" + std::to_string(getpid());
+  ASSERT_EQ(mkdir(dir.c_str(), 0700), 0) << dir;
+  const std::string address = "unix:" + dir + "/mll.sock";
+  {
+    ServerProcess process({"--address=" + address, "--threads=2"});
+    auto channel =
+        grpc::CreateChannel(address, grpc::InsecureChannelCredentials());
+    ASSERT_TRUE(channel->WaitForConnected(std::chrono::system_clock::now() +
+                                          std::chrono::seconds(20)));
+    grpc::Status health_status;
+    EXPECT_EQ(HealthCheck(channel, &health_status), std::string("\x08\x01", 2))
+        << "want status SERVING";
+    auto stub = v1::MultiLunarLander::NewStub(channel);
+    const std::string name = CreateEnv(*stub, CreateRequest(2));
+    grpc::ClientContext reset_context;
+    v1::ResetEnvRequest reset;
+    reset.set_name(name);
+    v1::ResetEnvResponse reset_response;
+    ASSERT_TRUE(stub->ResetEnv(&reset_context, reset, &reset_response).ok());
+    grpc::ClientContext context;
+    v1::StepBatchRequest batch;
+    batch.add_steps()->set_name(name);
+    *batch.mutable_steps(0)->mutable_actions() = DiscreteActions({2, 2});
+    v1::StepBatchResponse response;
+    ASSERT_TRUE(stub->StepBatch(&context, batch, &response).ok());
+    EXPECT_EQ(response.results(0).data().cycles(), 1);
+
+    ExpectOneLineRefusal("--address=" + address, "--address",
+                         "cannot listen on " + address + " (in use");
+    // The socket is still the first server's: a new connection reaches it.
+    auto again =
+        grpc::CreateChannel(address, grpc::InsecureChannelCredentials());
+    EXPECT_EQ(HealthCheck(again, &health_status), std::string("\x08\x01", 2));
+    again.reset();
+    stub.reset();
+    channel.reset();
+    EXPECT_EQ(process.SignalAndWait(SIGTERM), 0);
+  }
+  ExpectOneLineRefusal("--address=unix:" + dir + "/missing/mll.sock",
+                       "--address", "its directory is missing");
+  ExpectOneLineRefusal("--address=unix:", "--address",
+                       "\"unix:\" has a socket path of 0 bytes");
+  const std::string too_long = "unix:/" + std::string(107, 'x');
+  ExpectOneLineRefusal("--address=" + too_long, "--address",
+                       "socket path of 108 bytes (allowed: unix:PATH with "
+                       "1..107 bytes");
+  // The HTTP listeners take host:port only.
+  ExpectOneLineRefusal("--address=127.0.0.1:0 --metrics_address=" + address,
+                       "--metrics_address",
+                       "\"" + address + "\" is not host:port");
+  std::remove((dir + "/mll.sock").c_str());
+  rmdir(dir.c_str());
 }
 
 TEST(ServerBinaryTest, PositionalArgumentsAreAUsageError) {

@@ -1,5 +1,9 @@
 #include "mll/service/server.h"
 
+#include <sys/socket.h>
+#include <sys/un.h>
+#include <unistd.h>
+
 #include <algorithm>
 #include <fstream>
 #include <sstream>
@@ -22,6 +26,22 @@ constexpr int kExamplePort = 50051;
 // shutdown, which fails calls that reach it before the client has seen its
 // GOAWAY with CANCELLED, a code clients do not retry elsewhere.
 constexpr absl::Duration kRefusalPeriod = absl::Milliseconds(100);
+
+// Whether a server accepts connections on the Unix-domain socket `path`.
+// gRPC removes a socket file before binding its path, which would take the
+// path from a server still listening there; that one is refused instead, as
+// a port in use is.
+bool UnixSocketAnswers(const std::string& path) {
+  sockaddr_un address{};
+  address.sun_family = AF_UNIX;
+  path.copy(address.sun_path, sizeof(address.sun_path) - 1);
+  const int fd = socket(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0);
+  if (fd < 0) return false;
+  const bool answers =
+      connect(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) == 0;
+  close(fd);
+  return answers;
+}
 
 absl::Status OutOfRange(absl::string_view flag, double value,
                         absl::string_view allowed) {
@@ -90,7 +110,9 @@ absl::Status ValidateServerOptions(const ServerOptions& options) {
   }
   if (!options.address.empty()) {
     absl::Status address =
-        ParseListenAddress("--address", options.address, kExamplePort).status();
+        ParseListenAddress("--address", options.address, kExamplePort,
+                           /*allow_unix=*/true)
+            .status();
     if (!address.ok()) return address;
   }
   if (options.tls_cert_file.empty() != options.tls_key_file.empty()) {
@@ -124,22 +146,29 @@ absl::StatusOr<std::unique_ptr<Server>> Server::Start(
   // gRPC sets SO_REUSEPORT by default, with which a second server on a port
   // in use would share it (and its clients' envs) instead of failing.
   builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
+  ListenAddress asked;
   if (!options.address.empty()) {
+    asked = *ParseListenAddress("--address", options.address, kExamplePort,
+                                /*allow_unix=*/true);
+    if (!asked.unix_path.empty() && UnixSocketAnswers(asked.unix_path)) {
+      return absl::UnavailableError(
+          absl::StrCat("--address: cannot listen on ", options.address,
+                       " (in use: a server answers on that socket)"));
+    }
     builder.AddListeningPort(options.address, *credentials, &server->port_);
   }
   server->tls_ = !options.tls_cert_file.empty();
   server->server_ = builder.BuildAndStart();
-  const int asked_port =
-      options.address.empty()
-          ? 0
-          : ParseListenAddress("--address", options.address, kExamplePort)
-                ->port;
+  const bool unix_socket = !asked.unix_path.empty();
+  // A unix socket has no port (gRPC reports a placeholder).
+  if (unix_socket) server->port_ = 0;
   if (server->server_ == nullptr ||
-      (!options.address.empty() && server->port_ == 0) ||
-      (asked_port != 0 && server->port_ != asked_port)) {
+      (!options.address.empty() && !unix_socket && server->port_ == 0) ||
+      (asked.port != 0 && server->port_ != asked.port)) {
     return absl::UnavailableError(absl::StrCat(
         "--address: cannot listen on ", options.address,
-        " (in use, or not host:port of a local interface",
+        unix_socket ? " (its directory is missing or not writable"
+                    : " (in use, or not host:port of a local interface",
         server->tls_ ? "; or --tls_cert and --tls_key do not match" : "", ")"));
   }
   if (!options.metrics_address.empty()) {

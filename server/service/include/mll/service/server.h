@@ -20,8 +20,9 @@ namespace mll::service {
 class MetricsHttpServer;
 
 struct ServerOptions {
-  // host:port to listen on (--address); port 0 picks a free port; empty
-  // listens nowhere (in-process channels only).
+  // host:port to listen on (--address); port 0 picks a free port;
+  // unix:PATH listens on a Unix-domain socket; empty listens nowhere
+  // (in-process channels only).
   std::string address = "127.0.0.1:50051";
   // Largest message received or sent, in MiB (--max_message_mb). 1..2047.
   int max_message_mb = 64;
@@ -56,7 +57,7 @@ class Server {
   Server(const Server&) = delete;
   Server& operator=(const Server&) = delete;
 
-  // The bound TCP port (0 when not listening).
+  // The bound TCP port (0 when not listening, or on a unix: socket).
   int port() const { return port_; }
   // The bound port of the metrics endpoint (0 when off).
   int metrics_port() const;
