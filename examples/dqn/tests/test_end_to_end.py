@@ -162,3 +162,42 @@ def test_command_line_evaluate_gif_and_plot(tmp_path, capsys):
     capsys.readouterr()
     assert main(["plot", str(run / LOG), "--out", str(png)]) == 0
     assert png.stat().st_size > 1000
+
+
+def test_resume_after_the_server_restarted(tmp_path):
+    """The server dies mid-run (its environments with it): the trainer stops
+    with the server's error, and `--resume` against a new server re-creates
+    the environments and finishes from the last checkpoint."""
+    import threading
+    import time
+
+    import multi_lunar_lander as mll
+
+    config = dataclasses.replace(preset("quick"), episodes=400)
+    checkpoint = tmp_path / CHECKPOINT
+    first = mll.ServerProcess(threads=1)
+
+    def stop_after_first_checkpoint():
+        deadline = time.monotonic() + 60
+        while not checkpoint.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        first.stop()
+
+    killer = threading.Thread(target=stop_after_first_checkpoint)
+    killer.start()
+    try:
+        with pytest.raises(mll.MLLError):
+            train(config, str(tmp_path), first.address, progress_bar=False)
+    finally:
+        killer.join()
+        first.stop()
+    saved = torch.load(checkpoint)["progress"]["episodes"]
+    assert 0 < saved < config.episodes
+    finished = dataclasses.replace(config, episodes=saved + 4)
+    with mll.ServerProcess(threads=1) as second:
+        summary = train(finished, str(tmp_path), second.address, resume=True,
+                        progress_bar=False)
+    assert summary["episodes"] == saved + 4
+    rows = _rows(tmp_path)
+    assert len(rows) == saved + 4
+    _check_log(rows, finished)
