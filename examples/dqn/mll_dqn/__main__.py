@@ -115,7 +115,10 @@ def main(argv=None) -> int:
     commands = parser.add_subparsers(dest="command", required=True)
 
     train_cmd = commands.add_parser("train", help="train a shared DQN")
-    train_cmd.add_argument("--preset", default="paper", choices=sorted(PRESETS))
+    train_cmd.add_argument("--preset", default="default",
+                           choices=sorted(PRESETS),
+                           help="default: the robust preset of docs/dqn.md; "
+                           "paper: the paper's algorithm as is")
     train_cmd.add_argument("--out", required=True, help="run directory")
     train_cmd.add_argument("--resume", action="store_true",
                            help="continue from OUT/checkpoint.pt")
