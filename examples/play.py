@@ -86,6 +86,8 @@ def main(argv: list[str] | None = None) -> int:
                     if "outcome" in infos[agent]:
                         outcomes[agent] = infos[agent]["outcome"]
                 step += 1
+            if args.gif:
+                frames.append(env.render())  # The episode's end: every outcome shown.
             summary = ", ".join(f"{agent} {outcomes.get(agent)} {returns[agent]:.1f}" for agent in env.possible_agents)
             print(f"episode {episode} (seed {args.seed + episode}): {step} steps; {summary}")
     finally:

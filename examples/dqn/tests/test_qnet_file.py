@@ -59,3 +59,24 @@ def test_damaged_files_are_refused(tmp_path, damage, message):
     bad.write_bytes(damage(open(good, "rb").read()))
     with pytest.raises(ValueError, match=message):
         qnet_file.load(str(bad))
+
+
+# Fixed observations and the shipped network's Q-values for them, as numpy
+# computes them; tests/client_cpp/trained_pilot_test.cc checks the C++ reader
+# against the same numbers.
+SHIPPED_OBS = [
+    [0.0, 1.4, 0.0, 0.0, 0.0, 0.0, 0, 0, 0, 0, 0, 0],
+    [0.3, 0.5, -0.2, -0.4, 0.1, 0.05, 0, 0, 0.2, -0.3, 0.1, 0.0],
+    [-0.5, 0.2, 0.3, -0.1, -0.2, -0.1, 1, 0, -0.4, 0.6, 0, 1],
+]
+SHIPPED_Q = [
+    [0.243949, 0.231144, 0.230262, 0.247317],
+    [0.458062, 0.453306, 0.521354, 0.501651],
+    [-0.739899, -0.848510, -0.728249, -0.744601],
+]
+
+
+def test_shipped_network_q_values():
+    layers = qnet_file.load(qnet_file.SHIPPED)
+    q = qnet_file.q_values(layers, np.array(SHIPPED_OBS, np.float32))
+    np.testing.assert_allclose(q, SHIPPED_Q, atol=2e-6)
