@@ -201,3 +201,37 @@ def test_resume_after_the_server_restarted(tmp_path):
     rows = _rows(tmp_path)
     assert len(rows) == saved + 4
     _check_log(rows, finished)
+
+
+def test_export_chooses_and_report_tabulates_seeds(tmp_path, capsys):
+    """export picks the checkpoint that lands most on its selection episodes;
+    report tables two seeds' runs with their greedy landing rates and plots
+    their mean and spread."""
+    runs = []
+    for seed in (0, 1):
+        run = tmp_path / f"seed{seed}"
+        train(dataclasses.replace(preset("quick"), episodes=3, seed=seed),
+              str(run), progress_bar=False)
+        runs.append(run)
+    checkpoints = [str(run / CHECKPOINT) for run in runs]
+    result = evaluate.export_best(checkpoints, str(tmp_path / "x.qnet"),
+                                  episodes=2)
+    assert set(result["landing_rates"]) == set(checkpoints)
+    assert result["landing_rates"][result["checkpoint"]] == max(
+        result["landing_rates"].values())
+    for run in runs:
+        assert main(["export", str(run / CHECKPOINT), "--out",
+                     str(run / "trained.qnet")]) == 0
+        assert main(["evaluate", "--policy", "trained", "--weights",
+                     str(run / "trained.qnet"), "--episodes", "2", "--json",
+                     str(run / "eval.json")]) == 0
+    capsys.readouterr()
+    assert main(["report", *map(str, runs), "--out", str(tmp_path)]) == 0
+    lines = (tmp_path / "seeds.md").read_text().splitlines()
+    assert [line.split(" | ")[0] for line in lines[2:]] == [
+        "| 0", "| 1", "| mean", "| std", "| min", "| max"]
+    for line, run in zip(lines[2:4], runs):
+        landing = json.loads((run / "eval.json").read_text())["landing_rate"]
+        assert f"| {100 * landing:.0f}% | missed |" in line
+    assert "0 of 2 met" in lines[4]
+    assert (tmp_path / "seeds.png").stat().st_size > 1000
