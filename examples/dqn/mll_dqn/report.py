@@ -28,15 +28,18 @@ def _row(run_dir: str) -> Dict:
     if os.path.exists(os.path.join(run_dir, EVAL)):
         with open(os.path.join(run_dir, EVAL)) as f:
             landing = json.load(f)["landing_rate"]
+    # The score criteria apart from the time limit, which depends on the
+    # machine's load as well as on the run.
     met = (summary["episodes"] >= 1000
            and summary["final_mean50"] >= PAPER_SCORE
-           and summary["mean_last200"] >= PAPER_SCORE
-           and summary["wall_s"] <= TIME_LIMIT_S)
+           and summary["mean_last200"] >= PAPER_SCORE)
     return dict(seed=summary["config"]["seed"],
                 mean50=summary["final_mean50"],
                 last200=summary["mean_last200"],
                 first=summary["first_episode_mean50_ge_1400"],
-                wall_s=summary["wall_s"], landing=landing, met=met)
+                wall_s=summary["wall_s"], cpu_s=summary["trainer_cpu_s"],
+                landing=landing, met=met,
+                in_time=met and summary["wall_s"] <= TIME_LIMIT_S)
 
 
 def _number(value, digits: int = 0) -> str:
@@ -46,25 +49,29 @@ def _number(value, digits: int = 0) -> str:
 def table(rows: Sequence[Dict]) -> str:
     """Markdown: one line per seed, then mean, standard deviation and range."""
     lines = ["| seed | 50-episode mean at 1,000 | last-200 mean | first "
-             "50-episode mean >= 1,400 | wall time (s) | greedy landing rate |"
-             " criteria |", "|---|---|---|---|---|---|---|"]
+             "50-episode mean >= 1,400 | wall time (s) | trainer CPU (s) | "
+             "greedy landing rate | score criteria |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         landing = "-" if r["landing"] is None else f"{100 * r['landing']:.0f}%"
         lines.append(
             f"| {r['seed']} | {_number(r['mean50'])} | {_number(r['last200'])}"
-            f" | {_number(r['first'])} | {_number(r['wall_s'])} | {landing} | "
+            f" | {_number(r['first'])} | {_number(r['wall_s'])} | "
+            f"{_number(r['cpu_s'])} | {landing} | "
             f"{'met' if r['met'] else 'missed'} |")
     for name, reduce in (("mean", np.mean), ("std", np.std),
                          ("min", np.min), ("max", np.max)):
         cells = []
         for key, scale in (("mean50", 1), ("last200", 1), ("first", 1),
-                           ("wall_s", 1), ("landing", 100)):
+                           ("wall_s", 1), ("cpu_s", 1), ("landing", 100)):
             values = [r[key] for r in rows if r[key] is not None]
             cells.append(_number(scale * reduce(values)) if values else "-")
         cells[-1] += "%" if cells[-1] != "-" else ""
         met = sum(r["met"] for r in rows)
+        in_time = sum(r["in_time"] for r in rows)
         lines.append(f"| {name} | " + " | ".join(cells) + " | "
-                     + (f"{met} of {len(rows)} met" if name == "mean" else "")
+                     + (f"{met} of {len(rows)} met, {in_time} within "
+                        f"{TIME_LIMIT_S:.0f} s" if name == "mean" else "")
                      + " |")
     return "\n".join(lines)
 
