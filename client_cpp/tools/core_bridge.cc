@@ -22,7 +22,8 @@ absl::StatusOr<PilotPolicy> ParsePilotPolicy(absl::string_view name) {
   if (name == "heuristic") return PilotPolicy::kHeuristic;
   if (name == "random") return PilotPolicy::kRandom;
   return absl::InvalidArgumentError(absl::StrCat(
-      "policy is \"", name, "\"; allowed: \"heuristic\", \"random\""));
+      "policy is \"", name,
+      "\"; allowed: \"heuristic\", \"random\", \"trained\""));
 }
 
 RemotePilot::RemotePilot(PilotPolicy policy, int n_landers, bool continuous,
