@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The main job: installs what is missing, builds, starts an mll_server on a free
 # loopback port, flies landers through it (the C++ CLI and the Python PettingZoo
-# client, both with Gymnasium's heuristic pilot), and shows the result: one JSON
-# line per episode, a rendered frame and an animated GIF under out/.
+# client, with Gymnasium's heuristic pilot and the trained DQN pilot of
+# docs/dqn.md), and shows the result: one JSON line per episode, a rendered
+# frame and an animated GIF under out/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh
@@ -30,9 +31,15 @@ echo "== 3 landers, 5 episodes, the same pilot, damage ends only the damaged lan
 "$CLI" play --address="$address" --n_landers=3 --episodes=5 --seed=5 --policy=heuristic \
   --terminate_on_damage=false
 
-echo "== 3 landers through the Python PettingZoo client, rendered to $OUT/landers.gif"
-.venv/bin/python examples/play.py --address="$address" --n_landers=3 --episodes=1 --seed=8 \
-  --terminate_on_damage=false --gif "$OUT/landers.gif"
+# The trained pilot (examples/dqn/trained.qnet, docs/dqn.md) learnt to land beside the others
+# in the environment it was trained in: damage removes only the damaged lander, 2,000 steps.
+echo "== 3 landers, 5 episodes, the trained DQN pilot"
+"$CLI" play --address="$address" --n_landers=3 --episodes=5 --seed=10 --policy=trained \
+  --terminate_on_damage=false --remove_on_damage=true --max_cycles=2000
+
+echo "== 3 landers, the trained pilot through the Python PettingZoo client, rendered to $OUT/landers.gif"
+.venv/bin/python examples/play.py --address="$address" --policy trained --n_landers=3 --episodes=1 \
+  --seed=10 --frame_skip=4 --gif "$OUT/landers.gif"
 "$CLI" create --address="$address" --n_landers=3 --render_mode=rgb_array > "$OUT/env.txt"
 name=$(grep -o 'envs/[0-9a-f]*' "$OUT/env.txt" | head -n 1)
 "$CLI" reset "$name" --address="$address" --seed=0 > /dev/null

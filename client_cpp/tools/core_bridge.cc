@@ -21,8 +21,9 @@ RemoteEnvConfig RemoteConfigFrom(const core::EnvConfig& config) {
 absl::StatusOr<PilotPolicy> ParsePilotPolicy(absl::string_view name) {
   if (name == "heuristic") return PilotPolicy::kHeuristic;
   if (name == "random") return PilotPolicy::kRandom;
-  return absl::InvalidArgumentError(absl::StrCat(
-      "policy is \"", name, "\"; allowed: \"heuristic\", \"random\""));
+  return absl::InvalidArgumentError(
+      absl::StrCat("policy is \"", name,
+                   "\"; allowed: \"heuristic\", \"random\", \"trained\""));
 }
 
 RemotePilot::RemotePilot(PilotPolicy policy, int n_landers, bool continuous,

@@ -11,6 +11,8 @@
 //   mll_cli delete envs/ID
 //   mll_cli play --policy=heuristic --episodes=3 --n_landers=4 [--name=envs/ID]
 //   mll_cli play --address=HOST1:PORT,HOST2:PORT --envs=4
+//   mll_cli play --policy=trained --max_cycles=2000 --terminate_on_damage=false
+//                [--weights=FILE.qnet]
 //
 // Every command takes --address (default 127.0.0.1:50051), a comma-separated
 // list for several servers: `list` lists all of them, `play` spreads its envs
@@ -35,6 +37,7 @@
 #include <iostream>
 #include <iterator>
 #include <map>
+#include <memory>
 #include <optional>
 #include <string>
 #include <vector>
@@ -52,6 +55,7 @@
 #include "grpc/support/log.h"
 #include "mll/client.h"
 #include "program_usage.h"
+#include "trained_pilot.h"
 
 ABSL_FLAG(std::string, address, "127.0.0.1:50051",
           "Server address host:port, or a comma-separated list of servers.");
@@ -86,7 +90,11 @@ ABSL_FLAG(std::string, actions, "",
           "lander [main, lateral] (continuous).");
 ABSL_FLAG(std::string, out, "frame.png", "render: output file.");
 ABSL_FLAG(std::string, format, "png", "render: png or rgb (raw bytes).");
-ABSL_FLAG(std::string, policy, "heuristic", "play: heuristic or random.");
+ABSL_FLAG(std::string, policy, "heuristic",
+          "play: heuristic, random, or trained (the DQN network of --weights, "
+          "discrete actions; docs/dqn.md).");
+ABSL_FLAG(std::string, weights, MLL_SHIPPED_QNET,
+          "play --policy=trained: the network's .qnet file.");
 ABSL_FLAG(int, episodes, 1, "play: number of episodes, >= 1.");
 ABSL_FLAG(bool, auto_reset, false,
           "create: the step after an episode ends starts a new one.");
@@ -385,6 +393,8 @@ Result Render(const Client& client, const std::vector<std::string>& args) {
 // What play's flags ask for.
 struct PlayFlags {
   PilotPolicy policy;
+  // --policy=trained: the network every env's pilot flies (else null).
+  std::shared_ptr<const QNetwork> trained;
   int episodes;
   uint64_t base_seed;
   // An existing env to fly (--name), or empty to create n_envs.
@@ -392,9 +402,33 @@ struct PlayFlags {
   int n_envs;
 };
 
+// --weights' network, which must read observations and choose discrete
+// actions.
+absl::StatusOr<std::shared_ptr<const QNetwork>> LoadPlayNetwork() {
+  const std::string path = absl::GetFlag(FLAGS_weights);
+  absl::StatusOr<QNetwork> network = QNetwork::Load(path);
+  if (!network.ok()) return network.status();
+  const std::vector<int>& sizes = network->sizes();
+  if (sizes.front() != kObservationSize ||
+      sizes.back() != kDiscreteActionCount) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "weights: \"", path, "\" has layer sizes [", absl::StrJoin(sizes, ", "),
+        "]; play needs ", kObservationSize, " inputs and ",
+        kDiscreteActionCount, " outputs"));
+  }
+  return std::make_shared<const QNetwork>(*std::move(network));
+}
+
 absl::StatusOr<PlayFlags> ParsePlayFlags(const Client& client) {
+  std::shared_ptr<const QNetwork> trained;
+  if (absl::GetFlag(FLAGS_policy) == "trained") {
+    absl::StatusOr<std::shared_ptr<const QNetwork>> network = LoadPlayNetwork();
+    if (!network.ok()) return network.status();
+    trained = *std::move(network);
+  }
   absl::StatusOr<PilotPolicy> policy =
-      ParsePilotPolicy(absl::GetFlag(FLAGS_policy));
+      trained ? PilotPolicy::kHeuristic
+              : ParsePilotPolicy(absl::GetFlag(FLAGS_policy));
   if (!policy.ok()) return policy.status();
   const int episodes = absl::GetFlag(FLAGS_episodes);
   if (episodes < 1) {
@@ -414,7 +448,11 @@ absl::StatusOr<PlayFlags> ParsePlayFlags(const Client& client) {
         kMaxPlayEnvs, ", and only 0 or 1 with --name"));
   }
   return PlayFlags{
-      *policy, episodes, seed_flag->value_or(0), name,
+      *policy,
+      std::move(trained),
+      episodes,
+      seed_flag->value_or(0),
+      name,
       !name.empty() ? 1 : (envs_flag > 0 ? envs_flag : client.server_count())};
 }
 
@@ -442,7 +480,7 @@ Result OpenPlayEnvs(const Client& client, const PlayFlags& flags,
 // still flying, one StepBatch call per server, until all are over (episodes
 // are bounded by max_cycles). Leaves each env's last result and step count.
 Result FlyEpisode(const Client& client, std::vector<RemoteEnv>& envs,
-                  std::vector<RemotePilot>& pilots,
+                  std::vector<PlayPilot>& pilots,
                   const std::vector<uint64_t>& seeds,
                   std::vector<StepData>* last, std::vector<int>* steps) {
   const int n_envs = static_cast<int>(envs.size());
@@ -554,10 +592,20 @@ Result Play(const Client& client, const std::vector<std::string>&) {
   if (Result failed = OpenPlayEnvs(client, *flags, &envs)) return failed;
   const int n_envs = flags->n_envs;
   const int n = envs[0].n_landers();
-  std::vector<RemotePilot> pilots;
+  std::vector<PlayPilot> pilots;
   for (int j = 0; j < n_envs; ++j) {
-    pilots.emplace_back(flags->policy, n, envs[j].continuous(),
-                        flags->base_seed + static_cast<uint64_t>(j));
+    if (flags->trained && envs[j].continuous()) {
+      return Usage(absl::InvalidArgumentError(
+          absl::StrCat("policy is \"trained\", which flies discrete actions; ",
+                       envs[j].name(), " is continuous")));
+    }
+    if (flags->trained) {
+      pilots.emplace_back(flags->trained, n);
+    } else {
+      pilots.emplace_back(
+          RemotePilot(flags->policy, n, envs[j].continuous(),
+                      flags->base_seed + static_cast<uint64_t>(j)));
+    }
   }
 
   PlayReport report(n);
@@ -640,7 +688,7 @@ const std::map<std::string, CommandSpec>& Commands() {
         "",
         "flies landers with a pilot and prints one JSON line per "
         "episode",
-        {"policy", "episodes", "seed", "envs", "name"},
+        {"policy", "weights", "episodes", "seed", "envs", "name"},
         true}},
   };
   return *kCommands;

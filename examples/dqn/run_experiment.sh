@@ -8,7 +8,7 @@
 # unless MLL_ADDRESS is set. One torch/BLAS thread throughout.
 set -euo pipefail
 cd "$(dirname "$0")"
-preset=${1:-target}
+preset=${1:-default}
 out=${2:-runs/$preset}
 shift $(( $# > 2 ? 2 : $# ))
 export OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1

@@ -7,6 +7,9 @@
   python -m mll_dqn plot runs/fast/episodes.csv --out fig.png
   python -m mll_dqn gif --checkpoint runs/fast/checkpoint.pt --out fast.gif
   python -m mll_dqn summary runs/fast
+  python -m mll_dqn export runs/fast/checkpoint.pt runs/fast/best.pt --out fast.qnet
+  python -m mll_dqn evaluate --policy trained --weights fast.qnet
+  python -m mll_dqn report runs/default/seed* --out runs/default
 
 Every command takes --address host:port; without it the client starts an
 embedded server for the run.
@@ -21,6 +24,7 @@ import os
 import sys
 
 from mll_dqn.config import PAPER_ENV_CONFIG, PRESETS, TrainConfig, preset
+from mll_dqn.qnet_file import SHIPPED
 
 # Fields of TrainConfig that are not plain scalars, set by other means.
 _NOT_FLAGS = ("env_config", "hidden")
@@ -68,7 +72,11 @@ def _policy(args):
         return evaluate.heuristic_policy, dict(PAPER_ENV_CONFIG)
     if args.policy == "random":
         return evaluate.random_policy(args.seed), dict(PAPER_ENV_CONFIG)
-    raise SystemExit("give --checkpoint PATH or --policy heuristic|random")
+    if args.policy == "trained":
+        from mll_dqn.qnet_file import TrainedPilot
+        return TrainedPilot(args.weights), dict(PAPER_ENV_CONFIG)
+    raise SystemExit(
+        "give --checkpoint PATH or --policy heuristic|random|trained")
 
 
 # Names of the time split's parts in the headline, in order.
@@ -107,7 +115,10 @@ def main(argv=None) -> int:
     commands = parser.add_subparsers(dest="command", required=True)
 
     train_cmd = commands.add_parser("train", help="train a shared DQN")
-    train_cmd.add_argument("--preset", default="paper", choices=sorted(PRESETS))
+    train_cmd.add_argument("--preset", default="default",
+                           choices=sorted(PRESETS),
+                           help="default: the robust preset of docs/dqn.md; "
+                           "paper: the paper's algorithm as is")
     train_cmd.add_argument("--out", required=True, help="run directory")
     train_cmd.add_argument("--resume", action="store_true",
                            help="continue from OUT/checkpoint.pt")
@@ -119,8 +130,12 @@ def main(argv=None) -> int:
                             ("gif", "animated GIF of one episode")):
         cmd = commands.add_parser(name, help=help_text)
         cmd.add_argument("--checkpoint", help="a training checkpoint")
-        cmd.add_argument("--policy", choices=("heuristic", "random"),
-                         help="a baseline instead of a checkpoint")
+        cmd.add_argument("--policy", choices=("heuristic", "random", "trained"),
+                         help="a baseline, or a .qnet file's network, instead "
+                         "of a checkpoint")
+        cmd.add_argument("--weights", default=SHIPPED,
+                         help="--policy trained: the .qnet file (default: the "
+                         "shipped examples/dqn/trained.qnet)")
         cmd.add_argument("--seed", type=int, default=None,
                          help="first episode's seed")
     commands.choices["evaluate"].add_argument("--episodes", type=int,
@@ -128,6 +143,21 @@ def main(argv=None) -> int:
     commands.choices["evaluate"].add_argument("--json",
                                               help="also write results here")
     commands.choices["gif"].add_argument("--out", required=True)
+
+    export_cmd = commands.add_parser(
+        "export", help="a checkpoint's network as a .qnet file (numpy/C++)")
+    export_cmd.add_argument("checkpoints", nargs="+",
+                            help="checkpoints; with several, the one whose "
+                            "greedy policy lands most often is exported")
+    export_cmd.add_argument("--out", required=True, help=".qnet file")
+    export_cmd.add_argument("--episodes", type=int, default=30,
+                            help="greedy episodes per checkpoint when choosing")
+
+    report_cmd = commands.add_parser(
+        "report", help="per-seed table and mean/spread plot of several runs")
+    report_cmd.add_argument("runs", nargs="+", help="run directories")
+    report_cmd.add_argument("--out", required=True,
+                            help="directory for seeds.md and seeds.png")
 
     summary_cmd = commands.add_parser(
         "summary", help="a finished run's figures in two lines")
@@ -171,6 +201,16 @@ def main(argv=None) -> int:
             result = evaluate.save_gif(policy, env_config, args.out,
                                        args.address, seed)
         print(json.dumps(result, indent=2))
+    elif args.command == "export":
+        from mll_dqn import evaluate
+        from mll_dqn.train import use_one_thread
+        use_one_thread()
+        result = evaluate.export_best(args.checkpoints, args.out,
+                                      args.episodes, args.address)
+        print(json.dumps(result, indent=2))
+    elif args.command == "report":
+        from mll_dqn.report import report
+        print(report(args.runs, args.out))
     else:
         from mll_dqn.plot import plot
         plot(args.logs, args.out, args.labels, args.title)

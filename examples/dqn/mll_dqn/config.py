@@ -199,6 +199,22 @@ def _target10() -> TrainConfig:
     return dataclasses.replace(_target(), overlap=True)
 
 
+def _default() -> TrainConfig:
+    # `target10` with three changes aimed at its spread over seeds (their
+    # separate effects are not measured yet; docs/dqn.md, what mattered): a
+    # replay buffer of 1e6 transitions, so the early crashes stay in it once
+    # landings dominate; epsilon decaying twice as fast (0.98 per episode:
+    # 0.01 by episode 228), so the greedy policy is reached with episodes to
+    # spare; and the learning rate at its tenth from episode 700, so the last
+    # 300 episodes take small steps.
+    return dataclasses.replace(
+        _target10(),
+        buffer_size=1_000_000,
+        eps_decay=0.98,
+        lr_decay_episodes=700,
+    )
+
+
 def _quick() -> TrainConfig:
     # A few short episodes of a small environment: exercises every part of the
     # trainer in seconds (pytest runs it).
@@ -215,7 +231,7 @@ def _quick() -> TrainConfig:
 
 
 PRESETS = {"paper": _paper, "fast": _fast, "target": _target,
-           "target10": _target10, "quick": _quick}
+           "target10": _target10, "default": _default, "quick": _quick}
 
 
 def preset(name: str) -> TrainConfig:

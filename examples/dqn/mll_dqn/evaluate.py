@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 import multi_lunar_lander
+from mll_dqn import qnet_file
 from mll_dqn.agent import QNetwork
 from mll_dqn.collect import NO_OUTCOME, lander_index, outcome_name
 from mll_dqn.config import N_ACTIONS, TrainConfig
@@ -23,15 +24,48 @@ Policy = Callable[[np.ndarray], np.ndarray]
 
 # Evaluation seeds start here, away from the training run's seeds.
 EVAL_SEED = 1_000_000
+# Seeds of the episodes that choose which checkpoint to export, apart from
+# the evaluation's, so the reported figures are not the ones chosen on.
+SELECT_SEED = 2_000_000
 
 
-def load_policy(checkpoint_path: str):
-    """(greedy policy of the checkpoint's online network, its TrainConfig)."""
+def load_network(checkpoint_path: str):
+    """(the checkpoint's online QNetwork, its TrainConfig)."""
     saved = torch.load(checkpoint_path)
     config = TrainConfig.from_dict(saved["config"])
     net = QNetwork(config.hidden)
     net.load_state_dict(saved["agent"]["online"])
     net.eval()
+    return net, config
+
+
+def export_qnet(checkpoint_path: str, out_path: str) -> None:
+    """Writes the checkpoint's online network as a .qnet file (qnet_file)."""
+    net, _ = load_network(checkpoint_path)
+    qnet_file.save(out_path, [
+        (layer.weight.detach().numpy(), layer.bias.detach().numpy())
+        for layer in net.layers if isinstance(layer, torch.nn.Linear)])
+
+
+def export_best(checkpoints, out_path: str, episodes: int = 30,
+                address: Optional[str] = None) -> Dict:
+    """Exports the checkpoint whose greedy policy lands most often over
+    `episodes` episodes from SELECT_SEED (the first one given if only one, or
+    on a tie)."""
+    rates = {}
+    if len(checkpoints) > 1:
+        for path in checkpoints:
+            policy, config = load_policy(path)
+            rates[path] = evaluate(policy, config.env_config, episodes,
+                                   address, SELECT_SEED)["landing_rate"]
+    chosen = max(checkpoints, key=lambda path: rates.get(path, 0.0))
+    export_qnet(chosen, out_path)
+    return dict(out=out_path, checkpoint=chosen, landing_rates=rates)
+
+
+def load_policy(checkpoint_path: str):
+    """(greedy policy of the checkpoint's online network, its TrainConfig)."""
+    net, config = load_network(checkpoint_path)
 
     @torch.no_grad()
     def policy(obs: np.ndarray) -> np.ndarray:

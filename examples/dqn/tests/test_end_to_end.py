@@ -162,3 +162,76 @@ def test_command_line_evaluate_gif_and_plot(tmp_path, capsys):
     capsys.readouterr()
     assert main(["plot", str(run / LOG), "--out", str(png)]) == 0
     assert png.stat().st_size > 1000
+
+
+def test_resume_after_the_server_restarted(tmp_path):
+    """The server dies mid-run (its environments with it): the trainer stops
+    with the server's error, and `--resume` against a new server re-creates
+    the environments and finishes from the last checkpoint."""
+    import threading
+    import time
+
+    import multi_lunar_lander as mll
+
+    config = dataclasses.replace(preset("quick"), episodes=400)
+    checkpoint = tmp_path / CHECKPOINT
+    first = mll.ServerProcess(threads=1)
+
+    def stop_after_first_checkpoint():
+        deadline = time.monotonic() + 60
+        while not checkpoint.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        first.stop()
+
+    killer = threading.Thread(target=stop_after_first_checkpoint)
+    killer.start()
+    try:
+        with pytest.raises(mll.MLLError):
+            train(config, str(tmp_path), first.address, progress_bar=False)
+    finally:
+        killer.join()
+        first.stop()
+    saved = torch.load(checkpoint)["progress"]["episodes"]
+    assert 0 < saved < config.episodes
+    finished = dataclasses.replace(config, episodes=saved + 4)
+    with mll.ServerProcess(threads=1) as second:
+        summary = train(finished, str(tmp_path), second.address, resume=True,
+                        progress_bar=False)
+    assert summary["episodes"] == saved + 4
+    rows = _rows(tmp_path)
+    assert len(rows) == saved + 4
+    _check_log(rows, finished)
+
+
+def test_export_chooses_and_report_tabulates_seeds(tmp_path, capsys):
+    """export picks the checkpoint that lands most on its selection episodes;
+    report tables two seeds' runs with their greedy landing rates and plots
+    their mean and spread."""
+    runs = []
+    for seed in (0, 1):
+        run = tmp_path / f"seed{seed}"
+        train(dataclasses.replace(preset("quick"), episodes=3, seed=seed),
+              str(run), progress_bar=False)
+        runs.append(run)
+    checkpoints = [str(run / CHECKPOINT) for run in runs]
+    result = evaluate.export_best(checkpoints, str(tmp_path / "x.qnet"),
+                                  episodes=2)
+    assert set(result["landing_rates"]) == set(checkpoints)
+    assert result["landing_rates"][result["checkpoint"]] == max(
+        result["landing_rates"].values())
+    for run in runs:
+        assert main(["export", str(run / CHECKPOINT), "--out",
+                     str(run / "trained.qnet")]) == 0
+        assert main(["evaluate", "--policy", "trained", "--weights",
+                     str(run / "trained.qnet"), "--episodes", "2", "--json",
+                     str(run / "eval.json")]) == 0
+    capsys.readouterr()
+    assert main(["report", *map(str, runs), "--out", str(tmp_path)]) == 0
+    lines = (tmp_path / "seeds.md").read_text().splitlines()
+    assert [line.split(" | ")[0] for line in lines[2:]] == [
+        "| 0", "| 1", "| mean", "| std", "| min", "| max"]
+    for line, run in zip(lines[2:4], runs):
+        landing = json.loads((run / "eval.json").read_text())["landing_rate"]
+        assert f"| {100 * landing:.0f}% | missed |" in line
+    assert "0 of 2 met, 0 within 600 s" in lines[4]
+    assert (tmp_path / "seeds.png").stat().st_size > 1000

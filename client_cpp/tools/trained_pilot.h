@@ -1,0 +1,61 @@
+// The trained DQN pilot of examples/dqn: a Q-network read from a .qnet file
+// (the format of examples/dqn/mll_dqn/qnet_file.py: "MLLQ", version, layer
+// sizes, then float32 weights and biases, all little-endian) and flown
+// greedily, plus PlayPilot, which mll_cli's play uses to fly either it or a
+// RemotePilot.
+#ifndef MLL_CLIENT_TOOLS_TRAINED_PILOT_H_
+#define MLL_CLIENT_TOOLS_TRAINED_PILOT_H_
+
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "absl/types/span.h"
+#include "core_bridge.h"
+#include "mll/client.h"
+
+namespace mll::client {
+
+// An MLP with ReLU between layers and a linear output layer.
+class QNetwork {
+ public:
+  // INVALID_ARGUMENT naming the file and what is wrong with it (NOT_FOUND if
+  // it cannot be read).
+  static absl::StatusOr<QNetwork> Load(const std::string& path);
+
+  // Q-values of one observation (input_size() floats).
+  std::vector<float> QValues(absl::Span<const float> observation) const;
+  // The action of the highest Q-value (the first on a tie, as numpy's argmax).
+  int Greedy(absl::Span<const float> observation) const;
+
+  const std::vector<int>& sizes() const { return sizes_; }
+  int input_size() const { return sizes_.front(); }
+
+ private:
+  std::vector<int> sizes_;
+  // Per layer: weight [out][in] row-major, then bias [out].
+  std::vector<std::vector<float>> layers_;
+};
+
+// One env's pilot for play: a RemotePilot (heuristic, random) or the trained
+// network, which flies discrete actions only.
+class PlayPilot {
+ public:
+  explicit PlayPilot(RemotePilot remote) : remote_(std::move(remote)) {}
+  PlayPilot(std::shared_ptr<const QNetwork> network, int n_landers)
+      : network_(std::move(network)), discrete_(n_landers, 0) {}
+
+  // As RemotePilot::Act: actions for the agents still active after `last`.
+  Actions Act(const StepData& last);
+
+ private:
+  std::optional<RemotePilot> remote_;
+  std::shared_ptr<const QNetwork> network_;
+  std::vector<int32_t> discrete_;
+};
+
+}  // namespace mll::client
+
+#endif  // MLL_CLIENT_TOOLS_TRAINED_PILOT_H_

@@ -1,0 +1,82 @@
+"""The .qnet file: torch's network and numpy's reading of it agree, and a
+damaged file is refused with a message naming what is wrong."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from mll_dqn import evaluate, qnet_file
+from mll_dqn.agent import DQNAgent
+from mll_dqn.config import preset
+from mll_dqn.train import _save_best, Progress
+
+
+def _checkpoint(tmp_path, seed=3):
+    config = dataclasses.replace(preset("quick"), seed=seed)
+    agent = DQNAgent(config)
+    path = str(tmp_path / "net.pt")
+    _save_best(path, config, agent, Progress())
+    return path, agent
+
+
+def test_export_matches_torch_forward(tmp_path):
+    path, agent = _checkpoint(tmp_path)
+    out = str(tmp_path / "net.qnet")
+    evaluate.export_qnet(path, out)
+    # 12-256-64-4 in float32 plus a 28-byte header.
+    assert (tmp_path / "net.qnet").stat().st_size == 28 + 4 * (
+        12 * 256 + 256 + 256 * 64 + 64 + 64 * 4 + 4)
+    obs = np.random.default_rng(0).normal(size=(64, 12)).astype(np.float32)
+    with torch.no_grad():
+        expected = agent.online(torch.from_numpy(obs)).numpy()
+    got = qnet_file.q_values(qnet_file.load(out), obs)
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-5)
+    pilot = qnet_file.TrainedPilot(out)
+    np.testing.assert_array_equal(pilot(obs), expected.argmax(axis=1))
+
+
+def test_export_best_chooses_the_one_given_alone(tmp_path):
+    path, _ = _checkpoint(tmp_path)
+    result = evaluate.export_best([path], str(tmp_path / "one.qnet"))
+    assert result["checkpoint"] == path and result["landing_rates"] == {}
+
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda d: b"XXXX" + d[4:], "not a .qnet file"),
+    (lambda d: d[:4] + (7).to_bytes(4, "little") + d[8:], "version 7"),
+    (lambda d: d[:8] + (99).to_bytes(4, "little") + d[12:], "99 layers"),
+    (lambda d: d[:-4], "bytes; layer sizes \\[12, 256, 64, 4\\] need"),
+    (lambda d: d[:12] + (0).to_bytes(4, "little") + d[16:],
+     "layer sizes \\[0, 256, 64, 4\\]"),
+])
+def test_damaged_files_are_refused(tmp_path, damage, message):
+    path, _ = _checkpoint(tmp_path)
+    good = str(tmp_path / "good.qnet")
+    evaluate.export_qnet(path, good)
+    bad = tmp_path / "bad.qnet"
+    bad.write_bytes(damage(open(good, "rb").read()))
+    with pytest.raises(ValueError, match=message):
+        qnet_file.load(str(bad))
+
+
+# Fixed observations and the shipped network's Q-values for them, as numpy
+# computes them; tests/client_cpp/trained_pilot_test.cc checks the C++ reader
+# against the same numbers.
+SHIPPED_OBS = [
+    [0.0, 1.4, 0.0, 0.0, 0.0, 0.0, 0, 0, 0, 0, 0, 0],
+    [0.3, 0.5, -0.2, -0.4, 0.1, 0.05, 0, 0, 0.2, -0.3, 0.1, 0.0],
+    [-0.5, 0.2, 0.3, -0.1, -0.2, -0.1, 1, 0, -0.4, 0.6, 0, 1],
+]
+SHIPPED_Q = [
+    [0.243949, 0.231144, 0.230262, 0.247317],
+    [0.458062, 0.453306, 0.521354, 0.501651],
+    [-0.739899, -0.848510, -0.728249, -0.744601],
+]
+
+
+def test_shipped_network_q_values():
+    layers = qnet_file.load(qnet_file.SHIPPED)
+    q = qnet_file.q_values(layers, np.array(SHIPPED_OBS, np.float32))
+    np.testing.assert_allclose(q, SHIPPED_Q, atol=2e-6)

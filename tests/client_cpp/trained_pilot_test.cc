@@ -1,0 +1,137 @@
+// The trained pilot's .qnet reader and forward pass (against a network small
+// enough to check by hand, and the shipped network against the Q-values
+// examples/dqn's numpy reader computes), and mll_cli play --policy=trained
+// flying the shipped network through the real mll_server.
+#include "trained_pilot.h"
+
+#include <cstdint>
+#include <cstring>
+#include <fstream>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "absl/strings/str_cat.h"
+#include "cli_runner.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "server_process.h"
+
+namespace mll::client {
+namespace {
+
+using ::testing::ElementsAre;
+using ::testing::HasSubstr;
+
+std::string U32(uint32_t value) {
+  std::string bytes(4, '\0');
+  for (int i = 0; i < 4; ++i) bytes[i] = static_cast<char>(value >> (8 * i));
+  return bytes;
+}
+
+std::string F32(float value) {
+  uint32_t bits;
+  std::memcpy(&bits, &value, sizeof(bits));
+  return U32(bits);
+}
+
+std::string WriteFile(const std::string& name, const std::string& bytes) {
+  const std::string path = absl::StrCat(::testing::TempDir(), "/", name);
+  std::ofstream(path, std::ios::binary) << bytes;
+  return path;
+}
+
+// 2 inputs -> 2 hidden (ReLU) -> 3 Q-values.
+std::string SmallNetwork() {
+  std::string bytes = "MLLQ" + U32(1) + U32(2) + U32(2) + U32(2) + U32(3);
+  for (float w : {1.0f, -1.0f, 0.5f, 2.0f}) bytes += F32(w);  // [2][2]
+  for (float b : {0.0f, -10.0f}) bytes += F32(b);
+  for (float w : {1.0f, 0.0f, 0.0f, 1.0f, -1.0f, -1.0f}) bytes += F32(w);
+  for (float b : {0.0f, 0.0f, 3.0f}) bytes += F32(b);
+  return bytes;
+}
+
+TEST(QNetworkTest, ForwardPassOfASmallNetwork) {
+  absl::StatusOr<QNetwork> network =
+      QNetwork::Load(WriteFile("small.qnet", SmallNetwork()));
+  ASSERT_TRUE(network.ok()) << network.status();
+  EXPECT_THAT(network->sizes(), ElementsAre(2, 2, 3));
+  // hidden = relu([3 - 1, 1.5 + 2 - 10]) = [2, 0]; q = [2, 0, 3 - 2].
+  const std::vector<float> obs = {3.0f, 1.0f};
+  EXPECT_THAT(network->QValues(obs), ElementsAre(2.0f, 0.0f, 1.0f));
+  EXPECT_EQ(network->Greedy(obs), 0);
+  // hidden = relu([-1, 2 + 6 - 10]) = [0, 0]; q = [0, 0, 3].
+  EXPECT_EQ(network->Greedy(std::vector<float>{-1.0f, 0.0f}), 2);
+}
+
+TEST(QNetworkTest, DamagedFilesAreRefusedNamingWhatIsWrong) {
+  const std::string good = SmallNetwork();
+  const struct {
+    std::string bytes;
+    std::string message;
+  } cases[] = {
+      {"XXXX" + good.substr(4), "not a .qnet file"},
+      {good.substr(0, 4) + U32(7) + good.substr(8), "version 7; allowed: 1"},
+      {good.substr(0, 8) + U32(99) + good.substr(12), "99 layers"},
+      {good.substr(0, good.size() - 4), "layer sizes [2, 2, 3] need"},
+      {good.substr(0, 12) + U32(0) + good.substr(16), "layer of size 0"},
+  };
+  for (const auto& c : cases) {
+    absl::StatusOr<QNetwork> network =
+        QNetwork::Load(WriteFile("bad.qnet", c.bytes));
+    ASSERT_FALSE(network.ok()) << c.message;
+    EXPECT_EQ(network.status().code(), absl::StatusCode::kInvalidArgument);
+    EXPECT_THAT(network.status().message(), HasSubstr(c.message));
+  }
+  EXPECT_EQ(QNetwork::Load("/nonexistent/x.qnet").status().code(),
+            absl::StatusCode::kNotFound);
+}
+
+// The same observations and Q-values as examples/dqn/tests/test_qnet_file.py
+// (numpy's forward pass of the shipped file).
+TEST(QNetworkTest, ShippedNetworkMatchesNumpy) {
+  absl::StatusOr<QNetwork> network = QNetwork::Load(MLL_SHIPPED_QNET);
+  ASSERT_TRUE(network.ok()) << network.status();
+  EXPECT_THAT(network->sizes(), ElementsAre(12, 256, 64, 4));
+  const std::vector<std::vector<float>> observations = {
+      {0.0f, 1.4f, 0.0f, 0.0f, 0.0f, 0.0f, 0, 0, 0, 0, 0, 0},
+      {0.3f, 0.5f, -0.2f, -0.4f, 0.1f, 0.05f, 0, 0, 0.2f, -0.3f, 0.1f, 0.0f},
+      {-0.5f, 0.2f, 0.3f, -0.1f, -0.2f, -0.1f, 1, 0, -0.4f, 0.6f, 0, 1},
+  };
+  const std::vector<std::vector<float>> expected = {
+      {0.243949f, 0.231144f, 0.230262f, 0.247317f},
+      {0.458062f, 0.453306f, 0.521354f, 0.501651f},
+      {-0.739899f, -0.848510f, -0.728249f, -0.744601f},
+  };
+  const int greedy[] = {3, 2, 2};
+  for (size_t k = 0; k < observations.size(); ++k) {
+    const std::vector<float> q = network->QValues(observations[k]);
+    ASSERT_EQ(q.size(), 4u);
+    for (int a = 0; a < 4; ++a) EXPECT_NEAR(q[a], expected[k][a], 2e-6);
+    EXPECT_EQ(network->Greedy(observations[k]), greedy[k]);
+  }
+}
+
+TEST(TrainedPilotCliTest, PlayFliesTheShippedNetwork) {
+  absl::StatusOr<std::unique_ptr<ServerProcess>> server =
+      ServerProcess::Start(MLL_SERVER_PATH);
+  ASSERT_TRUE(server.ok()) << server.status();
+  const std::string address = absl::StrCat("--address=", (*server)->address());
+  const CommandResult played = RunCli(
+      {"play", "--policy=trained", "--n_landers=3", "--episodes=3",
+       "--seed=3000000", "--max_cycles=2000", "--terminate_on_damage=false",
+       "--remove_on_damage=true", address});
+  ASSERT_EQ(played.exit_code, 0) << played.err;
+  EXPECT_THAT(played.out, HasSubstr("\"landed\""));
+  const CommandResult missing = RunCli(
+      {"play", "--policy=trained", "--weights=/nonexistent/x.qnet", address});
+  EXPECT_EQ(missing.exit_code, 2);
+  EXPECT_THAT(missing.err, HasSubstr("/nonexistent/x.qnet"));
+  const CommandResult continuous =
+      RunCli({"play", "--policy=trained", "--continuous", address});
+  EXPECT_EQ(continuous.exit_code, 2);
+  EXPECT_THAT(continuous.err, HasSubstr("discrete"));
+}
+
+}  // namespace
+}  // namespace mll::client
