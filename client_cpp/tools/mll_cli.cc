@@ -409,12 +409,12 @@ absl::StatusOr<std::shared_ptr<const QNetwork>> LoadPlayNetwork() {
   absl::StatusOr<QNetwork> network = QNetwork::Load(path);
   if (!network.ok()) return network.status();
   const std::vector<int>& sizes = network->sizes();
-  if (sizes.front() != kObservationSize ||
-      sizes.back() != kDiscreteActionCount) {
+  if (sizes.front() != core::kObservationSize ||
+      sizes.back() != core::kDiscreteActionCount) {
     return absl::InvalidArgumentError(absl::StrCat(
         "weights: \"", path, "\" has layer sizes [", absl::StrJoin(sizes, ", "),
-        "]; play needs ", kObservationSize, " inputs and ",
-        kDiscreteActionCount, " outputs"));
+        "]; play needs ", core::kObservationSize, " inputs and ",
+        core::kDiscreteActionCount, " outputs"));
   }
   return std::make_shared<const QNetwork>(*std::move(network));
 }
