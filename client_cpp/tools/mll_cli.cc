@@ -93,8 +93,9 @@ ABSL_FLAG(std::string, format, "png", "render: png or rgb (raw bytes).");
 ABSL_FLAG(std::string, policy, "heuristic",
           "play: heuristic, random, or trained (the DQN network of --weights, "
           "discrete actions; docs/dqn.md).");
-ABSL_FLAG(std::string, weights, MLL_SHIPPED_QNET,
-          "play --policy=trained: the network's .qnet file.");
+ABSL_FLAG(std::string, weights, "",
+          "play --policy=trained: a .qnet file; empty: the network shipped "
+          "with mll_cli (examples/dqn/trained.qnet, built in).");
 ABSL_FLAG(int, episodes, 1, "play: number of episodes, >= 1.");
 ABSL_FLAG(bool, auto_reset, false,
           "create: the step after an episode ends starts a new one.");
@@ -406,7 +407,8 @@ struct PlayFlags {
 // actions.
 absl::StatusOr<std::shared_ptr<const QNetwork>> LoadPlayNetwork() {
   const std::string path = absl::GetFlag(FLAGS_weights);
-  absl::StatusOr<QNetwork> network = QNetwork::Load(path);
+  absl::StatusOr<QNetwork> network =
+      path.empty() ? QNetwork::Shipped() : QNetwork::Load(path);
   if (!network.ok()) return network.status();
   const std::vector<int>& sizes = network->sizes();
   if (sizes.front() != core::kObservationSize ||

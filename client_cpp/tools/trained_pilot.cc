@@ -9,6 +9,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "shipped_qnet.h"
 
 namespace mll::client {
 namespace {
@@ -45,9 +46,20 @@ absl::StatusOr<QNetwork> QNetwork::Load(const std::string& path) {
   }
   const std::string data((std::istreambuf_iterator<char>(file)),
                          std::istreambuf_iterator<char>());
-  auto invalid = [&path](auto&&... parts) {
+  return Parse(data, absl::StrCat("\"", path, "\""));
+}
+
+absl::StatusOr<QNetwork> QNetwork::Shipped() {
+  return Parse(std::string(reinterpret_cast<const char*>(kShippedQnet),
+                           kShippedQnetSize),
+               "the built-in network (examples/dqn/trained.qnet)");
+}
+
+absl::StatusOr<QNetwork> QNetwork::Parse(const std::string& data,
+                                         const std::string& what) {
+  auto invalid = [&what](auto&&... parts) {
     return absl::InvalidArgumentError(
-        absl::StrCat("weights: \"", path, "\" ", parts...));
+        absl::StrCat("weights: ", what, " ", parts...));
   };
   if (data.size() < 12 || data.compare(0, 4, kMagic) != 0) {
     return invalid("is not a .qnet file (no \"MLLQ\" header)");

@@ -24,6 +24,12 @@ class QNetwork {
   // INVALID_ARGUMENT naming the file and what is wrong with it (NOT_FOUND if
   // it cannot be read).
   static absl::StatusOr<QNetwork> Load(const std::string& path);
+  // The same for a .qnet file's bytes; `what` names them in messages.
+  static absl::StatusOr<QNetwork> Parse(const std::string& data,
+                                        const std::string& what);
+  // The network shipped with the tools (examples/dqn/trained.qnet, built into
+  // the binary so an installed mll_cli needs no data file).
+  static absl::StatusOr<QNetwork> Shipped();
 
   // Q-values of one observation (input_size() floats).
   std::vector<float> QValues(absl::Span<const float> observation) const;

@@ -112,6 +112,18 @@ TEST(QNetworkTest, ShippedNetworkMatchesNumpy) {
   }
 }
 
+// The network built into the tools is the shipped file, byte for byte.
+TEST(QNetworkTest, BuiltInNetworkIsTheShippedFile) {
+  absl::StatusOr<QNetwork> built_in = QNetwork::Shipped();
+  absl::StatusOr<QNetwork> file = QNetwork::Load(MLL_SHIPPED_QNET);
+  ASSERT_TRUE(built_in.ok()) << built_in.status();
+  ASSERT_TRUE(file.ok()) << file.status();
+  EXPECT_EQ(built_in->sizes(), file->sizes());
+  const std::vector<float> observation = {0.1f, 0.9f, -0.2f, -0.3f, 0.05f, 0,
+                                          0,    0,    0.3f,  0.2f,  -0.1f, 0};
+  EXPECT_EQ(built_in->QValues(observation), file->QValues(observation));
+}
+
 TEST(TrainedPilotCliTest, PlayFliesTheShippedNetwork) {
   absl::StatusOr<std::unique_ptr<ServerProcess>> server =
       ServerProcess::Start(MLL_SERVER_PATH);
