@@ -116,3 +116,42 @@ class DQNAgent:
         self.target.load_state_dict(state["target"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.updates = int(state["updates"])
+
+
+class RepeatedExploration:
+    """Epsilon-greedy actions whose exploring actions last several steps
+    (epsilon-z-greedy): one state per stream (a lander slot). A stream that is
+    not in an exploring run starts one with probability epsilon: a random
+    action kept for n steps, n ~ zeta(`zeta`) capped at `max_steps`; otherwise
+    it acts greedily. A lander that rests on its legs lands only after 25
+    steps without an engine (its body must fall asleep), a run one-step
+    exploration almost never makes once the greedy policy fires now and then.
+    """
+
+    def __init__(self, num_streams: int, zeta: float, max_steps: int):
+        self._zeta = zeta
+        self._max_steps = max_steps
+        self._action = np.zeros(num_streams, np.int64)
+        self._left = np.zeros(num_streams, np.int64)
+
+    def act(self, agent: DQNAgent, obs: np.ndarray, streams: np.ndarray,
+            epsilon: float, rng: np.random.Generator) -> np.ndarray:
+        """Actions of `streams` (indices) observing `obs` [len(streams), 12]."""
+        if len(streams) == 0:
+            return np.zeros(0, np.int64)
+        running = self._left[streams] > 0
+        starting = ~running & (rng.random(len(streams)) < epsilon)
+        new = streams[starting]
+        self._action[new] = rng.integers(0, N_ACTIONS, len(new))
+        self._left[new] = np.minimum(rng.zipf(self._zeta, len(new)),
+                                     self._max_steps)
+        exploring = running | starting
+        actions = self._action[streams].copy()
+        if not exploring.all():
+            actions[~exploring] = agent.greedy(obs[~exploring])
+        self._left[streams[exploring]] -= 1
+        return actions
+
+    def stop(self, streams) -> None:
+        """Ends the runs of `streams` (their landers' episodes ended)."""
+        self._left[streams] = 0

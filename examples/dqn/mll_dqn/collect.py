@@ -27,6 +27,7 @@ from typing import Dict, List, Optional
 import numpy as np
 
 import multi_lunar_lander
+from mll_dqn.agent import RepeatedExploration
 from mll_dqn.config import OBS_SIZE, TrainConfig
 from mll_dqn.replay import NStepFolder
 
@@ -83,10 +84,26 @@ class _Collector:
         self._n = config.env_config.get("n_landers", 3)
         self._folder = NStepFolder(config.n_step, config.gamma,
                                    num_envs * self._n, OBS_SIZE)
+        self._exploration = (
+            RepeatedExploration(num_envs * self._n, config.explore_zeta,
+                                config.explore_max_steps)
+            if config.explore_zeta else None)
         self.env = None
         self.env_steps = 0
         # Made on the first overlapped call; one thread, so calls stay ordered.
         self._worker: Optional[concurrent.futures.ThreadPoolExecutor] = None
+
+    def _act(self, obs: np.ndarray, streams: np.ndarray, epsilon: float):
+        """Actions of the lander slots `streams` observing `obs`."""
+        if self._exploration is None:
+            return self._agent.act(obs, epsilon, self._rng)
+        return self._exploration.act(self._agent, obs, streams, epsilon,
+                                     self._rng)
+
+    def _ended(self, streams) -> None:
+        """The lander slots `streams` finished their episodes."""
+        if self._exploration is not None:
+            self._exploration.stop(streams)
 
     def _timed(self, call, *args, during=None):
         """call(*args), its seconds added to the "env" timer; with `during`,
@@ -146,7 +163,8 @@ class ParallelCollector(_Collector):
         agents = list(self._obs)
         start = time.perf_counter()
         batch = np.stack([self._obs[a] for a in agents])
-        actions = self._agent.act(batch, epsilon, self._rng)
+        index = np.array([lander_index(a) for a in agents])
+        actions = self._act(batch, index, epsilon)
         self._timers.add("act", time.perf_counter() - start)
         next_obs, rewards, terms, truncs, infos = self._timed(
             self.env.step, {a: int(act) for a, act in zip(agents, actions)},
@@ -155,7 +173,6 @@ class ParallelCollector(_Collector):
         self.env_steps += 1
         # Per-slot arrays for the n-step folder (slot i is lander_i).
         n = self._n
-        index = np.array([lander_index(a) for a in agents])
         mask = np.zeros(n, bool)
         mask[index] = True
         obs_s = np.zeros((n, OBS_SIZE), np.float32)
@@ -171,6 +188,7 @@ class ParallelCollector(_Collector):
         ended_s = term_s.copy()
         ended_s[index] |= [truncs[a] for a in agents]
         self._returns += rew_s
+        self._ended(np.flatnonzero(ended_s))
         for a, i in zip(agents, index):
             if ended_s[i]:
                 self._outcomes[i] = outcome_name(infos.get(a, {}))
@@ -207,7 +225,7 @@ class VectorCollector(_Collector):
         start = time.perf_counter()
         actions = np.zeros(n_envs * n, np.int64)
         active = np.flatnonzero(self._active)
-        actions[active] = self._agent.act(self._obs[active], epsilon, self._rng)
+        actions[active] = self._act(self._obs[active], active, epsilon)
         self._timers.add("act", time.perf_counter() - start)
         result = self._timed(self.env.step, actions.reshape(n_envs, n),
                              during=during)
@@ -220,6 +238,7 @@ class VectorCollector(_Collector):
         # Rows that carry a transition: landers active before a real step (not
         # the first observation of an auto-reset episode).
         real = self._active & ~np.repeat(reset_rows, n)
+        self._ended(np.flatnonzero(ended | np.repeat(reset_rows, n)))
         transitions = self._folder.add(real, self._obs, actions, rewards,
                                        next_obs, terms, ended)
         self.env_steps += int((~reset_rows).sum())

@@ -52,6 +52,12 @@ class TrainConfig:
     eps_start: float = 1.0
     eps_end: float = 0.01
     eps_decay: float = 0.995
+    # Exploring actions repeated (epsilon-z-greedy, Dabney et al. 2020): an
+    # exploring action, once drawn, is kept for n steps, n drawn from a zeta
+    # distribution with this exponent (capped at `explore_max_steps`); 0: each
+    # exploring action lasts one step (the paper's epsilon-greedy).
+    explore_zeta: float = 0.0
+    explore_max_steps: int = 100
     hidden: tuple = (256, 64)
     # Learning starts once the buffer holds more than this many transitions
     # (the paper: more than one batch).
@@ -117,6 +123,9 @@ class TrainConfig:
                 ("eps_start", 0 <= self.eps_start <= 1, "[0, 1]"),
                 ("eps_end", 0 <= self.eps_end <= 1, "[0, 1]"),
                 ("eps_decay", 0 < self.eps_decay <= 1, "(0, 1]"),
+                ("explore_zeta", self.explore_zeta == 0 or self.explore_zeta > 1,
+                 "0 (off) or > 1"),
+                ("explore_max_steps", self.explore_max_steps >= 1, ">= 1"),
                 ("mode", self.mode in ("parallel", "vector"), "parallel or vector"),
                 ("num_envs", self.num_envs >= 1, ">= 1"),
                 ("loss", self.loss in ("mse", "huber"), "mse or huber"),

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from mll_dqn.agent import DQNAgent
+from mll_dqn.agent import DQNAgent, RepeatedExploration
 from mll_dqn.config import TrainConfig, preset
 from mll_dqn.train import epsilon_after, lr_after
 
@@ -79,6 +79,32 @@ def test_epsilon_greedy_extremes():
     assert set(np.unique(random_actions)) == {0, 1, 2, 3}
 
 
+def test_repeated_exploration_keeps_an_exploring_action_for_its_run():
+    agent = DQNAgent(preset("paper"))
+    rng = np.random.default_rng(4)
+    streams = np.arange(6)
+    obs = rng.normal(size=(6, 12)).astype(np.float32)
+    # epsilon 0: greedy, as plain epsilon-greedy.
+    exploration = RepeatedExploration(6, zeta=2.0, max_steps=50)
+    np.testing.assert_array_equal(
+        exploration.act(agent, obs, streams, 0.0, rng), agent.greedy(obs))
+    # epsilon 1: every stream is always exploring, and a new action is drawn
+    # only when a run ends. Runs of min(zeta(2), 5) steps last 1.94 steps on
+    # average, so the action changes on 0.75 / 1.94 = 39% of the steps
+    # (one-step runs, max_steps=1: on 75%, as plain epsilon-greedy).
+    for max_steps, low, high in ((5, 0.33, 0.45), (1, 0.70, 0.80)):
+        exploration = RepeatedExploration(6, zeta=2.0, max_steps=max_steps)
+        history = np.stack([exploration.act(agent, obs, streams, 1.0, rng)
+                            for _ in range(1000)])
+        assert low < (history[1:] != history[:-1]).mean() < high
+    # A stream whose episode ended starts afresh: greedy at epsilon 0.
+    exploration = RepeatedExploration(6, zeta=2.0, max_steps=50)
+    exploration.act(agent, obs, streams, 1.0, rng)
+    exploration.stop(streams[:3])
+    actions = exploration.act(agent, obs, streams, 0.0, rng)
+    np.testing.assert_array_equal(actions[:3], agent.greedy(obs[:3]))
+
+
 def test_epsilon_schedule_is_the_papers():
     config = preset("paper")
     assert epsilon_after(config, 0) == 1.0
@@ -136,6 +162,7 @@ def test_paper_preset_is_table_iv():
     ("reward_scale", 0.0, "reward_scale = 0.0 is out of range; allowed: > 0"),
     ("lr_end", 1.0, "lr_end = 1.0 is out of range; allowed: [0, lr]"),
     ("torch_threads", 0, "torch_threads = 0 is out of range; allowed: >= 1"),
+    ("explore_zeta", 1.0, "explore_zeta = 1.0 is out of range; allowed: 0 (off) or > 1"),
 ])
 def test_bad_config_names_field_value_and_range(field, value, message):
     config = dataclasses.replace(TrainConfig(), **{field: value})

@@ -108,8 +108,13 @@ def test_overlapped_learning_is_deterministic_and_owes_nothing(tmp_path,
         first["time_split_s"]) - {"store"}
 
 
-def test_same_seed_same_scores(tmp_path):
-    config = dataclasses.replace(preset("quick"), episodes=3)
+@pytest.mark.parametrize("mode,explore_zeta", [("parallel", 0.0),
+                                               ("parallel", 2.0),
+                                               ("vector", 2.0)])
+def test_same_seed_same_scores(tmp_path, mode, explore_zeta):
+    config = dataclasses.replace(preset("quick"), episodes=3, mode=mode,
+                                 num_envs=2 if mode == "vector" else 1,
+                                 explore_zeta=explore_zeta, eps_decay=0.9)
     train(config, str(tmp_path / "a"), progress_bar=False)
     train(config, str(tmp_path / "b"), progress_bar=False)
     scores = [[r["score"] for r in _rows(tmp_path / d)] for d in "ab"]
