@@ -9,6 +9,7 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "channel.h"
+#include "grpc/grpc.h"
 #include "grpcpp/channel.h"
 #include "grpcpp/client_context.h"
 #include "grpcpp/completion_queue.h"
@@ -95,12 +96,7 @@ struct mll_native_stream {
   void Cancel() {
     if (stream_ == nullptr) return;
     context_->TryCancel();
-    if (write_pending_) Await(kWrite);
-    write_pending_ = false;
-    grpc::Status status;
-    stream_->Finish(&status, TagOf(kFinish));
-    Await(kFinish);
-    Forget();
+    (void)End();
   }
 
  private:
@@ -119,14 +115,21 @@ struct mll_native_stream {
     return ok_[operation];
   }
 
-  // The broken stream's status, which also forgets it.
-  int Finish() {
+  // The stream's final status, once its pending write is done; the stream
+  // is forgotten.
+  grpc::Status End() {
     if (write_pending_) Await(kWrite);
     write_pending_ = false;
     grpc::Status status;
     stream_->Finish(&status, TagOf(kFinish));
     Await(kFinish);
     Forget();
+    return status;
+  }
+
+  // The broken stream's status as a return code, which also forgets it.
+  int Finish() {
+    const grpc::Status status = End();
     if (status.ok()) {
       return Fail(static_cast<int>(grpc::StatusCode::UNAVAILABLE),
                   "the server ended the Session stream");
@@ -175,6 +178,12 @@ mll_native_stream* mll_native_stream_open(const char* address,
                                           size_t root_cert_size,
                                           const char* server_name,
                                           const char* token) {
+  // gRPC stays initialised for the life of the process: without a reference
+  // of its own, closing the last stream would shut gRPC down (joining its
+  // threads, a few hundred milliseconds) and the next open would start it
+  // again.
+  static const bool initialised = (grpc_init(), true);
+  (void)initialised;
   mll::client::ClientOptions options;
   options.use_tls = root_cert_pem != nullptr;
   if (options.use_tls) {

@@ -7,7 +7,8 @@ GIL is released while the library waits for the server).
 Where the library is looked for: $MLL_NATIVE_LIBRARY when set (only there); else beside this
 package (`pip install .` at the repository's root installs it there); else a source checkout's
 build tree (scripts/build.sh). `pip install ./client_py` installs no library: the "auto"
-transport then uses grpcio.
+transport then uses grpcio. Nor does a process forked from one that has used the library (gRPC
+C++ does not survive a fork): "auto" uses grpcio there too.
 """
 
 from __future__ import annotations
@@ -31,6 +32,9 @@ TRANSPORTS = ("auto", "native", "grpc")
 
 _lock = threading.Lock()
 _loaded: tuple[ctypes.CDLL | None, str] | None = None  # (library or None, why not)
+# The process that opened the first native stream, which started the library's gRPC; gRPC C++
+# does not survive a fork, so a forked child of that process cannot use the library.
+_started_in: int | None = None
 
 
 def library_paths() -> list[pathlib.Path]:
@@ -76,9 +80,20 @@ def _load() -> tuple[ctypes.CDLL | None, str]:
         return _loaded
 
 
+def _usable() -> tuple[ctypes.CDLL | None, str]:
+    """The library if this process can use it, else None and why not."""
+    lib, why_not = _load()
+    if lib is not None and _started_in not in (None, os.getpid()):
+        return None, (
+            f"its gRPC was started by process {_started_in}, of which this one is a forked child, "
+            "and gRPC C++ does not survive a fork"
+        )
+    return lib, why_not
+
+
 def available() -> bool:
-    """Whether the native library loads in this process."""
-    return _load()[0] is not None
+    """Whether the native library loads and can be used in this process."""
+    return _usable()[0] is not None
 
 
 def uses_native(transport: str) -> bool:
@@ -88,7 +103,7 @@ def uses_native(transport: str) -> bool:
         raise invalid_argument(f"transport is {transport!r}; allowed: {', '.join(map(repr, TRANSPORTS))}")
     if transport == "grpc":
         return False
-    lib, why_not = _load()
+    lib, why_not = _usable()
     if lib is None and transport == "native":
         raise MLLError(
             grpc.StatusCode.FAILED_PRECONDITION,
@@ -111,7 +126,7 @@ class NativeSessionStream(SessionStream):
 
     def __init__(self, connection: Connection):
         super().__init__(connection)
-        self._lib = _load()[0]
+        self._lib = _usable()[0]
         if self._lib is None:
             uses_native("native")  # Raises, saying why.
         self._handle: int | None = None
@@ -122,6 +137,8 @@ class NativeSessionStream(SessionStream):
         connection = self._connection
         connection.check_process()
         if self._handle is None:
+            global _started_in
+            _started_in = _started_in or os.getpid()
             security = connection.security
             root = security.root_certificates
             self._handle = self._lib.mll_native_stream_open(

@@ -187,7 +187,7 @@ def test_without_the_library_native_is_refused_and_auto_uses_grpc(address, tmp_p
 _INHERITED = []
 
 
-def _step_inherited():
+def _step_inherited_then_own(address):
     try:
         _INHERITED[0].step(np.zeros((2, 1), np.int32))
         refused = None
@@ -195,18 +195,33 @@ def _step_inherited():
         refused = (error.code.name, error.message)
     _INHERITED.clear()  # The child's copy goes without closing the parent's stream.
     gc.collect()
-    return refused
+    try:
+        mll.vector_env(2, address=address, n_landers=1, transport="native")
+        native_refused = None
+    except mll.MLLError as error:
+        native_refused = (error.code.name, error.message)
+    with mll.vector_env(2, address=address, n_landers=1) as own:
+        own.reset(seed=2)
+        shape = own.step(np.zeros((2, 1), np.int32))[0].shape
+        transport = own.transport
+    return refused, native_refused, transport, shape
 
 
 @needs_native
-def test_a_forked_child_refuses_the_parents_native_stream(address):
+def test_a_forked_child_refuses_the_parents_native_stream_and_steps_its_own_over_grpc(address):
+    """gRPC C++ does not survive a fork: after the parent has used the native library, a forked
+    child is refused its parent's stream and native streams of its own, and "auto" steps over
+    grpcio there."""
     vector = mll.vector_env(2, address=address, n_landers=1, transport="native")
     vector.reset(seed=1)
     vector.step(np.zeros((2, 1), np.int32))
     _INHERITED[:] = [vector]
     with multiprocessing.get_context("fork").Pool(1) as pool:
-        code, message = pool.apply(_step_inherited)
+        refused, native_refused, transport, shape = pool.apply_async(
+            _step_inherited_then_own, (address,)).get(timeout=60)
     _INHERITED.clear()
-    assert code == "FAILED_PRECONDITION" and "forked process must make its own environments" in message
+    assert refused[0] == "FAILED_PRECONDITION" and "forked process must make its own environments" in refused[1]
+    assert native_refused[0] == "FAILED_PRECONDITION" and "does not survive a fork" in native_refused[1]
+    assert (transport, shape) == ("grpc", (2, 1, 12))
     assert vector.step(np.zeros((2, 1), np.int32))[0].shape == (2, 1, 12)  # The parent's stream still works.
     vector.close()
