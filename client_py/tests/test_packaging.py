@@ -77,8 +77,12 @@ def _fresh_venv(path: pathlib.Path) -> pathlib.Path:
     return path / "bin" / "python"
 
 
+# What would make the fresh venv find this checkout's package, server or native library.
+_NOT_PASSED = ("MLL_SERVER_BIN", "MLL_NATIVE_LIBRARY", "VIRTUAL_ENV", "PYTHONPATH")
+
+
 def _isolated_env() -> dict:
-    env = {key: value for key, value in os.environ.items() if key not in ("MLL_SERVER_BIN", "VIRTUAL_ENV")}
+    env = {key: value for key, value in os.environ.items() if key not in _NOT_PASSED}
     env["PATH"] = "/usr/bin:/bin"
     return env
 
