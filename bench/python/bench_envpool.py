@@ -7,7 +7,9 @@
    their actions). The faster of the two is the floor.
    Ours: `vector_env(--envs, n_landers=1)`, the same random discrete actions, auto-reset, on an
    `mll_server --threads=--threads`, over loopback TCP (what the embedded server uses) and over
-   a Unix-domain socket (`mll_server --address=unix:PATH`); and over TCP as two vector envs of
+   a Unix-domain socket (`mll_server --address=unix:PATH`), each with both step transports
+   (`transport="native"`, the default where the library is built, and `transport="grpc"`,
+   grpcio); and over TCP (default transport) as two vector envs of
    half the size stepped alternately with step_async/step_wait (each call sends one half's
    actions and returns the other half's results: EnvPool's async pattern with the same batch).
    For reference (not a floor of this comparison): our core stepping the same 64 one-lander envs
@@ -85,8 +87,9 @@ def main() -> int:
         sync = envpool.make(ENVPOOL_TASK, env_type="gymnasium", num_envs=args.envs, num_threads=args.threads, seed=0)
         sync.reset()
         pool_async = EnvPoolAsync(envpool, args.envs, args.async_batch, args.threads)
-        ours = {name: mll.vector_env(args.envs, address=server.address, n_landers=1)
-                for name, server in (("tcp", tcp), ("unix", unix))}
+        ours = {(name, transport): mll.vector_env(args.envs, address=server.address, n_landers=1,
+                                                  transport=transport)
+                for name, server in (("tcp", tcp), ("unix", unix)) for transport in ("native", "grpc")}
         for env in ours.values():
             env.reset(seed=0)
         halves = Halves(mll, other.address, args.envs, 1)
@@ -95,11 +98,12 @@ def main() -> int:
         raw.reset(seed=0)
         gym_env.reset(seed=0)
         column = table[..., None]
+        servers = {"tcp": tcp, "unix": unix}
         sides = {
             "envpool_sync": (sync.step, table, args.envs, None),
             "envpool_async": (pool_async.step, half_table, args.async_batch, None),
-            "vector_env_tcp": (ours["tcp"].step, column, args.envs, tcp.pid),
-            "vector_env_unix": (ours["unix"].step, column, args.envs, unix.pid),
+            **{f"vector_env_{name}_{transport}": (env.step, column, args.envs, servers[name].pid)
+               for (name, transport), env in ours.items()},
             "vector_env_tcp_halves": (halves.step, half_table[..., None], args.async_batch, other.pid),
             "raw_vector_env_x3": (raw.step, gym_table.reshape(256, args.envs, args.gym_n_landers), args.envs, other.pid),
             "gym_vector_env_x3": (gym_env.step, gym_table, args.envs, other.pid),
@@ -135,8 +139,8 @@ def main() -> int:
               f"({', '.join(f'{value:.2f}' for value in ratios)}) | {np.median(cpu_us[name]):.1f} "
               f"| {np.median(cpu_ratios):.2f} |")
 
-    for name in ("envpool_sync", "envpool_async", "vector_env_tcp", "vector_env_unix", "vector_env_tcp_halves",
-                 "core_in_process"):
+    for name in ("envpool_sync", "envpool_async", "vector_env_tcp_native", "vector_env_tcp_grpc",
+                 "vector_env_unix_native", "vector_env_unix_grpc", "vector_env_tcp_halves", "core_in_process"):
         row(name, floor, floor_cpu)
     print("| (floor above: EnvPool's faster API per round; below: raw_vector_env_x3) | | | | |")
     row("gym_vector_env_x3", rates["raw_vector_env_x3"], cpu_us["raw_vector_env_x3"])

@@ -29,12 +29,20 @@ def from_rpc_error(error: grpc.RpcError, context: str = "") -> MLLError:
     was not reached, since then the message comes from the transport, not the server."""
     code = error.code() if hasattr(error, "code") else grpc.StatusCode.UNKNOWN
     message = error.details() if hasattr(error, "details") else str(error)
-    if code == grpc.StatusCode.UNAVAILABLE and context:
-        message = f"{context}: {message}"
-    return MLLError(code, message or "")
+    return from_call_status(code, message, context)
 
 
 _CODES_BY_VALUE = {status.value[0]: status for status in grpc.StatusCode}
+
+
+def from_call_status(code: grpc.StatusCode | int, message: str | None, context: str = "") -> MLLError:
+    """The MLLError for a call that ended with `code` (a grpc.StatusCode or its number) and
+    `message`; `context` is prepended to UNAVAILABLE, as in from_rpc_error."""
+    if isinstance(code, int):
+        code = _CODES_BY_VALUE.get(code, grpc.StatusCode.UNKNOWN)
+    if code == grpc.StatusCode.UNAVAILABLE and context:
+        message = f"{context}: {message}"
+    return MLLError(code, message or "")
 
 
 def from_item_error(code: int, message: str, context: str = "") -> MLLError:

@@ -225,6 +225,7 @@ class Connection:
                 f"embedded server; {hint})"
             )
         self.address = address
+        self.security = security
         self.channel = open_channel(address, security)
         self.stub = pb_grpc.MultiLunarLanderStub(self.channel)
         self._metadata = security.metadata
@@ -325,6 +326,11 @@ class SessionStream:
             raise MLLError(
                 grpc.StatusCode.UNAVAILABLE, f"{self._connection._what}: the server ended the Session stream"
             ) from None
+        return self._answer(response)
+
+    def _answer(self, response: "pb.SessionResponse") -> "pb.SessionResponse":
+        """`response` if it answers the last send(); its operation's error as MLLError; INTERNAL
+        (and the stream closed) if it answers another request."""
         if response.sequence != self._sequence:
             self.close()
             raise MLLError(

@@ -38,8 +38,16 @@ SERVER_BIN_NAME = "mll_server"
 # sockaddr_un.sun_path holds 108 bytes with the NUL: the server refuses a longer socket path.
 _MAX_UNIX_PATH_BYTES = 107
 # A source checkout's build tree (scripts/build.sh), seen from client_py/multi_lunar_lander/.
-_CHECKOUT_ROOT = pathlib.Path(__file__).resolve().parents[2]
-_CHECKOUT_BUILD_BIN = _CHECKOUT_ROOT / "build" / "server" / "service" / SERVER_BIN_NAME
+_CHECKOUT_BUILD_DIR = pathlib.Path(__file__).resolve().parents[2] / "build"
+
+
+def checkout_build_path(*parts: str) -> pathlib.Path:
+    """Where a source checkout's build tree (scripts/build.sh) puts a built file, e.g.
+    checkout_build_path("server", "service", "mll_server"); it may not exist."""
+    return _CHECKOUT_BUILD_DIR.joinpath(*parts)
+
+
+_CHECKOUT_BUILD_BIN = checkout_build_path("server", "service", SERVER_BIN_NAME)
 
 
 def _is_executable_file(path: str | os.PathLike) -> bool:

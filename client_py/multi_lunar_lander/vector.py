@@ -1,9 +1,9 @@
 """Many environments stepped together: one StepBatch per server per step, arrays in and out,
 in StepBatch's packed form (one actions array in, one array per result column out; no
 per-environment messages to build or parse, no per-environment Python loop). Each StepBatch
-travels as one request on a Session stream kept open to its server (SessionStream), which saves
-a unary call's set-up on both sides: 70% of the in-process core against 67% with unary
-StepBatch calls (docs/benchmarks.md).
+travels as one request on a Session stream kept open to its server, which saves a unary call's
+set-up on both sides: over the native library (_native.NativeSessionStream, gRPC C++ in the
+calling thread) when it is available, else over grpcio (SessionStream); see docs/benchmarks.md.
 
 Several servers (address= a list or "host:port,host:port"): env i lives on server i mod S for
 its whole life (creation, reset, steps, deletion). Each step sends one StepBatch to every server
@@ -26,7 +26,7 @@ from typing import Any, NamedTuple, Sequence
 import grpc
 import numpy as np
 
-from . import _arrays, _lease
+from . import _arrays, _lease, _native
 from ._channel import Security, parse_addresses
 from ._errors import MLLError, from_item_error, invalid_argument
 from ._actions import check_actions
@@ -79,6 +79,14 @@ class VectorEnv:
     `address` (env i on server i mod S; None: the embedded server). TLS and token: as for
     `parallel_env` (tls_root_cert=, tls_server_name=, token=).
 
+    transport= how steps travel (creation, reset and deletion are grpcio calls either way):
+      "native": over libmll_native_stream.so, gRPC C++ in the calling thread (built with the
+      server; `pip install .` at the repository's root installs it beside the package, or set
+      $MLL_NATIVE_LIBRARY to its path); FAILED_PRECONDITION when it is not available.
+      "grpc": over grpcio. "auto" (the default): native when the library loads, else grpc.
+      Both give the same results and errors; native takes less of the caller's CPU per step.
+      The `transport` attribute says which is in use.
+
     reset(seed=None, options=None) -> (observations, infos): observations float32
       (num_envs, n_landers, 12); seed s gives env i the seed s + i (None continues each env's
       stream).
@@ -107,8 +115,10 @@ class VectorEnv:
         tls_root_cert: str | bytes | None = None,
         tls_server_name: str | None = None,
         token: str | None = None,
+        transport: str = "auto",
         **options: Any,
     ):
+        native = _native.uses_native(transport)
         if int(num_envs) != num_envs or num_envs < 1:
             raise invalid_argument(f"num_envs is {num_envs!r}; expected an integer >= 1")
         self.num_envs = int(num_envs)
@@ -117,8 +127,13 @@ class VectorEnv:
         addresses = parse_addresses(address)
         # What a pickle carries (__reduce__): the arguments, never a connection or stream.
         self._init_kwargs = dict(
-            options, num_envs=self.num_envs, address=list(addresses) or None, **security.as_options()
+            options,
+            num_envs=self.num_envs,
+            address=list(addresses) or None,
+            transport=transport,
+            **security.as_options(),
         )
+        self.transport = "native" if native else "grpc"
         servers = addresses or (None,)  # None: the embedded server.
         self._names: list[str | None] = [None] * self.num_envs  # None: not created.
         self._step_in_flight = False  # From step_async until step_wait reads the answers.
@@ -155,6 +170,7 @@ class VectorEnv:
         self._action_dtype = pb.DTYPE_FLOAT32 if self.continuous else pb.DTYPE_INT32
         action_shape = (self.n_landers, 2) if self.continuous else (self.n_landers,)
         stride = len(self._connections)
+        stream_type = _native.NativeSessionStream if native else SessionStream
         self._servers = []
         for first, connection in enumerate(self._connections):
             rows = slice(first, self.num_envs, stride)
@@ -169,7 +185,7 @@ class VectorEnv:
                 for field, wire, result, shape in _AGENT_COLUMNS + _ENV_COLUMNS
             )
             self._servers.append(
-                _Server(connection, rows, len(names), message, actions, columns, SessionStream(connection))
+                _Server(connection, rows, len(names), message, actions, columns, stream_type(connection))
             )
 
     def __reduce__(self):

@@ -5,6 +5,7 @@ import re
 import time
 
 import grpc
+import numpy as np
 import pytest
 
 import multi_lunar_lander as mll
@@ -70,3 +71,27 @@ def url_in_log(process, pattern, timeout_s=10):
             return found.group(1)
         time.sleep(0.02)
     raise AssertionError(f"nothing matches {pattern!r} in the log: {process.log_tail()!r}")
+
+
+def random_actions(rng, shape, continuous):
+    if continuous:
+        return rng.uniform(-1.0, 1.0, size=shape + (2,)).astype(np.float32)
+    return rng.integers(0, 4, size=shape, dtype=np.int32)
+
+
+def same_bits(got, expected):
+    """Equal bit for bit (unlike ==, tells -0.0 from 0.0), with the same dtype."""
+    got, expected = np.asarray(got), np.asarray(expected, dtype=np.asarray(got).dtype)
+    return got.shape == expected.shape and got.tobytes() == expected.tobytes()
+
+
+def rollout(vector, seed, steps):
+    """Every array a vector env returns over `steps` random steps after reset(seed)."""
+    rng = np.random.default_rng(seed)
+    observations, infos = vector.reset(seed=seed)
+    record = [observations, *(infos[key] for key in sorted(infos))]
+    for _ in range(steps):
+        result = vector.step(random_actions(rng, (vector.num_envs, vector.n_landers), vector.continuous))
+        record.extend(result[:-1])
+        record.extend(result[-1][key] for key in sorted(result[-1]))
+    return record

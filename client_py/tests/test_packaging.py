@@ -2,10 +2,11 @@
 repository's committed HEAD (so run it on committed work):
 
 - `pip install .` at the top builds the C++ server and CLI and installs them with the client:
-  `mll_server` and `mll_cli` land in the venv's bin/, and an embedded environment
-  (address=None) steps from any directory without $MLL_SERVER_BIN or the venv on PATH;
+  `mll_server` and `mll_cli` land in the venv's bin/, the native stream library beside the
+  package, and an embedded environment (address=None) steps from any directory without
+  $MLL_SERVER_BIN or the venv on PATH, a vector env over the native library;
 - `pip install ./client_py` installs the pure-Python client: stubs generated at build time,
-  py.typed, license metadata, and no server.
+  py.typed, license metadata, and no server or native library.
 """
 
 from __future__ import annotations
@@ -34,6 +35,11 @@ for _ in range(20):
         {agent: mll.heuristic(observations[agent]) for agent in env.agents})
 print("binary", mll.embedded_server().binary)
 env.close()
+vector = mll.vector_env(2, n_landers=1, transport="native")
+vector.reset(seed=0)
+vector.step([[0], [1]])
+print("native", mll._native._load()[0]._name)
+vector.close()
 """
 
 
@@ -71,8 +77,12 @@ def _fresh_venv(path: pathlib.Path) -> pathlib.Path:
     return path / "bin" / "python"
 
 
+# What would make the fresh venv find this checkout's package, server or native library.
+_NOT_PASSED = ("MLL_SERVER_BIN", "MLL_NATIVE_LIBRARY", "VIRTUAL_ENV", "PYTHONPATH")
+
+
 def _isolated_env() -> dict:
-    env = {key: value for key, value in os.environ.items() if key not in ("MLL_SERVER_BIN", "VIRTUAL_ENV")}
+    env = {key: value for key, value in os.environ.items() if key not in _NOT_PASSED}
     env["PATH"] = "/usr/bin:/bin"
     return env
 
@@ -87,6 +97,9 @@ def test_pip_install_dot_brings_the_server_and_the_cli(fresh_clone, tmp_path):
     elsewhere.mkdir()
     out = _run([python, "-c", _STEP_AN_EMBEDDED_ENV], cwd=elsewhere, env=_isolated_env())
     assert f"binary {bin_dir / 'mll_server'}" in out
+    package = pathlib.Path(_run([python, "-c", "import multi_lunar_lander as m; print(m.__file__)"],
+                                cwd=elsewhere, env=_isolated_env()).strip()).parent
+    assert f"native {package / 'libmll_native_stream.so'}" in out
 
 
 def test_pip_install_client_py_is_the_pure_python_client(fresh_clone, tmp_path):
@@ -105,7 +118,9 @@ def test_pip_install_client_py_is_the_pure_python_client(fresh_clone, tmp_path):
         "print('stubs', (package / '_proto' / 'multi_lunar_lander_pb2.py').exists())\n"
         "print('license', m.metadata('multi_lunar_lander')['License'])\n"
         "print('location', package)\n"
+        "print('native', mll._native.available())\n"
     )
     out = _run([python, "-c", probe], cwd=tmp_path, env=_isolated_env())
     assert "typed True" in out and "stubs True" in out and "license MIT" in out
+    assert "native False" in out  # No library: transport="auto" steps over grpcio.
     assert str(fresh_clone) not in out  # Installed, not imported from the clone.

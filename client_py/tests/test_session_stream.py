@@ -1,5 +1,6 @@
-"""SessionStream, the open Session stream vector_env steps on: the same bits as unary StepBatch
-calls, errors that leave the stream usable, and a broken stream replaced by the next step."""
+"""SessionStream, the grpcio Session stream vector_env steps on with transport="grpc": the same
+bits as unary StepBatch calls, errors that leave the stream usable, and a broken stream replaced
+by the next step."""
 
 import grpc
 import numpy as np
@@ -11,7 +12,7 @@ from multi_lunar_lander._stubs import pb
 
 
 def test_vector_env_on_the_stream_gives_the_bits_of_unary_step_batch(address, raw_stub):
-    options = dict(address=address, n_landers=3, max_cycles=50)
+    options = dict(address=address, n_landers=3, max_cycles=50, transport="grpc")
     with mll.vector_env(4, **options) as streamed, mll.vector_env(4, **options) as unary:
         np.testing.assert_array_equal(streamed.reset(seed=11)[0], unary.reset(seed=11)[0])
         request = pb.StepBatchRequest()
@@ -57,7 +58,7 @@ def test_an_operation_error_leaves_the_stream_usable(address, raw_stub):
 
 
 def test_a_broken_stream_fails_one_step_and_the_next_step_opens_a_new_one(address):
-    with mll.vector_env(2, address=address, n_landers=2) as vector:
+    with mll.vector_env(2, address=address, n_landers=2, transport="grpc") as vector:
         vector.reset(seed=5)
         actions = np.zeros((2, 2), np.int32)
         vector.step(actions)
@@ -72,7 +73,7 @@ def test_a_broken_stream_fails_one_step_and_the_next_step_opens_a_new_one(addres
 
 
 def test_close_ends_the_stream_and_deletes_the_envs(address, raw_stub):
-    vector = mll.vector_env(2, address=address, n_landers=2)
+    vector = mll.vector_env(2, address=address, n_landers=2, transport="grpc")
     vector.reset(seed=1)
     vector.step(np.zeros((2, 2), np.int32))
     names = vector.names

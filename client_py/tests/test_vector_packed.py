@@ -9,19 +9,7 @@ import pytest
 import multi_lunar_lander as mll
 from multi_lunar_lander._stubs import pb_grpc
 
-from mll_test_helpers import delete_env
-
-
-def random_actions(rng, shape, continuous):
-    if continuous:
-        return rng.uniform(-1.0, 1.0, size=shape + (2,)).astype(np.float32)
-    return rng.integers(0, 4, size=shape, dtype=np.int32)
-
-
-def same_bits(got, expected):
-    """Equal bit for bit (unlike ==, tells -0.0 from 0.0), with the same dtype."""
-    got, expected = np.asarray(got), np.asarray(expected, dtype=np.asarray(got).dtype)
-    return got.shape == expected.shape and got.tobytes() == expected.tobytes()
+from mll_test_helpers import delete_env, random_actions, rollout, same_bits
 
 
 def test_packed_steps_equal_parallel_envs_bit_for_bit_across_auto_resets(address, continuous):
@@ -93,18 +81,6 @@ def test_results_are_ordinary_writable_arrays(address):
 def two_servers():
     with mll.ServerProcess(threads=1) as first, mll.ServerProcess(threads=2) as second:
         yield first.address, second.address
-
-
-def rollout(vector, seed, steps):
-    """Every array a vector env returns over `steps` random steps after reset(seed)."""
-    rng = np.random.default_rng(seed)
-    observations, infos = vector.reset(seed=seed)
-    record = [observations, *(infos[key] for key in sorted(infos))]
-    for _ in range(steps):
-        result = vector.step(random_actions(rng, (vector.num_envs, vector.n_landers), vector.continuous))
-        record.extend(result[:-1])
-        record.extend(result[-1][key] for key in sorted(result[-1]))
-    return record
 
 
 def test_uneven_shares_over_two_servers_give_the_same_bits_as_one(address, two_servers, continuous):

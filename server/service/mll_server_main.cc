@@ -38,7 +38,8 @@ ABSL_FLAG(std::string, port_file, "",
           "(not written for a unix: --address)");
 ABSL_FLAG(int32_t, threads,
           static_cast<int32_t>(std::thread::hardware_concurrency()),
-          "worker threads stepping StepBatch's environments (default: cores)");
+          "threads stepping a StepBatch's environments: the call's own and "
+          "threads - 1 workers (default: cores)");
 ABSL_FLAG(int32_t, max_envs, 10000, "most environments hosted at once");
 ABSL_FLAG(int32_t, max_envs_per_token, 0,
           "most environments one token (tenant) hosts at once; 0: the "

@@ -1,6 +1,6 @@
 // WorkerPool::ParallelFor: every index runs exactly once, done() runs once
-// after all of them, shares are contiguous per worker, and concurrent batches
-// do not mix.
+// after all of them, the calling thread runs the first share, shares are
+// contiguous per runner, and concurrent batches do not mix.
 #include "mll/service/worker_pool.h"
 
 #include <atomic>
@@ -40,6 +40,26 @@ TEST(WorkerPoolTest, EveryIndexRunsExactlyOnceBeforeDone) {
       }
     }
   }
+}
+
+TEST(WorkerPoolTest, TheCallingThreadRunsTheFirstShare) {
+  WorkerPool pool(2);
+  const std::thread::id caller = std::this_thread::get_id();
+  std::vector<std::thread::id> ran_on(64);
+  RunAndWait(pool, 64, [&](int i) { ran_on[i] = std::this_thread::get_id(); });
+  EXPECT_EQ(ran_on[0], caller);
+}
+
+TEST(WorkerPoolTest, OneThreadRunsTheBatchOnTheCallerBeforeReturning) {
+  WorkerPool pool(1);
+  const std::thread::id caller = std::this_thread::get_id();
+  std::vector<std::thread::id> ran_on(5);
+  bool done = false;
+  pool.ParallelFor(
+      5, [&](int i) { ran_on[i] = std::this_thread::get_id(); },
+      [&] { done = true; });
+  EXPECT_TRUE(done);
+  for (const std::thread::id& id : ran_on) EXPECT_EQ(id, caller);
 }
 
 TEST(WorkerPoolTest, AWorkerStartsOnItsOwnContiguousShare) {

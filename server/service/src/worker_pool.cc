@@ -7,7 +7,9 @@
 
 namespace mll::service {
 
-WorkerPool::WorkerPool(int threads) : queues_(std::max(threads, 1)) {
+// Runner 0 of a batch is the calling thread, so `threads` runners need one
+// worker fewer.
+WorkerPool::WorkerPool(int threads) : queues_(std::max(threads, 1) - 1) {
   const int count = static_cast<int>(queues_.size());
   workers_.reserve(count);
   for (int w = 0; w < count; ++w) {
@@ -68,25 +70,28 @@ void WorkerPool::ParallelFor(int count, std::function<void(int)> body,
         static_cast<int>(int64_t{r + 1} * count / runners));
   }
   shared->running = runners;
+  auto run_share = [shared, runners](int r) {
+    for (int k = 0; k < runners; ++k) {
+      const int share = (r + k) % runners;
+      std::atomic<int>& next = shared->share_next[share];
+      for (int i = next.fetch_add(1); i < shared->share_end[share];
+           i = next.fetch_add(1)) {
+        shared->body(i);
+      }
+    }
+    if (shared->running.fetch_sub(1) == 1) shared->done();
+  };
+  // Runner r >= 1 is worker r - 1.
   {
     absl::MutexLock lock(&mu_);
-    for (int r = 0; r < runners; ++r) {
-      queues_[r].tasks.push_back([shared, r, runners] {
-        for (int k = 0; k < runners; ++k) {
-          const int share = (r + k) % runners;
-          std::atomic<int>& next = shared->share_next[share];
-          for (int i = next.fetch_add(1); i < shared->share_end[share];
-               i = next.fetch_add(1)) {
-            shared->body(i);
-          }
-        }
-        if (shared->running.fetch_sub(1) == 1) shared->done();
-      });
+    for (int r = 1; r < runners; ++r) {
+      queues_[r - 1].tasks.push_back([run_share, r] { run_share(r); });
     }
   }
-  // Each runner is woken by this thread directly, after the lock is released
+  // Each worker is woken by this thread directly, after the lock is released
   // (not one after another through the mutex's waiter queue).
-  for (int r = 0; r < runners; ++r) queues_[r].wake.Signal();
+  for (int r = 1; r < runners; ++r) queues_[r - 1].wake.Signal();
+  run_share(0);
 }
 
 }  // namespace mll::service

@@ -1,0 +1,215 @@
+#include "native_stream.h"
+
+#include <array>
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <utility>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "channel.h"
+#include "grpc/grpc.h"
+#include "grpcpp/channel.h"
+#include "grpcpp/client_context.h"
+#include "grpcpp/completion_queue.h"
+#include "grpcpp/generic/generic_stub.h"
+#include "grpcpp/support/byte_buffer.h"
+#include "grpcpp/support/slice.h"
+#include "grpcpp/support/status.h"
+#include "mll/client.h"
+
+namespace {
+
+constexpr char kSessionMethod[] = "/mll.v1.MultiLunarLander/Session";
+// The largest message either way, as the Python client's own channels.
+constexpr int kMaxMessageBytes = 64 << 20;
+
+// The stream's operations, as completion queue tags.
+enum Operation : intptr_t { kStart, kWrite, kRead, kFinish, kOperations };
+
+void* TagOf(Operation operation) {
+  return reinterpret_cast<void*>(static_cast<intptr_t>(operation) + 1);
+}
+
+Operation OperationOf(void* tag) {
+  return static_cast<Operation>(reinterpret_cast<intptr_t>(tag) - 1);
+}
+
+}  // namespace
+
+struct mll_native_stream {
+ public:
+  mll_native_stream(absl::StatusOr<std::shared_ptr<grpc::Channel>> channel,
+                    std::string token)
+      : channel_status_(channel.status()), token_(std::move(token)) {
+    if (channel.ok()) {
+      stub_ = std::make_unique<grpc::GenericStub>(*std::move(channel));
+    }
+  }
+
+  ~mll_native_stream() { Cancel(); }
+
+  int Write(const char* data, size_t size) {
+    if (!channel_status_.ok()) {
+      return Fail(static_cast<int>(channel_status_.code()),
+                  std::string(channel_status_.message()));
+    }
+    if (stream_ == nullptr) {
+      queue_ = std::make_unique<grpc::CompletionQueue>();
+      context_ = std::make_unique<grpc::ClientContext>();
+      mll::client::internal::AddToken(context_.get(), token_);
+      stream_ =
+          stub_->PrepareCall(context_.get(), kSessionMethod, queue_.get());
+      stream_->StartCall(TagOf(kStart));
+      if (!Await(kStart)) return Finish();
+    }
+    grpc::Slice slice(data, size);
+    request_ = grpc::ByteBuffer(&slice, 1);
+    stream_->Write(request_, TagOf(kWrite));
+    write_pending_ = true;
+    return 0;
+  }
+
+  int Read(const char** data, size_t* size) {
+    if (stream_ == nullptr) {
+      return Fail(static_cast<int>(grpc::StatusCode::FAILED_PRECONDITION),
+                  "read without a write in flight");
+    }
+    stream_->Read(&response_, TagOf(kRead));
+    const bool read = Await(kRead);
+    const bool written = Await(kWrite);
+    write_pending_ = false;
+    if (!read || !written) return Finish();
+    if (!response_.DumpToSingleSlice(&response_slice_).ok()) {
+      return Fail(static_cast<int>(grpc::StatusCode::INTERNAL),
+                  "cannot read the Session response's bytes");
+    }
+    *data = reinterpret_cast<const char*>(response_slice_.begin());
+    *size = response_slice_.size();
+    return 0;
+  }
+
+  const char* message() const { return message_.c_str(); }
+
+  // Cancels the open stream and forgets it.
+  void Cancel() {
+    if (stream_ == nullptr) return;
+    context_->TryCancel();
+    (void)End();
+  }
+
+ private:
+  // Waits for `operation` to complete (recording any other that completes
+  // first) and returns its outcome.
+  bool Await(Operation operation) {
+    while (!done_[operation]) {
+      void* tag = nullptr;
+      bool ok = false;
+      if (!queue_->Next(&tag, &ok)) return false;
+      const Operation completed = OperationOf(tag);
+      done_[completed] = true;
+      ok_[completed] = ok;
+    }
+    done_[operation] = false;
+    return ok_[operation];
+  }
+
+  // The stream's final status, once its pending write is done; the stream
+  // is forgotten.
+  grpc::Status End() {
+    if (write_pending_) Await(kWrite);
+    write_pending_ = false;
+    grpc::Status status;
+    stream_->Finish(&status, TagOf(kFinish));
+    Await(kFinish);
+    Forget();
+    return status;
+  }
+
+  // The broken stream's status as a return code, which also forgets it.
+  int Finish() {
+    const grpc::Status status = End();
+    if (status.ok()) {
+      return Fail(static_cast<int>(grpc::StatusCode::UNAVAILABLE),
+                  "the server ended the Session stream");
+    }
+    return Fail(static_cast<int>(status.error_code()), status.error_message());
+  }
+
+  int Fail(int code, std::string message) {
+    message_ = std::move(message);
+    return code;
+  }
+
+  // Drains the queue, as gRPC requires before it is destroyed, and drops the
+  // call: the next write opens a new stream.
+  void Forget() {
+    queue_->Shutdown();
+    void* tag = nullptr;
+    bool ok = false;
+    while (queue_->Next(&tag, &ok)) {
+    }
+    stream_.reset();
+    context_.reset();
+    queue_.reset();
+    done_.fill(false);
+  }
+
+  absl::Status channel_status_;
+  std::string token_;
+  std::unique_ptr<grpc::GenericStub> stub_;
+  std::unique_ptr<grpc::CompletionQueue> queue_;
+  std::unique_ptr<grpc::ClientContext> context_;
+  std::unique_ptr<grpc::GenericClientAsyncReaderWriter> stream_;
+  bool write_pending_ = false;
+  std::array<bool, kOperations> done_{};
+  std::array<bool, kOperations> ok_{};
+  grpc::ByteBuffer request_;
+  grpc::ByteBuffer response_;
+  grpc::Slice response_slice_;
+  std::string message_;
+};
+
+extern "C" {
+
+mll_native_stream* mll_native_stream_open(const char* address,
+                                          const char* root_cert_pem,
+                                          size_t root_cert_size,
+                                          const char* server_name,
+                                          const char* token) {
+  // gRPC stays initialised for the life of the process: without a reference
+  // of its own, closing the last stream would shut gRPC down (joining its
+  // threads, a few hundred milliseconds) and the next open would start it
+  // again.
+  static const bool initialised = (grpc_init(), true);
+  (void)initialised;
+  mll::client::ClientOptions options;
+  options.use_tls = root_cert_pem != nullptr;
+  if (options.use_tls) {
+    options.tls_root_certificates.assign(root_cert_pem, root_cert_size);
+  }
+  if (server_name != nullptr) options.tls_target_name_override = server_name;
+  if (token != nullptr) options.token = token;
+  options.max_receive_message_bytes = kMaxMessageBytes;
+  return new mll_native_stream(
+      mll::client::internal::OpenChannel(address, options), options.token);
+}
+
+int mll_native_stream_write(mll_native_stream* stream, const char* data,
+                            size_t size) {
+  return stream->Write(data, size);
+}
+
+int mll_native_stream_read(mll_native_stream* stream, const char** data,
+                           size_t* size) {
+  return stream->Read(data, size);
+}
+
+const char* mll_native_stream_message(const mll_native_stream* stream) {
+  return stream->message();
+}
+
+void mll_native_stream_close(mll_native_stream* stream) { delete stream; }
+
+}  // extern "C"

@@ -1,0 +1,176 @@
+"""The native transport of a vector env's steps: `libmll_native_stream.so` (built from
+client_cpp/native with the C++ server), loaded with ctypes, carries each StepBatch on a Session
+stream of gRPC C++ in the calling thread. The grpcio stream it replaces hands every message
+between threads; this one costs the Python side only the message's encoding and decoding (the
+GIL is released while the library waits for the server).
+
+Where the library is looked for: $MLL_NATIVE_LIBRARY when set (only there); else beside this
+package (`pip install .` at the repository's root installs it there); else a source checkout's
+build tree (scripts/build.sh). `pip install ./client_py` installs no library: the "auto"
+transport then uses grpcio. Nor does a process forked from one that has used the library (gRPC
+C++ does not survive a fork): "auto" uses grpcio there too.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import pathlib
+import threading
+import weakref
+
+import grpc
+
+from ._errors import MLLError, from_call_status, invalid_argument
+from ._remote import Connection, SessionStream
+from ._server import checkout_build_path
+from ._stubs import pb
+
+LIBRARY_ENV = "MLL_NATIVE_LIBRARY"
+LIBRARY_NAME = "libmll_native_stream.so"
+TRANSPORTS = ("auto", "native", "grpc")
+
+_lock = threading.Lock()
+_loaded: tuple[ctypes.CDLL | None, str] | None = None  # (library or None, why not)
+# The process that opened the first native stream, which started the library's gRPC; gRPC C++
+# does not survive a fork, so a forked child of that process cannot use the library.
+_started_in: int | None = None
+
+
+def library_paths() -> list[pathlib.Path]:
+    """Where the library is looked for, in order."""
+    from_env = os.environ.get(LIBRARY_ENV)
+    if from_env:
+        return [pathlib.Path(from_env)]
+    return [pathlib.Path(__file__).resolve().parent / LIBRARY_NAME, checkout_build_path("client_cpp", LIBRARY_NAME)]
+
+
+def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
+    """Sets the C signatures of client_cpp/native/native_stream.h."""
+    handle, text, size = ctypes.c_void_p, ctypes.c_char_p, ctypes.c_size_t
+    lib.mll_native_stream_open.restype = handle
+    lib.mll_native_stream_open.argtypes = [text, text, size, text, text]
+    lib.mll_native_stream_write.restype = ctypes.c_int
+    lib.mll_native_stream_write.argtypes = [handle, text, size]
+    lib.mll_native_stream_read.restype = ctypes.c_int
+    lib.mll_native_stream_read.argtypes = [handle, ctypes.POINTER(ctypes.c_void_p), ctypes.POINTER(size)]
+    lib.mll_native_stream_message.restype = text
+    lib.mll_native_stream_message.argtypes = [handle]
+    lib.mll_native_stream_close.restype = None
+    lib.mll_native_stream_close.argtypes = [handle]
+    return lib
+
+
+def _load() -> tuple[ctypes.CDLL | None, str]:
+    global _loaded
+    with _lock:
+        if _loaded is None:
+            problems = []
+            for path in library_paths():
+                if not path.is_file():
+                    problems.append(f"{path}: no such file")
+                    continue
+                try:
+                    _loaded = (_declare(ctypes.CDLL(str(path))), "")
+                    break
+                except (OSError, AttributeError) as error:
+                    problems.append(f"{path}: cannot load it ({error})")
+            else:
+                _loaded = (None, "; ".join(problems))
+        return _loaded
+
+
+def _usable() -> tuple[ctypes.CDLL | None, str]:
+    """The library if this process can use it, else None and why not."""
+    lib, why_not = _load()
+    if lib is not None and _started_in not in (None, os.getpid()):
+        return None, (
+            f"its gRPC was started by process {_started_in}, of which this one is a forked child, "
+            "and gRPC C++ does not survive a fork"
+        )
+    return lib, why_not
+
+
+def available() -> bool:
+    """Whether the native library loads and can be used in this process."""
+    return _usable()[0] is not None
+
+
+def uses_native(transport: str) -> bool:
+    """Whether a vector env with `transport=` steps over the native library: "native" (which
+    must load), "grpc" (never) or "auto" (when it loads)."""
+    if transport not in TRANSPORTS:
+        raise invalid_argument(f"transport is {transport!r}; allowed: {', '.join(map(repr, TRANSPORTS))}")
+    if transport == "grpc":
+        return False
+    lib, why_not = _usable()
+    if lib is None and transport == "native":
+        raise MLLError(
+            grpc.StatusCode.FAILED_PRECONDITION,
+            f"transport='native' needs {LIBRARY_NAME}, which is not available ({why_not}); it is "
+            f"built with the server (scripts/build.sh in a clone, or pip install . at its root), or "
+            f"set ${LIBRARY_ENV} to its path; transport='auto' falls back to grpcio",
+        )
+    return lib is not None
+
+
+def _close_handle(lib: ctypes.CDLL, handle: int, pid: int) -> None:
+    if os.getpid() == pid:  # A forked child's copy is the parent's to close.
+        lib.mll_native_stream_close(handle)
+
+
+class NativeSessionStream(SessionStream):
+    """SessionStream over the native library: send() starts writing the request (it does not
+    wait for the server), receive() waits for the answer; the same errors, sequence numbers and
+    reopening of a broken stream as SessionStream."""
+
+    def __init__(self, connection: Connection):
+        super().__init__(connection)
+        self._lib = _usable()[0]
+        if self._lib is None:
+            uses_native("native")  # Raises, saying why.
+        self._handle: int | None = None
+        self._send_failure: MLLError | None = None  # A stream that did not open, raised by receive().
+
+    def send(self, request: "pb.SessionRequest") -> None:
+        """As SessionStream.send; the request is encoded here, so the caller may change it at once."""
+        connection = self._connection
+        connection.check_process()
+        if self._handle is None:
+            global _started_in
+            _started_in = _started_in or os.getpid()
+            security = connection.security
+            root = security.root_certificates
+            self._handle = self._lib.mll_native_stream_open(
+                connection.address.encode(),
+                root,
+                len(root or b""),
+                (security.server_name or "").encode(),
+                (security.token or "").encode(),
+            )
+            self._finalizer = weakref.finalize(self, _close_handle, self._lib, self._handle, os.getpid())
+        self._sequence += 1
+        request.sequence = self._sequence
+        data = request.SerializeToString()
+        code = self._lib.mll_native_stream_write(self._handle, data, len(data))
+        self._send_failure = self._failure(code) if code else None
+
+    def receive(self) -> "pb.SessionResponse":
+        if self._send_failure is not None:
+            failure, self._send_failure = self._send_failure, None
+            raise failure
+        data, size = ctypes.c_void_p(), ctypes.c_size_t()
+        code = self._lib.mll_native_stream_read(self._handle, ctypes.byref(data), ctypes.byref(size))
+        if code:
+            raise self._failure(code)
+        return self._answer(pb.SessionResponse.FromString(ctypes.string_at(data, size.value)))
+
+    def _failure(self, code: int) -> MLLError:
+        message = self._lib.mll_native_stream_message(self._handle).decode(errors="replace")
+        return from_call_status(code, message, self._connection._what)
+
+    def close(self) -> None:
+        """Cancels the stream (idempotent); the next send() opens a new one."""
+        if self._handle is not None:
+            self._finalizer()
+            self._handle = self._finalizer = None

@@ -1,0 +1,227 @@
+"""vector_env's transport= option: steps over the native library (libmll_native_stream.so) give
+the same bits and the same errors as steps over grpcio; the option is checked, survives
+pickling, and "auto" falls back to grpcio when the library is missing."""
+
+import gc
+import multiprocessing
+import pickle
+
+import grpc
+import numpy as np
+import pytest
+
+import multi_lunar_lander as mll
+from multi_lunar_lander import _native
+from multi_lunar_lander._channel import Security
+from multi_lunar_lander._remote import Connection
+from multi_lunar_lander._stubs import pb
+
+from mll_test_helpers import delete_env, rollout, same_bits
+
+needs_native = pytest.mark.skipif(
+    not _native.available(),
+    reason=f"{_native.LIBRARY_NAME} is not built (looked at {', '.join(map(str, _native.library_paths()))})",
+)
+TOKEN = "native-stream-token"
+
+
+@pytest.fixture(scope="module")
+def two_servers():
+    with mll.ServerProcess(threads=1) as first, mll.ServerProcess(threads=2) as second:
+        yield first.address, second.address
+
+
+@pytest.fixture(scope="module")
+def auth_server(tmp_path_factory):
+    token_file = tmp_path_factory.mktemp("token") / "token"
+    token_file.write_text(TOKEN + "\n")
+    with mll.ServerProcess(threads=1, extra_args=(f"--auth_token_file={token_file}",)) as process:
+        yield process.address
+
+
+@needs_native
+@pytest.mark.parametrize("n_landers", [1, 3])
+@pytest.mark.parametrize("servers", ["one", "two"])
+def test_native_and_grpc_give_the_same_bits_across_auto_resets(address, two_servers, continuous, n_landers, servers):
+    # max_cycles 20 over 60 steps auto-resets every env at least twice.
+    where = address if servers == "one" else list(two_servers)
+    options = dict(address=where, n_landers=n_landers, continuous=continuous, max_cycles=20)
+    with mll.vector_env(5, transport="native", **options) as native, \
+            mll.vector_env(5, transport="grpc", **options) as grpcio:
+        assert (native.transport, grpcio.transport) == ("native", "grpc")
+        ours, reference = rollout(native, 9, 60), rollout(grpcio, 9, 60)
+    assert len(ours) == len(reference)
+    for got, expected in zip(ours, reference):
+        assert same_bits(got, expected) and got.dtype == expected.dtype
+
+
+@needs_native
+def test_auto_is_native_when_the_library_loads(address):
+    with mll.vector_env(2, address=address, n_landers=1) as vector:
+        assert vector.transport == "native"
+        assert isinstance(vector._servers[0].stream, _native.NativeSessionStream)
+
+
+@needs_native
+def test_step_async_overlaps_two_native_vector_envs(address):
+    options = dict(address=address, n_landers=2, max_cycles=30)
+    with mll.vector_env(3, transport="native", **options) as first, \
+            mll.vector_env(3, transport="native", **options) as second, \
+            mll.vector_env(3, transport="grpc", **options) as reference:
+        for vector in (first, second, reference):
+            vector.reset(seed=4)
+        rng = np.random.default_rng(2)
+        for _ in range(40):
+            actions = rng.integers(0, 4, size=(3, 2), dtype=np.int32)
+            first.step_async(actions)
+            second.step_async(actions)  # Both in flight at once.
+            expected = reference.step(actions)
+            for result in (first.step_wait(), second.step_wait()):
+                for got, want in zip(result[:-1], expected[:-1]):
+                    assert same_bits(got, want)
+
+
+@needs_native
+@pytest.mark.parametrize("transport", ["native", "grpc"])
+def test_an_env_deleted_behind_the_vector_envs_back_is_not_found_with_its_index(address, raw_stub, transport):
+    with mll.vector_env(3, address=address, n_landers=1, transport=transport) as vector:
+        vector.reset(seed=0)
+        delete_env(raw_stub, vector.names[1])
+        with pytest.raises(mll.MLLError) as caught:
+            vector.step(np.zeros((3, 1), np.int32))
+        assert caught.value.code == grpc.StatusCode.NOT_FOUND
+        assert caught.value.message.startswith(f"env 1 ({vector.names[1]}): ")
+        assert vector.names[1] in caught.value.message.split(": ", 1)[1]  # The server's own words.
+        # The stream stays usable: the other envs step on.
+        raw_stub.ResetEnv(pb.ResetEnvRequest(name=vector.names[0]))
+        with pytest.raises(mll.MLLError):
+            vector.step(np.zeros((3, 1), np.int32))
+
+
+@needs_native
+def test_the_token_goes_with_native_steps_and_a_wrong_one_is_unauthenticated(auth_server, monkeypatch):
+    monkeypatch.delenv(mll.TOKEN_ENV, raising=False)
+    with mll.vector_env(2, address=auth_server, n_landers=1, token=TOKEN, transport="native") as vector:
+        vector.reset(seed=3)
+        observations = vector.step(np.zeros((2, 1), np.int32))[0]
+        assert observations.shape == (2, 1, 12) and np.isfinite(observations).all()
+    for token in ("wrong-token", ""):
+        connection = Connection(auth_server, Security.from_options(token=token))
+        stream = _native.NativeSessionStream(connection)
+        try:
+            stream.send(pb.SessionRequest(get_env=pb.GetEnvRequest(name="envs/any")))
+            with pytest.raises(mll.MLLError) as caught:
+                stream.receive()
+            assert caught.value.code == grpc.StatusCode.UNAUTHENTICATED
+            assert "authorization" in caught.value.message and "wrong-token" not in caught.value.message
+        finally:
+            stream.close()
+            connection.close()
+
+
+@needs_native
+def test_a_stopped_server_is_unavailable_naming_its_address():
+    server = mll.ServerProcess(threads=1)
+    try:
+        vector = mll.vector_env(2, address=server.address, n_landers=1, transport="native")
+        vector.reset(seed=1)
+        vector.step(np.zeros((2, 1), np.int32))
+        server.stop()
+        for _ in range(2):  # The broken stream, then a new one that cannot connect.
+            with pytest.raises(mll.MLLError) as caught:
+                vector.step(np.zeros((2, 1), np.int32))
+            assert caught.value.code == grpc.StatusCode.UNAVAILABLE
+            assert server.address in caught.value.message
+        vector.close()
+    finally:
+        server.stop()
+
+
+@needs_native
+def test_a_closed_native_stream_is_reopened_by_the_next_step(address):
+    with mll.vector_env(2, address=address, n_landers=2, transport="native") as vector, \
+            mll.vector_env(2, address=address, n_landers=2, transport="grpc") as reference:
+        actions = np.zeros((2, 2), np.int32)
+        for env in (vector, reference):
+            env.reset(seed=5)
+            env.step(actions)
+        vector._servers[0].stream.close()
+        assert same_bits(vector.step(actions)[0], reference.step(actions)[0])
+
+
+def test_transport_survives_pickling(address):
+    with mll.vector_env(2, address=address, n_landers=1, transport="grpc") as vector:
+        copy = pickle.loads(pickle.dumps(vector))
+        assert copy.transport == "grpc" and copy._init_kwargs["transport"] == "grpc"
+        copy.close()
+    gym_env = mll.gym_vector_env(2, address=address, n_landers=1, transport="grpc")
+    copy = pickle.loads(pickle.dumps(gym_env))
+    assert copy.vector.transport == "grpc"
+    copy.close()
+    gym_env.close()
+
+
+def test_a_bogus_transport_is_invalid_argument(address):
+    with pytest.raises(mll.MLLError) as caught:
+        mll.vector_env(2, address=address, transport="bogus")
+    assert caught.value.code == grpc.StatusCode.INVALID_ARGUMENT
+    assert caught.value.message == "transport is 'bogus'; allowed: 'auto', 'native', 'grpc'"
+
+
+def test_without_the_library_native_is_refused_and_auto_uses_grpc(address, tmp_path, monkeypatch):
+    missing = tmp_path / "libmll_native_stream.so"
+    monkeypatch.setenv(_native.LIBRARY_ENV, str(missing))
+    monkeypatch.setattr(_native, "_loaded", None)  # Looked for again, at $MLL_NATIVE_LIBRARY only.
+    with pytest.raises(mll.MLLError) as caught:
+        mll.vector_env(2, address=address, transport="native")
+    assert caught.value.code == grpc.StatusCode.FAILED_PRECONDITION
+    assert str(missing) in caught.value.message and _native.LIBRARY_ENV in caught.value.message
+    with mll.vector_env(2, address=address, n_landers=1) as vector:
+        assert vector.transport == "grpc"
+        vector.reset(seed=0)
+        assert vector.step(np.zeros((2, 1), np.int32))[0].shape == (2, 1, 12)
+    monkeypatch.setattr(_native, "_loaded", None)  # The next test loads the library again.
+
+
+# The parent's vector env, inherited by a forked child through memory.
+_INHERITED = []
+
+
+def _step_inherited_then_own(address):
+    try:
+        _INHERITED[0].step(np.zeros((2, 1), np.int32))
+        refused = None
+    except mll.MLLError as error:
+        refused = (error.code.name, error.message)
+    _INHERITED.clear()  # The child's copy goes without closing the parent's stream.
+    gc.collect()
+    try:
+        mll.vector_env(2, address=address, n_landers=1, transport="native")
+        native_refused = None
+    except mll.MLLError as error:
+        native_refused = (error.code.name, error.message)
+    with mll.vector_env(2, address=address, n_landers=1) as own:
+        own.reset(seed=2)
+        shape = own.step(np.zeros((2, 1), np.int32))[0].shape
+        transport = own.transport
+    return refused, native_refused, transport, shape
+
+
+@needs_native
+def test_a_forked_child_refuses_the_parents_native_stream_and_steps_its_own_over_grpc(address):
+    """gRPC C++ does not survive a fork: after the parent has used the native library, a forked
+    child is refused its parent's stream and native streams of its own, and "auto" steps over
+    grpcio there."""
+    vector = mll.vector_env(2, address=address, n_landers=1, transport="native")
+    vector.reset(seed=1)
+    vector.step(np.zeros((2, 1), np.int32))
+    _INHERITED[:] = [vector]
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        refused, native_refused, transport, shape = pool.apply_async(
+            _step_inherited_then_own, (address,)).get(timeout=60)
+    _INHERITED.clear()
+    assert refused[0] == "FAILED_PRECONDITION" and "forked process must make its own environments" in refused[1]
+    assert native_refused[0] == "FAILED_PRECONDITION" and "does not survive a fork" in native_refused[1]
+    assert (transport, shape) == ("grpc", (2, 1, 12))
+    assert vector.step(np.zeros((2, 1), np.int32))[0].shape == (2, 1, 12)  # The parent's stream still works.
+    vector.close()
