@@ -153,5 +153,6 @@ class RepeatedExploration:
         return actions
 
     def stop(self, streams) -> None:
-        """Ends the runs of `streams` (their landers' episodes ended)."""
+        """Ends the runs of `streams` (indices or a mask over all streams):
+        their landers' episodes ended."""
         self._left[streams] = 0

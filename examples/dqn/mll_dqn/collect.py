@@ -100,10 +100,11 @@ class _Collector:
         return self._exploration.act(self._agent, obs, streams, epsilon,
                                      self._rng)
 
-    def _ended(self, streams) -> None:
-        """The lander slots `streams` finished their episodes."""
+    def _ended(self, ended: np.ndarray) -> None:
+        """The lander slots where `ended` (bool, one per slot) is True finished
+        their episodes."""
         if self._exploration is not None:
-            self._exploration.stop(streams)
+            self._exploration.stop(ended)
 
     def _timed(self, call, *args, during=None):
         """call(*args), its seconds added to the "env" timer; with `during`,
@@ -188,7 +189,7 @@ class ParallelCollector(_Collector):
         ended_s = term_s.copy()
         ended_s[index] |= [truncs[a] for a in agents]
         self._returns += rew_s
-        self._ended(np.flatnonzero(ended_s))
+        self._ended(ended_s)
         for a, i in zip(agents, index):
             if ended_s[i]:
                 self._outcomes[i] = outcome_name(infos.get(a, {}))
@@ -238,7 +239,7 @@ class VectorCollector(_Collector):
         # Rows that carry a transition: landers active before a real step (not
         # the first observation of an auto-reset episode).
         real = self._active & ~np.repeat(reset_rows, n)
-        self._ended(np.flatnonzero(ended | np.repeat(reset_rows, n)))
+        self._ended(ended)
         transitions = self._folder.add(real, self._obs, actions, rewards,
                                        next_obs, terms, ended)
         self.env_steps += int((~reset_rows).sum())
