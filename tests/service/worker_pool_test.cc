@@ -46,7 +46,20 @@ TEST(WorkerPoolTest, TheCallingThreadRunsTheFirstShare) {
   WorkerPool pool(2);
   const std::thread::id caller = std::this_thread::get_id();
   std::vector<std::thread::id> ran_on(64);
-  RunAndWait(pool, 64, [&](int i) { ran_on[i] = std::this_thread::get_id(); });
+  // The worker's share [32, 64) waits until the caller has run an index, so
+  // a worker that is scheduled first cannot finish its share and take index
+  // 0 before the caller begins; the caller's first index is then index 0.
+  std::atomic<bool> caller_began{false};
+  RunAndWait(pool, 64, [&](int i) {
+    ran_on[i] = std::this_thread::get_id();
+    if (ran_on[i] == caller) caller_began = true;
+    const auto give_up =
+        std::chrono::steady_clock::now() + std::chrono::seconds(5);
+    while (i >= 32 && !caller_began &&
+           std::chrono::steady_clock::now() < give_up) {
+      std::this_thread::yield();
+    }
+  });
   EXPECT_EQ(ran_on[0], caller);
 }
 
