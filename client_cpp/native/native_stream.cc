@@ -1,7 +1,15 @@
 #include "native_stream.h"
 
+#include <fcntl.h>
+#include <sys/mman.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
 #include <array>
+#include <cerrno>
+#include <chrono>
 #include <cstdint>
+#include <cstring>
 #include <memory>
 #include <string>
 #include <utility>
@@ -18,8 +26,11 @@
 #include "grpcpp/support/slice.h"
 #include "grpcpp/support/status.h"
 #include "mll/client.h"
+#include "mll/shared_memory_pipe.h"
 
 namespace {
+
+namespace shared_memory = mll::shared_memory;
 
 constexpr char kSessionMethod[] = "/mll.v1.MultiLunarLander/Session";
 // The largest message either way, as the Python client's own channels.
@@ -64,6 +75,21 @@ struct mll_native_stream {
       stream_->StartCall(TagOf(kStart));
       if (!Await(kStart)) return Finish();
     }
+    if (attached_) {
+      if (size > capacity_) {
+        return Fail(static_cast<int>(grpc::StatusCode::RESOURCE_EXHAUSTED),
+                    "request of " + std::to_string(size) +
+                        " bytes; allowed: up to the shared-memory region's " +
+                        std::to_string(capacity_));
+      }
+      shared_memory::Header& header = Header();
+      std::memcpy(shared_memory::RequestArea(region_), data, size);
+      header.request_size.store(size, std::memory_order_release);
+      header.request_seq.store(++sent_, std::memory_order_release);
+      shared_memory::Wake(header.request_seq);
+      write_pending_ = true;
+      return 0;
+    }
     grpc::Slice slice(data, size);
     request_ = grpc::ByteBuffer(&slice, 1);
     stream_->Write(request_, TagOf(kWrite));
@@ -76,6 +102,7 @@ struct mll_native_stream {
       return Fail(static_cast<int>(grpc::StatusCode::FAILED_PRECONDITION),
                   "read without a write in flight");
     }
+    if (attached_) return ReadSharedMemory(data, size);
     stream_->Read(&response_, TagOf(kRead));
     const bool read = Await(kRead);
     const bool written = Await(kWrite);
@@ -92,6 +119,71 @@ struct mll_native_stream {
 
   const char* message() const { return message_.c_str(); }
 
+  bool is_open() const { return stream_ != nullptr; }
+
+  // Maps the region the server created for this stream's session (its
+  // attach_shared_memory answer) and sends every further message through
+  // it. The stream keeps a read pending, which completes only when the
+  // session ends.
+  int AttachSharedMemory(const char* path, uint64_t size, uint64_t nonce) {
+    if (stream_ == nullptr || attached_) {
+      return Fail(static_cast<int>(grpc::StatusCode::FAILED_PRECONDITION),
+                  "attach without an open, unattached stream");
+    }
+    const int fd = open(path, O_RDWR | O_CLOEXEC);
+    if (fd < 0) {
+      return Fail(static_cast<int>(grpc::StatusCode::NOT_FOUND),
+                  std::string(path) + " cannot be opened here (" +
+                      std::strerror(errno) +
+                      "): the server is on another host or in another "
+                      "container");
+    }
+    // A file of another size is not the region (and mapping past its end
+    // would fault on the first access).
+    struct stat info;
+    if (fstat(fd, &info) != 0 || !S_ISREG(info.st_mode) ||
+        static_cast<uint64_t>(info.st_size) != size ||
+        size < shared_memory::kHeaderBytes) {
+      close(fd);
+      return Fail(static_cast<int>(grpc::StatusCode::NOT_FOUND),
+                  std::string(path) +
+                      " is not this session's region (the server runs in "
+                      "another container or on another host)");
+    }
+    void* region =
+        mmap(nullptr, size, PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
+    close(fd);
+    if (region == MAP_FAILED) {
+      return Fail(
+          static_cast<int>(grpc::StatusCode::RESOURCE_EXHAUSTED),
+          std::string(path) + " cannot be mapped: " + std::strerror(errno));
+    }
+    region_ = region;
+    region_bytes_ = size;
+    const shared_memory::Header& header = Header();
+    if (header.magic != shared_memory::kMagic ||
+        header.version != shared_memory::kVersion || header.nonce != nonce ||
+        size != shared_memory::RegionBytes(header.capacity)) {
+      DropSharedMemory();
+      return Fail(static_cast<int>(grpc::StatusCode::NOT_FOUND),
+                  std::string(path) +
+                      " is not this session's region (another process's "
+                      "file: the server runs in another container)");
+    }
+    capacity_ = header.capacity;
+    sent_ = header.request_seq.load(std::memory_order_acquire);
+    stream_->Read(&response_, TagOf(kRead));
+    attached_ = true;
+    return 0;
+  }
+
+  // Unmaps the region (it was not the session's, or the stream went).
+  void DropSharedMemory() {
+    attached_ = false;
+    if (region_ != nullptr) munmap(region_, region_bytes_);
+    region_ = nullptr;
+  }
+
   // Cancels the open stream and forgets it.
   void Cancel() {
     if (stream_ == nullptr) return;
@@ -100,6 +192,47 @@ struct mll_native_stream {
   }
 
  private:
+  shared_memory::Header& Header() const {
+    return *static_cast<shared_memory::Header*>(region_);
+  }
+
+  // Waits for the server's answer in the region; between futex waits it
+  // looks whether the stream ended (the server went or ended the session).
+  int ReadSharedMemory(const char** data, size_t* size) {
+    if (!write_pending_) {
+      return Fail(static_cast<int>(grpc::StatusCode::FAILED_PRECONDITION),
+                  "read without a write in flight");
+    }
+    shared_memory::Header& header = Header();
+    while (header.response_seq.load(std::memory_order_acquire) != sent_) {
+      const uint32_t seen = header.response_seq.load(std::memory_order_acquire);
+      if (seen == sent_) break;
+      if (shared_memory::WaitWhileEqual(header.response_seq, seen,
+                                        std::chrono::nanoseconds(0),
+                                        std::chrono::milliseconds(20))) {
+        continue;
+      }
+      void* tag = nullptr;
+      bool ok = false;
+      if (queue_->AsyncNext(&tag, &ok, gpr_time_0(GPR_CLOCK_MONOTONIC)) ==
+          grpc::CompletionQueue::GOT_EVENT) {
+        // Only the pending read can complete: the session ended.
+        write_pending_ = false;
+        return Finish();
+      }
+    }
+    write_pending_ = false;
+    const uint64_t answer =
+        header.response_size.load(std::memory_order_acquire);
+    if (answer > capacity_) {
+      return Fail(static_cast<int>(grpc::StatusCode::INTERNAL),
+                  "the server's answer overflows the shared-memory region");
+    }
+    *data = shared_memory::ResponseArea(region_, capacity_);
+    *size = answer;
+    return 0;
+  }
+
   // Waits for `operation` to complete (recording any other that completes
   // first) and returns its outcome.
   bool Await(Operation operation) {
@@ -118,7 +251,9 @@ struct mll_native_stream {
   // The stream's final status, once its pending write is done; the stream
   // is forgotten.
   grpc::Status End() {
-    if (write_pending_) Await(kWrite);
+    // Attached, no write is pending on the stream (the read pending since
+    // the attach completes when the call ends).
+    if (write_pending_ && !attached_) Await(kWrite);
     write_pending_ = false;
     grpc::Status status;
     stream_->Finish(&status, TagOf(kFinish));
@@ -154,6 +289,7 @@ struct mll_native_stream {
     context_.reset();
     queue_.reset();
     done_.fill(false);
+    DropSharedMemory();
   }
 
   absl::Status channel_status_;
@@ -165,6 +301,13 @@ struct mll_native_stream {
   bool write_pending_ = false;
   std::array<bool, kOperations> done_{};
   std::array<bool, kOperations> ok_{};
+  // The shared-memory region, once created; attached_ once the server uses
+  // it. sent_ counts the requests written into it.
+  void* region_ = nullptr;
+  uint64_t region_bytes_ = 0;
+  uint64_t capacity_ = 0;
+  bool attached_ = false;
+  uint32_t sent_ = 0;
   grpc::ByteBuffer request_;
   grpc::ByteBuffer response_;
   grpc::Slice response_slice_;
@@ -211,5 +354,15 @@ const char* mll_native_stream_message(const mll_native_stream* stream) {
 }
 
 void mll_native_stream_close(mll_native_stream* stream) { delete stream; }
+
+int mll_native_stream_is_open(const mll_native_stream* stream) {
+  return stream->is_open() ? 1 : 0;
+}
+
+int mll_native_stream_attach_shared_memory(mll_native_stream* stream,
+                                           const char* path, uint64_t size,
+                                           uint64_t nonce) {
+  return stream->AttachSharedMemory(path, size, nonce);
+}
 
 }  // extern "C"

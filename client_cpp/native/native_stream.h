@@ -13,6 +13,7 @@
 #define MLL_CLIENT_NATIVE_NATIVE_STREAM_H_
 
 #include <stddef.h>
+#include <stdint.h>
 
 #define MLL_NATIVE_API __attribute__((visibility("default")))
 
@@ -48,6 +49,21 @@ MLL_NATIVE_API int mll_native_stream_read(mll_native_stream* stream,
 /* The message of the last failed write or read. */
 MLL_NATIVE_API const char* mll_native_stream_message(
     const mll_native_stream* stream);
+
+/* Whether a stream is open (a write opens one; a broken one is forgotten). */
+MLL_NATIVE_API int mll_native_stream_is_open(const mll_native_stream* stream);
+
+/* Shared memory (mll/shared_memory_pipe.h), for a server on this host: once
+ * the caller's attach_shared_memory request was answered on the open stream,
+ * this maps the region of the answer (`path`, `size`, `nonce`), and from then
+ * on writes and reads go through it (a read still returns the stream's
+ * status if the session ends). Returns 0, or NOT_FOUND when the path is not
+ * this session's region here (the server is on another host or in another
+ * container: close the handle and use a new one without); the stream stays
+ * as it was. A broken stream drops the region: the next stream starts
+ * without. */
+MLL_NATIVE_API int mll_native_stream_attach_shared_memory(
+    mll_native_stream* stream, const char* path, uint64_t size, uint64_t nonce);
 
 /* Cancels the open stream, if any, and frees the handle. */
 MLL_NATIVE_API void mll_native_stream_close(mll_native_stream* stream);

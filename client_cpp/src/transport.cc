@@ -117,10 +117,12 @@ class UnaryTransport final : public Transport {
       case v1::SessionRequest::kRenderEnv:
         return Unary(&Stub::RenderEnv, request.render_env(),
                      response->mutable_frame());
+      case v1::SessionRequest::kAttachSharedMemory:  // A Session's own.
       case v1::SessionRequest::OP_NOT_SET:
         break;
     }
-    return absl::InternalError("client bug: SessionRequest without an op");
+    return absl::InternalError(
+        "client bug: SessionRequest without a unary call's op");
   }
 
   bool is_session() const override { return false; }

@@ -2,7 +2,9 @@
 client_cpp/native with the C++ server), loaded with ctypes, carries each StepBatch on a Session
 stream of gRPC C++ in the calling thread. The grpcio stream it replaces hands every message
 between threads; this one costs the Python side only the message's encoding and decoding (the
-GIL is released while the library waits for the server).
+GIL is released while the library waits for the server). With a server on this host the stream
+attaches shared memory (attach_shared_memory in the proto): each message then passes through a
+region both processes map, with one futex wake-up each way and no socket.
 
 Where the library is looked for: $MLL_NATIVE_LIBRARY when set (only there); else beside this
 package (`pip install .` at the repository's root installs it there); else a source checkout's
@@ -21,14 +23,14 @@ import weakref
 
 import grpc
 
-from ._errors import MLLError, from_call_status, invalid_argument
+from ._errors import MLLError, from_call_status, from_item_error, invalid_argument
 from ._remote import Connection, SessionStream
 from ._server import checkout_build_path
 from ._stubs import pb
 
 LIBRARY_ENV = "MLL_NATIVE_LIBRARY"
 LIBRARY_NAME = "libmll_native_stream.so"
-TRANSPORTS = ("auto", "native", "grpc")
+TRANSPORTS = ("auto", "shared_memory", "native", "grpc")
 
 _lock = threading.Lock()
 _loaded: tuple[ctypes.CDLL | None, str] | None = None  # (library or None, why not)
@@ -58,6 +60,10 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     lib.mll_native_stream_message.argtypes = [handle]
     lib.mll_native_stream_close.restype = None
     lib.mll_native_stream_close.argtypes = [handle]
+    lib.mll_native_stream_is_open.restype = ctypes.c_int
+    lib.mll_native_stream_is_open.argtypes = [handle]
+    lib.mll_native_stream_attach_shared_memory.restype = ctypes.c_int
+    lib.mll_native_stream_attach_shared_memory.argtypes = [handle, text, ctypes.c_uint64, ctypes.c_uint64]
     return lib
 
 
@@ -97,17 +103,17 @@ def available() -> bool:
 
 
 def uses_native(transport: str) -> bool:
-    """Whether a vector env with `transport=` steps over the native library: "native" (which
-    must load), "grpc" (never) or "auto" (when it loads)."""
+    """Whether a vector env with `transport=` steps over the native library: "shared_memory" and
+    "native" (which must load), "grpc" (never) or "auto" (when it loads)."""
     if transport not in TRANSPORTS:
         raise invalid_argument(f"transport is {transport!r}; allowed: {', '.join(map(repr, TRANSPORTS))}")
     if transport == "grpc":
         return False
     lib, why_not = _usable()
-    if lib is None and transport == "native":
+    if lib is None and transport != "auto":
         raise MLLError(
             grpc.StatusCode.FAILED_PRECONDITION,
-            f"transport='native' needs {LIBRARY_NAME}, which is not available ({why_not}); it is "
+            f"transport={transport!r} needs {LIBRARY_NAME}, which is not available ({why_not}); it is "
             f"built with the server (scripts/build.sh in a clone, or pip install . at its root), or "
             f"set ${LIBRARY_ENV} to its path; transport='auto' falls back to grpcio",
         )
@@ -122,48 +128,117 @@ def _close_handle(lib: ctypes.CDLL, handle: int, pid: int) -> None:
 class NativeSessionStream(SessionStream):
     """SessionStream over the native library: send() starts writing the request (it does not
     wait for the server), receive() waits for the answer; the same errors, sequence numbers and
-    reopening of a broken stream as SessionStream."""
+    reopening of a broken stream as SessionStream.
 
-    def __init__(self, connection: Connection):
+    shared_memory= "try": each stream it opens asks the server for shared memory and uses it
+    when granted (a server on this host), else goes on over the stream; "require": as "try", but
+    a refusal raises FAILED_PRECONDITION with the server's reason; "off": never asks.
+    `shared_memory_in_use` says whether the open stream passes its messages through it."""
+
+    def __init__(self, connection: Connection, shared_memory: str = "off"):
         super().__init__(connection)
         self._lib = _usable()[0]
         if self._lib is None:
             uses_native("native")  # Raises, saying why.
+        self._shared_memory = shared_memory
+        self.shared_memory_in_use = False
         self._handle: int | None = None
         self._send_failure: MLLError | None = None  # A stream that did not open, raised by receive().
 
-    def send(self, request: "pb.SessionRequest") -> None:
-        """As SessionStream.send; the request is encoded here, so the caller may change it at once."""
-        connection = self._connection
-        connection.check_process()
+    def open(self) -> None:
+        """Opens the stream now, if it is not open (attaching shared memory as asked)."""
+        self._connection.check_process()
+        if self._handle is None or not self._lib.mll_native_stream_is_open(self._handle):
+            self._open()
+
+    def _new_handle(self) -> None:
+        global _started_in
+        _started_in = _started_in or os.getpid()
+        security = self._connection.security
+        root = security.root_certificates
+        self._handle = self._lib.mll_native_stream_open(
+            self._connection.address.encode(),
+            root,
+            len(root or b""),
+            (security.server_name or "").encode(),
+            (security.token or "").encode(),
+        )
+        self._finalizer = weakref.finalize(self, _close_handle, self._lib, self._handle, os.getpid())
+
+    def _open(self) -> None:
+        """A new stream; with shared memory asked for, its first exchange is the attach."""
         if self._handle is None:
-            global _started_in
-            _started_in = _started_in or os.getpid()
-            security = connection.security
-            root = security.root_certificates
-            self._handle = self._lib.mll_native_stream_open(
-                connection.address.encode(),
-                root,
-                len(root or b""),
-                (security.server_name or "").encode(),
-                (security.token or "").encode(),
-            )
-            self._finalizer = weakref.finalize(self, _close_handle, self._lib, self._handle, os.getpid())
+            self._new_handle()
+        self.shared_memory_in_use = False
+        if self._shared_memory == "off":
+            return  # The next write opens the stream.
+        self._write(pb.SessionRequest(attach_shared_memory=pb.AttachSharedMemoryRequest()))
+        response = self._read()
+        if response.HasField("error"):
+            if self._shared_memory == "require":
+                self.close()
+                raise MLLError(
+                    grpc.StatusCode.FAILED_PRECONDITION,
+                    f"transport='shared_memory': {self._connection._what} refused shared memory "
+                    f"({response.error.message}); transport='auto' goes on over the stream",
+                )
+            return
+        region = response.attach_shared_memory
+        code = self._lib.mll_native_stream_attach_shared_memory(
+            self._handle, region.path.encode(), region.size, region.nonce
+        )
+        if code:
+            failure = self._failure(code)
+            # The server serves a region this process cannot map (another host or container):
+            # this stream is spent; the next one asks for none.
+            self.close()
+            if self._shared_memory == "require":
+                raise MLLError(grpc.StatusCode.FAILED_PRECONDITION, f"transport='shared_memory': {failure}")
+            self._shared_memory = "off"
+            return
+        self.shared_memory_in_use = True
+
+    def _write(self, request: "pb.SessionRequest") -> None:
         self._sequence += 1
         request.sequence = self._sequence
         data = request.SerializeToString()
         code = self._lib.mll_native_stream_write(self._handle, data, len(data))
-        self._send_failure = self._failure(code) if code else None
+        if code:
+            raise self._failure(code)
+
+    def _read(self) -> "pb.SessionResponse":
+        """The answer to the last write, its sequence checked; the stream's failure raised."""
+        data, size = ctypes.c_void_p(), ctypes.c_size_t()
+        code = self._lib.mll_native_stream_read(self._handle, ctypes.byref(data), ctypes.byref(size))
+        if code:
+            raise self._failure(code)
+        response = pb.SessionResponse.FromString(ctypes.string_at(data, size.value))
+        if response.sequence != self._sequence:
+            self.close()
+            raise MLLError(
+                grpc.StatusCode.INTERNAL,
+                f"{self._connection.address} answered Session request {response.sequence}; "
+                f"expected the answer to {self._sequence}",
+            )
+        return response
+
+    def send(self, request: "pb.SessionRequest") -> None:
+        """As SessionStream.send; the request is encoded here, so the caller may change it at once."""
+        self._send_failure = None
+        try:
+            self.open()
+            self._write(request)
+        except MLLError as failure:  # Raised by receive(), as a stream's failure is.
+            self._send_failure = failure
 
     def receive(self) -> "pb.SessionResponse":
         if self._send_failure is not None:
             failure, self._send_failure = self._send_failure, None
             raise failure
-        data, size = ctypes.c_void_p(), ctypes.c_size_t()
-        code = self._lib.mll_native_stream_read(self._handle, ctypes.byref(data), ctypes.byref(size))
-        if code:
-            raise self._failure(code)
-        return self._answer(pb.SessionResponse.FromString(ctypes.string_at(data, size.value)))
+        response = self._read()
+        if response.HasField("error"):
+            raise from_item_error(response.error.code, response.error.message)
+        return response
 
     def _failure(self, code: int) -> MLLError:
         message = self._lib.mll_native_stream_message(self._handle).decode(errors="replace")
@@ -171,6 +246,7 @@ class NativeSessionStream(SessionStream):
 
     def close(self) -> None:
         """Cancels the stream (idempotent); the next send() opens a new one."""
+        self.shared_memory_in_use = False
         if self._handle is not None:
             self._finalizer()
             self._handle = self._finalizer = None

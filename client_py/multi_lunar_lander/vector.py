@@ -133,7 +133,7 @@ class VectorEnv:
             transport=transport,
             **security.as_options(),
         )
-        self.transport = "native" if native else "grpc"
+        self._transport = transport
         servers = addresses or (None,)  # None: the embedded server.
         self._names: list[str | None] = [None] * self.num_envs  # None: not created.
         self._step_in_flight = False  # From step_async until step_wait reads the answers.
@@ -170,7 +170,13 @@ class VectorEnv:
         self._action_dtype = pb.DTYPE_FLOAT32 if self.continuous else pb.DTYPE_INT32
         action_shape = (self.n_landers, 2) if self.continuous else (self.n_landers,)
         stride = len(self._connections)
-        stream_type = _native.NativeSessionStream if native else SessionStream
+        if native:
+            shared_memory = {"auto": "try", "shared_memory": "require"}.get(transport, "off")
+
+            def stream_type(connection):
+                return _native.NativeSessionStream(connection, shared_memory)
+        else:
+            stream_type = SessionStream
         self._servers = []
         for first, connection in enumerate(self._connections):
             rows = slice(first, self.num_envs, stride)
@@ -187,6 +193,17 @@ class VectorEnv:
             self._servers.append(
                 _Server(connection, rows, len(names), message, actions, columns, stream_type(connection))
             )
+
+    @property
+    def transport(self) -> str:
+        """The transport in use: "shared_memory" when every server's stream passes its messages
+        through shared memory, "native" when they use the native library otherwise, "grpc"."""
+        streams = [server.stream for server in self._servers]
+        if not streams or not isinstance(streams[0], _native.NativeSessionStream):
+            return "grpc"
+        for stream in streams:
+            stream.open()
+        return "shared_memory" if all(s.shared_memory_in_use for s in streams) else "native"
 
     def __reduce__(self):
         """Pickles as its arguments (num_envs, options, address, TLS/token settings), never a
@@ -228,7 +245,14 @@ class VectorEnv:
             "episode_return": columns["episode_returns"],
             "episode_length": columns["episode_lengths"],
         }
-        return columns["observations"], columns["rewards"], columns["terminations"], columns["truncations"], active, infos
+        return (
+            columns["observations"],
+            columns["rewards"],
+            columns["terminations"],
+            columns["truncations"],
+            active,
+            infos,
+        )
 
     def reset(self, seed: int | None = None, options: dict | None = None):
         self._check_no_step_in_flight()

@@ -45,6 +45,10 @@ ABSL_FLAG(int32_t, max_envs_per_token, 0,
           "most environments one token (tenant) hosts at once; 0: the "
           "default, unlimited without --auth_token_file, else "
           "max(1, max_envs / number of tokens)");
+ABSL_FLAG(int32_t, shared_memory_sessions, 64,
+          "most Sessions attached to shared memory at once (clients on this "
+          "host; one thread each); 0: none, every session stays on its "
+          "stream");
 ABSL_FLAG(double, idle_timeout_s, 300,
           "an environment untouched this many seconds is destroyed");
 ABSL_FLAG(double, shutdown_grace_s, 5,
@@ -145,6 +149,8 @@ absl::StatusOr<mll::service::ServerOptions> ServerOptionsFromFlags() {
   options.service.threads = absl::GetFlag(FLAGS_threads);
   options.service.max_envs = absl::GetFlag(FLAGS_max_envs);
   options.service.max_envs_per_token = absl::GetFlag(FLAGS_max_envs_per_token);
+  options.service.shared_memory_sessions =
+      absl::GetFlag(FLAGS_shared_memory_sessions);
   options.service.idle_timeout =
       absl::Seconds(absl::GetFlag(FLAGS_idle_timeout_s));
   options.tls_cert_file = absl::GetFlag(FLAGS_tls_cert);
@@ -174,11 +180,12 @@ void PrintBanner(const mll::service::Server& server,
   std::fprintf(stderr,
                "mll_server: listening on %s (--address=%s --port_file=%s "
                "--threads=%d --max_envs=%d --max_envs_per_token=%d "
-               "--idle_timeout_s=%g --max_message_mb=%d "
-               "--shutdown_grace_s=%g)\n",
+               "--shared_memory_sessions=%d --idle_timeout_s=%g "
+               "--max_message_mb=%d --shutdown_grace_s=%g)\n",
                listening.c_str(), options.address.c_str(), port_file.c_str(),
                options.service.threads, options.service.max_envs,
                mll::service::EffectiveMaxEnvsPerToken(options.service),
+               options.service.shared_memory_sessions,
                absl::ToDoubleSeconds(options.service.idle_timeout),
                options.max_message_mb, shutdown_grace_s);
   const int n_tokens = static_cast<int>(options.service.auth_tokens.size());

@@ -99,6 +99,11 @@ absl::Status ValidateServerOptions(const ServerOptions& options) {
     return OutOfRange("max_envs_per_token", options.service.max_envs_per_token,
                       ">= 1, or 0 for the default");
   }
+  if (options.service.shared_memory_sessions < 0) {
+    return OutOfRange("shared_memory_sessions",
+                      options.service.shared_memory_sessions,
+                      ">= 0 (0: no session attaches shared memory)");
+  }
   if (!(options.service.idle_timeout > absl::ZeroDuration())) {
     return OutOfRange("idle_timeout_s",
                       absl::ToDoubleSeconds(options.service.idle_timeout),

@@ -1,15 +1,22 @@
 #include "mll/service/service.h"
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
+#include <functional>
 #include <optional>
 #include <string>
+#include <thread>
 #include <utility>
 #include <vector>
 
 #include "absl/container/flat_hash_set.h"
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
+#include "absl/synchronization/notification.h"
 #include "mll/service/convert.h"
+#include "mll/shared_memory_pipe.h"
+#include "shared_memory_region.h"
 
 namespace mll::service {
 namespace {
@@ -136,19 +143,37 @@ grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context,
   return reactor;
 }
 
+// Whether a call's peer (grpc::ServerContext::peer) is on this host: a
+// loopback address or a Unix-domain socket. Only such a caller can share
+// memory with the server.
+bool IsLocalPeer(absl::string_view peer) {
+  return absl::StartsWith(peer, "unix:") ||
+         absl::StartsWith(peer, "ipv4:127.") ||
+         absl::StartsWith(peer, "ipv6:[::1]") ||
+         absl::StartsWith(peer, "ipv6:%5B::1%5D");
+}
+
 // One Session stream: reads a request, runs it, writes its response, reads
 // the next; so responses come in request order and at most one operation of
 // the stream is in flight. Envs it created (not detached) are deleted when
 // the stream ends, however it ends. The caller is authenticated once, when
 // the stream opens; every request then acts as that owner.
+//
+// After attach_shared_memory succeeds, the requests come through the
+// client's shared-memory region instead (mll/shared_memory_pipe.h), served
+// by a thread of the session's own; the stream then only marks the
+// session's life, and a request sent on it gets FAILED_PRECONDITION.
 class SessionReactor final
     : public grpc::ServerBidiReactor<v1::SessionRequest, v1::SessionResponse> {
  public:
   SessionReactor(Operations* operations, Registry* registry, Metrics* metrics,
+                 SharedMemorySessions* shared_memory_sessions, bool local_peer,
                  absl::StatusOr<absl::string_view> owner)
       : operations_(operations),
         registry_(registry),
         metrics_(metrics),
+        shared_memory_sessions_(shared_memory_sessions),
+        local_peer_(local_peer),
         timer_(metrics, Method::kSession) {
     if (!owner.ok()) {
       timer_.Record(owner.status());
@@ -167,14 +192,19 @@ class SessionReactor final
     timer_.Restart();
     response_.Clear();
     response_.set_sequence(request_.sequence());
-    if (request_.op_case() == v1::SessionRequest::kStepBatch) {
-      // Runs on the worker pool; the write starts when the batch is done.
-      dispatch().StepBatch(request_.step_batch(),
-                           response_.mutable_step_batch(),
-                           [this](absl::Status status) { Respond(status); });
+    if (region_ != nullptr) {
+      Respond(absl::FailedPreconditionError(absl::StrCat(
+          "op: sent on the stream (sequence ", request_.sequence(),
+          ") of a session attached to shared memory; allowed: requests "
+          "through the shared-memory region")));
       return;
     }
-    Respond(Run());
+    if (request_.op_case() == v1::SessionRequest::kAttachSharedMemory) {
+      Respond(AttachSharedMemory());
+      return;
+    }
+    Execute(request_, &response_,
+            [this](absl::Status status) { Respond(status); });
   }
 
   void OnWriteDone(bool ok) override {
@@ -188,6 +218,7 @@ class SessionReactor final
   // Also covers a stream that ended without EndStream (e.g. cancelled while a
   // write was pending).
   void OnDone() override {
+    StopServingSharedMemory();
     DeleteBoundEnvs();
     delete this;
   }
@@ -196,6 +227,7 @@ class SessionReactor final
   // The bound envs go before the final status does, so a client that sees
   // the stream end never finds them still listed.
   void EndStream() {
+    StopServingSharedMemory();
     DeleteBoundEnvs();
     Finish(grpc::Status::OK);
   }
@@ -212,42 +244,58 @@ class SessionReactor final
     return Dispatch(operations_, metrics_, Method::kSession, owner_);
   }
 
-  absl::Status Run() {
+  // Runs `request` into `response`, then done(status): at once, or on the
+  // worker pool once a StepBatch's items are done.
+  void Execute(const v1::SessionRequest& request, v1::SessionResponse* response,
+               std::function<void(absl::Status)> done) {
+    if (request.op_case() == v1::SessionRequest::kStepBatch) {
+      dispatch().StepBatch(request.step_batch(), response->mutable_step_batch(),
+                           std::move(done));
+      return;
+    }
+    done(Run(request, response));
+  }
+
+  absl::Status Run(const v1::SessionRequest& request,
+                   v1::SessionResponse* response) {
     const Dispatch run = dispatch();
-    switch (request_.op_case()) {
+    switch (request.op_case()) {
       case v1::SessionRequest::kCreateEnv: {
-        const bool bound = !request_.create_env().detached();
-        absl::Status status = run.CreateEnv(request_.create_env(), bound,
-                                            response_.mutable_env());
-        if (status.ok() && bound) bound_envs_.insert(response_.env().name());
+        const bool bound = !request.create_env().detached();
+        absl::Status status =
+            run.CreateEnv(request.create_env(), bound, response->mutable_env());
+        if (status.ok() && bound) bound_envs_.insert(response->env().name());
         return status;
       }
       case v1::SessionRequest::kGetEnv:
-        return run.GetEnv(request_.get_env(), response_.mutable_env());
+        return run.GetEnv(request.get_env(), response->mutable_env());
       case v1::SessionRequest::kResetEnv:
-        return run.ResetEnv(request_.reset_env(),
-                            response_.mutable_reset_env());
+        return run.ResetEnv(request.reset_env(), response->mutable_reset_env());
       case v1::SessionRequest::kStepEnv:
-        return run.StepEnv(request_.step_env(), "step_env.",
-                           response_.mutable_step_env()->mutable_data());
+        return run.StepEnv(request.step_env(), "step_env.",
+                           response->mutable_step_env()->mutable_data());
       case v1::SessionRequest::kStepAgent:
-        return run.StepAgent(request_.step_agent(),
-                             response_.mutable_step_agent());
+        return run.StepAgent(request.step_agent(),
+                             response->mutable_step_agent());
       case v1::SessionRequest::kRenderEnv:
-        return run.RenderEnv(request_.render_env(), response_.mutable_frame());
+        return run.RenderEnv(request.render_env(), response->mutable_frame());
       case v1::SessionRequest::kDeleteEnv: {
-        response_.mutable_delete_env();
-        absl::Status status = run.DeleteEnv(request_.delete_env());
+        response->mutable_delete_env();
+        absl::Status status = run.DeleteEnv(request.delete_env());
         // Forgotten at once: a long session creating and deleting envs
         // must not grow (found by bench/load soak, +39 MB per 1M cycles).
-        if (status.ok()) bound_envs_.erase(request_.delete_env().name());
+        if (status.ok()) bound_envs_.erase(request.delete_env().name());
         return status;
       }
+      case v1::SessionRequest::kAttachSharedMemory:
+        return absl::FailedPreconditionError(
+            "attach_shared_memory: the session is attached already");
       default:
         return absl::InvalidArgumentError(absl::StrCat(
-            "op: not set (sequence ", request_.sequence(),
+            "op: not set (sequence ", request.sequence(),
             "); allowed: create_env, reset_env, step_env, step_agent, "
-            "step_batch, render_env, delete_env, get_env"));
+            "step_batch, render_env, delete_env, get_env, "
+            "attach_shared_memory"));
     }
   }
 
@@ -260,15 +308,121 @@ class SessionReactor final
     StartWrite(&response_);
   }
 
+  // Creates the session's region and starts the thread that serves it.
+  absl::Status AttachSharedMemory() {
+    if (!local_peer_) {
+      return absl::PermissionDeniedError(
+          "attach_shared_memory: the caller is not on the server's host "
+          "(allowed: a loopback address or a Unix-domain socket)");
+    }
+    absl::StatusOr<SharedMemorySessions::Slot> slot =
+        shared_memory_sessions_->Take();
+    if (!slot.ok()) return slot.status();
+    absl::StatusOr<std::unique_ptr<SharedMemoryRegion>> region =
+        SharedMemoryRegion::Create();
+    if (!region.ok()) return region.status();
+    slot_ = *std::move(slot);
+    region_ = *std::move(region);
+    v1::AttachSharedMemoryResponse* attached =
+        response_.mutable_attach_shared_memory();
+    attached->set_path(region_->path());
+    attached->set_size(region_->bytes());
+    attached->set_nonce(region_->nonce());
+    server_thread_ = std::thread([this] { ServeSharedMemory(); });
+    return absl::OkStatus();
+  }
+
+  // The shared-memory session's loop: waits for each request (spinning
+  // briefly first: the client usually sends its next request within a
+  // fraction of a millisecond), runs it as a stream's request would run,
+  // and answers through the region.
+  void ServeSharedMemory() {
+    shared_memory::Header& header = region_->header();
+    uint32_t seen = header.request_seq.load(std::memory_order_acquire);
+    std::string bytes;
+    v1::SessionRequest request;
+    v1::SessionResponse response;
+    while (!stop_serving_.load(std::memory_order_acquire)) {
+      if (!shared_memory::WaitWhileEqual(header.request_seq, seen,
+                                         std::chrono::microseconds(100),
+                                         std::chrono::milliseconds(50))) {
+        continue;
+      }
+      if (stop_serving_.load(std::memory_order_acquire)) break;
+      seen = header.request_seq.load(std::memory_order_acquire);
+      CallTimer timer(metrics_, Method::kSession);
+      const uint64_t size = header.request_size.load(std::memory_order_acquire);
+      response.Clear();
+      absl::Status status;
+      // Copied before parsing: the client can write the region at any time.
+      if (size > region_->capacity()) {
+        status = absl::InvalidArgumentError(
+            absl::StrCat("request_size: ", size, " bytes; allowed: 0..",
+                         region_->capacity(), " (the region's capacity)"));
+      } else {
+        bytes.assign(region_->request(), size);
+        if (!request.ParseFromString(bytes)) {
+          status = absl::InvalidArgumentError(
+              "request: not a serialized SessionRequest");
+        } else {
+          response.set_sequence(request.sequence());
+          absl::Notification finished;
+          Execute(request, &response, [&](absl::Status done) {
+            status = std::move(done);
+            finished.Notify();
+          });
+          finished.WaitForNotification();
+        }
+      }
+      timer.Record(status);
+      if (!status.ok()) {
+        response.clear_result();
+        FillItemError(status, response.mutable_error());
+      }
+      if (response.ByteSizeLong() > region_->capacity()) {
+        const uint64_t needed = response.ByteSizeLong();
+        response.clear_result();
+        FillItemError(absl::ResourceExhaustedError(absl::StrCat(
+                          "response: ", needed, " bytes; allowed: 0..",
+                          region_->capacity(),
+                          " (the region's capacity; attach a larger one)")),
+                      response.mutable_error());
+      }
+      const uint64_t written = response.ByteSizeLong();
+      response.SerializeWithCachedSizesToArray(
+          reinterpret_cast<uint8_t*>(region_->response()));
+      header.response_size.store(written, std::memory_order_release);
+      header.response_seq.store(seen, std::memory_order_release);
+      shared_memory::Wake(header.response_seq);
+    }
+  }
+
+  void StopServingSharedMemory() {
+    if (!server_thread_.joinable()) return;
+    stop_serving_.store(true, std::memory_order_release);
+    // Wakes the thread if it sleeps on the request counter.
+    shared_memory::Wake(region_->header().request_seq);
+    server_thread_.join();
+    region_.reset();
+    slot_ = SharedMemorySessions::Slot();
+  }
+
   Operations* const operations_;
   Registry* const registry_;
   Metrics* const metrics_;
+  SharedMemorySessions* const shared_memory_sessions_;
+  const bool local_peer_;
   // Points into the Authenticator, which outlives every call.
   absl::string_view owner_;
   CallTimer timer_;
   v1::SessionRequest request_;
   v1::SessionResponse response_;
   absl::flat_hash_set<std::string> bound_envs_;
+  // Set while the session is attached to shared memory.
+  SharedMemorySessions::Slot slot_;
+  std::unique_ptr<SharedMemoryRegion> region_;
+  std::thread server_thread_;
+  std::atomic<bool> stop_serving_{false};
 };
 
 // One call's request and response and the arena they live on, freed
@@ -304,6 +458,22 @@ MultiLunarLanderService::StepBatchArenas::AllocateMessages() {
   return new StepBatchMessages();
 }
 
+absl::StatusOr<SharedMemorySessions::Slot> SharedMemorySessions::Take() {
+  if (limit_ == 0) {
+    return absl::PermissionDeniedError(
+        "attach_shared_memory: the server runs with "
+        "--shared_memory_sessions=0");
+  }
+  if (attached_.fetch_add(1) >= limit_) {
+    attached_.fetch_sub(1);
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "attach_shared_memory: ", limit_,
+        " sessions are attached (--shared_memory_sessions); allowed: at most ",
+        limit_));
+  }
+  return Slot(&attached_);
+}
+
 int EffectiveMaxEnvsPerToken(const ServiceOptions& options) {
   if (options.max_envs_per_token > 0) return options.max_envs_per_token;
   if (options.auth_tokens.empty()) return 0;
@@ -316,7 +486,8 @@ MultiLunarLanderService::MultiLunarLanderService(const ServiceOptions& options)
       registry_(options.max_envs, options.idle_timeout,
                 EffectiveMaxEnvsPerToken(options)),
       operations_(&registry_, &pool_),
-      pool_(options.threads) {
+      pool_(options.threads),
+      shared_memory_sessions_(options.shared_memory_sessions) {
   SetMessageAllocatorFor_StepBatch(&step_batch_arenas_);
 }
 
@@ -433,7 +604,8 @@ grpc::ServerUnaryReactor* MultiLunarLanderService::KeepAlive(
 grpc::ServerBidiReactor<v1::SessionRequest, v1::SessionResponse>*
 MultiLunarLanderService::Session(grpc::CallbackServerContext* context) {
   return new SessionReactor(&operations_, &registry_, &metrics_,
-                            Admit(*context));
+                            &shared_memory_sessions_,
+                            IsLocalPeer(context->peer()), Admit(*context));
 }
 
 }  // namespace mll::service

@@ -8,8 +8,10 @@
 
 #include <atomic>
 #include <string>
+#include <utility>
 #include <vector>
 
+#include "absl/status/statusor.h"
 #include "absl/time/time.h"
 #include "grpcpp/grpcpp.h"
 #include "mll/service/auth.h"
@@ -35,6 +37,46 @@ struct ServiceOptions {
   // Bearer tokens a caller must present (--auth_token_file, read with
   // ReadTokenFile); empty: no authentication, one anonymous owner.
   std::vector<std::string> auth_tokens;
+  // Most Sessions attached to shared memory at once, each served by a
+  // thread of its own (--shared_memory_sessions). >= 0; 0 refuses every
+  // attach (the sessions stay on their streams).
+  int shared_memory_sessions = 64;
+};
+
+// The count of Sessions attached to shared memory, bounded by
+// ServiceOptions::shared_memory_sessions: Take() hands out a Slot, which
+// gives its place back when it goes.
+class SharedMemorySessions {
+ public:
+  class Slot {
+   public:
+    Slot() = default;
+    explicit Slot(std::atomic<int>* attached) : attached_(attached) {}
+    Slot(Slot&& other) noexcept
+        : attached_(std::exchange(other.attached_, nullptr)) {}
+    Slot& operator=(Slot&& other) noexcept {
+      Release();
+      attached_ = std::exchange(other.attached_, nullptr);
+      return *this;
+    }
+    ~Slot() { Release(); }
+
+   private:
+    void Release() {
+      if (attached_ != nullptr) attached_->fetch_sub(1);
+      attached_ = nullptr;
+    }
+    std::atomic<int>* attached_ = nullptr;
+  };
+
+  explicit SharedMemorySessions(int limit) : limit_(limit) {}
+  // A slot, or PERMISSION_DENIED when the limit is 0, RESOURCE_EXHAUSTED
+  // when every slot is taken.
+  absl::StatusOr<Slot> Take();
+
+ private:
+  const int limit_;
+  std::atomic<int> attached_{0};
 };
 
 // The per-token quota `options` give: max_envs_per_token when set; else,
@@ -118,6 +160,7 @@ class MultiLunarLanderService final
   Registry registry_;
   Operations operations_;
   WorkerPool pool_;
+  SharedMemorySessions shared_memory_sessions_;
 };
 
 }  // namespace mll::service
