@@ -56,9 +56,9 @@ def test_native_and_grpc_give_the_same_bits_across_auto_resets(address, two_serv
 
 
 @needs_native
-def test_auto_is_native_when_the_library_loads(address):
+def test_auto_uses_the_native_library_and_shared_memory_with_a_local_server(address):
     with mll.vector_env(2, address=address, n_landers=1) as vector:
-        assert vector.transport == "native"
+        assert vector.transport == "shared_memory"
         assert isinstance(vector._servers[0].stream, _native.NativeSessionStream)
 
 
