@@ -6,10 +6,11 @@
    (`step`, all envs per call) and its async API (`recv` of `--async_batch` envs, then `send` of
    their actions). The faster of the two is the floor.
    Ours: `vector_env(--envs, n_landers=1)`, the same random discrete actions, auto-reset, on an
-   `mll_server --threads=--threads`, over loopback TCP (what the embedded server uses) and over
-   a Unix-domain socket (`mll_server --address=unix:PATH`), each with both step transports
-   (`transport="native"`, the default where the library is built, and `transport="grpc"`,
-   grpcio); and over TCP (default transport) as two vector envs of
+   `mll_server --threads=--threads`, over loopback TCP (what the embedded server uses) with each
+   step transport (`transport="shared_memory"`, what "auto" picks for a server on this host where
+   the native library is built; `"native"`, the library's gRPC stream; `"grpc"`, grpcio's), and
+   over a Unix-domain socket (`mll_server --address=unix:PATH`) with the two stream transports;
+   and over TCP (default transport) as two vector envs of
    half the size stepped alternately with step_async/step_wait (each call sends one half's
    actions and returns the other half's results: EnvPool's async pattern with the same batch).
    For reference (not a floor of this comparison): our core stepping the same 64 one-lander envs
@@ -87,9 +88,11 @@ def main() -> int:
         sync = envpool.make(ENVPOOL_TASK, env_type="gymnasium", num_envs=args.envs, num_threads=args.threads, seed=0)
         sync.reset()
         pool_async = EnvPoolAsync(envpool, args.envs, args.async_batch, args.threads)
-        ours = {(name, transport): mll.vector_env(args.envs, address=server.address, n_landers=1,
+        servers = {"tcp": tcp, "unix": unix}
+        ours = {(name, transport): mll.vector_env(args.envs, address=servers[name].address, n_landers=1,
                                                   transport=transport)
-                for name, server in (("tcp", tcp), ("unix", unix)) for transport in ("native", "grpc")}
+                for name, transport in (("tcp", "shared_memory"), ("tcp", "native"), ("tcp", "grpc"),
+                                        ("unix", "native"), ("unix", "grpc"))}
         for env in ours.values():
             env.reset(seed=0)
         halves = Halves(mll, other.address, args.envs, 1)
@@ -98,7 +101,6 @@ def main() -> int:
         raw.reset(seed=0)
         gym_env.reset(seed=0)
         column = table[..., None]
-        servers = {"tcp": tcp, "unix": unix}
         sides = {
             "envpool_sync": (sync.step, table, args.envs, None),
             "envpool_async": (pool_async.step, half_table, args.async_batch, None),
@@ -139,7 +141,8 @@ def main() -> int:
               f"({', '.join(f'{value:.2f}' for value in ratios)}) | {np.median(cpu_us[name]):.1f} "
               f"| {np.median(cpu_ratios):.2f} |")
 
-    for name in ("envpool_sync", "envpool_async", "vector_env_tcp_native", "vector_env_tcp_grpc",
+    for name in ("envpool_sync", "envpool_async", "vector_env_tcp_shared_memory", "vector_env_tcp_native",
+                 "vector_env_tcp_grpc",
                  "vector_env_unix_native", "vector_env_unix_grpc", "vector_env_tcp_halves", "core_in_process"):
         row(name, floor, floor_cpu)
     print("| (floor above: EnvPool's faster API per round; below: raw_vector_env_x3) | | | | |")

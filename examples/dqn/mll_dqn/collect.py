@@ -88,22 +88,14 @@ class _Collector:
             RepeatedExploration(num_envs * self._n, config.explore_zeta,
                                 config.explore_max_steps)
             if config.explore_zeta else None)
-        self._repeating = self._exploration is not None
         self.env = None
         self.env_steps = 0
         # Made on the first overlapped call; one thread, so calls stay ordered.
         self._worker: Optional[concurrent.futures.ThreadPoolExecutor] = None
 
-    def repeat_exploring_actions(self, on: bool) -> None:
-        """Turns the repeated exploring runs (config.explore_zeta) on or off;
-        off, exploration is one-step epsilon-greedy and open runs end."""
-        self._repeating = on and self._exploration is not None
-        if self._exploration is not None and not on:
-            self._exploration.stop(slice(None))
-
     def _act(self, obs: np.ndarray, streams: np.ndarray, epsilon: float):
         """Actions of the lander slots `streams` observing `obs`."""
-        if not self._repeating:
+        if self._exploration is None:
             return self._agent.act(obs, epsilon, self._rng)
         return self._exploration.act(self._agent, obs, streams, epsilon,
                                      self._rng)

@@ -58,10 +58,6 @@ class TrainConfig:
     # exploring action lasts one step (the paper's epsilon-greedy).
     explore_zeta: float = 0.0
     explore_max_steps: int = 100
-    # Repeated exploring runs start only once this many episodes finished
-    # (plain epsilon-greedy before): a lander that cannot fly yet crashes in a
-    # long random run, while one that rests on its legs needs one to land.
-    explore_from_episode: int = 0
     hidden: tuple = (256, 64)
     # Learning starts once the buffer holds more than this many transitions
     # (the paper: more than one batch).
@@ -130,7 +126,6 @@ class TrainConfig:
                 ("explore_zeta", self.explore_zeta == 0 or self.explore_zeta > 1,
                  "0 (off) or > 1"),
                 ("explore_max_steps", self.explore_max_steps >= 1, ">= 1"),
-                ("explore_from_episode", self.explore_from_episode >= 0, ">= 0"),
                 ("mode", self.mode in ("parallel", "vector"), "parallel or vector"),
                 ("num_envs", self.num_envs >= 1, ">= 1"),
                 ("loss", self.loss in ("mse", "huber"), "mse or huber"),

@@ -147,8 +147,6 @@ def train(config: TrainConfig, out_dir: str, address: Optional[str] = None,
         while progress.episodes < config.episodes:
             epsilon = epsilon_after(config, progress.episodes)
             agent.set_lr(lr_after(config, progress.episodes))
-            collector.repeat_exploring_actions(
-                progress.episodes >= config.explore_from_episode)
             # With overlap, the gradient steps owed by the transitions stored
             # so far run while this step's environment call is in flight.
             transitions, episodes = collector.step(
