@@ -165,7 +165,7 @@ def test_a_bogus_transport_is_invalid_argument(address):
     with pytest.raises(mll.MLLError) as caught:
         mll.vector_env(2, address=address, transport="bogus")
     assert caught.value.code == grpc.StatusCode.INVALID_ARGUMENT
-    assert caught.value.message == "transport is 'bogus'; allowed: 'auto', 'native', 'grpc'"
+    assert caught.value.message == "transport is 'bogus'; allowed: 'auto', 'shared_memory', 'native', 'grpc'"
 
 
 def test_without_the_library_native_is_refused_and_auto_uses_grpc(address, tmp_path, monkeypatch):

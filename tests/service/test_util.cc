@@ -1,5 +1,12 @@
 #include "test_util.h"
 
+#include <fcntl.h>
+#include <sys/mman.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cstring>
 #include <random>
 #include <utility>
 
@@ -7,6 +14,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "mll/service/convert.h"
+#include "mll/shared_memory_pipe.h"
 
 namespace mll::service::testing {
 
@@ -20,6 +28,78 @@ ServerOptions WithService(ServiceOptions service, int max_message_mb) {
 }
 
 }  // namespace
+
+SharedMemorySession::SharedMemorySession(v1::MultiLunarLander::Stub& stub)
+    : stream_(stub.Session(&context_)) {}
+
+SharedMemorySession::~SharedMemorySession() {
+  if (region_ != nullptr) munmap(region_, bytes_);
+  context_.TryCancel();
+  stream_->Finish().IgnoreError();
+}
+
+v1::SessionResponse SharedMemorySession::Attach() {
+  v1::SessionRequest request;
+  request.set_sequence(++sequence_);
+  request.mutable_attach_shared_memory();
+  v1::SessionResponse response;
+  EXPECT_TRUE(stream_->Write(request));
+  EXPECT_TRUE(stream_->Read(&response));
+  if (response.has_error()) return response;
+  const v1::AttachSharedMemoryResponse& region =
+      response.attach_shared_memory();
+  const int fd = open(region.path().c_str(), O_RDWR | O_CLOEXEC);
+  EXPECT_GE(fd, 0) << region.path() << ": " << std::strerror(errno);
+  if (fd < 0) return response;
+  region_ =
+      mmap(nullptr, region.size(), PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
+  close(fd);
+  EXPECT_NE(region_, MAP_FAILED);
+  if (region_ == MAP_FAILED) region_ = nullptr;
+  bytes_ = region.size();
+  return response;
+}
+
+v1::SessionResponse SharedMemorySession::Call(v1::SessionRequest request) {
+  request.set_sequence(++sequence_);
+  const std::string bytes = request.SerializeAsString();
+  v1::SessionResponse response = CallRaw(bytes, bytes.size());
+  EXPECT_EQ(response.sequence(), sequence_);
+  return response;
+}
+
+v1::SessionResponse SharedMemorySession::CallRaw(const std::string& bytes,
+                                                 uint64_t size) {
+  v1::SessionResponse response;
+  EXPECT_NE(region_, nullptr) << "Attach() first";
+  if (region_ == nullptr) return response;
+  auto& header = *static_cast<shared_memory::Header*>(region_);
+  std::memcpy(shared_memory::RequestArea(region_), bytes.data(),
+              std::min<uint64_t>(bytes.size(), header.capacity));
+  header.request_size.store(size, std::memory_order_release);
+  const uint32_t sent = header.request_seq.load(std::memory_order_relaxed) + 1;
+  header.request_seq.store(sent, std::memory_order_release);
+  shared_memory::Wake(header.request_seq);
+  const auto give_up =
+      std::chrono::steady_clock::now() + std::chrono::seconds(20);
+  while (header.response_seq.load(std::memory_order_acquire) != sent &&
+         std::chrono::steady_clock::now() < give_up) {
+    shared_memory::WaitWhileEqual(
+        header.response_seq,
+        header.response_seq.load(std::memory_order_acquire),
+        std::chrono::nanoseconds(0), std::chrono::milliseconds(20));
+  }
+  EXPECT_EQ(header.response_seq.load(std::memory_order_acquire), sent)
+      << "no answer within 20 s";
+  if (header.response_seq.load(std::memory_order_acquire) != sent) {
+    return response;
+  }
+  const uint64_t answer = header.response_size.load(std::memory_order_acquire);
+  EXPECT_TRUE(response.ParseFromArray(
+      shared_memory::ResponseArea(region_, header.capacity),
+      static_cast<int>(answer)));
+  return response;
+}
 
 InProcess::InProcess(ServiceOptions options, int max_message_mb)
     : InProcess(WithService(std::move(options), max_message_mb)) {}

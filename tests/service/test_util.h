@@ -24,6 +24,42 @@ struct InProcess {
   std::unique_ptr<v1::MultiLunarLander::Stub> stub;
 };
 
+// A Session attached to shared memory, as a client on the server's host uses
+// it (mll/shared_memory_pipe.h): Attach() sends attach_shared_memory on the
+// stream and maps the answer's region; Call() then passes a request through
+// the region and waits for the answer.
+class SharedMemorySession {
+ public:
+  explicit SharedMemorySession(v1::MultiLunarLander::Stub& stub);
+  ~SharedMemorySession();
+  SharedMemorySession(const SharedMemorySession&) = delete;
+  SharedMemorySession& operator=(const SharedMemorySession&) = delete;
+
+  // The attach answer (its error when refused); maps the region on success.
+  v1::SessionResponse Attach();
+  // `request` (sequence set here) through the region; its answer, whose
+  // sequence is checked. Waits at most 20 s (an empty, sequence-0 response
+  // with a failed expectation when the server does not answer).
+  v1::SessionResponse Call(v1::SessionRequest request);
+  // Passes `size` raw bytes (not necessarily a SessionRequest, and `size` may
+  // exceed what the region holds: only the first bytes that fit are copied).
+  v1::SessionResponse CallRaw(const std::string& bytes, uint64_t size);
+  // Cancels the stream: the session ends.
+  void Cancel() { context_.TryCancel(); }
+  grpc::ClientReaderWriter<v1::SessionRequest, v1::SessionResponse>& stream() {
+    return *stream_;
+  }
+
+ private:
+  grpc::ClientContext context_;
+  std::unique_ptr<
+      grpc::ClientReaderWriter<v1::SessionRequest, v1::SessionResponse>>
+      stream_;
+  void* region_ = nullptr;
+  uint64_t bytes_ = 0;
+  uint64_t sequence_ = 0;
+};
+
 // Adds `authorization: Bearer <token>` to the call's metadata.
 void AddToken(const std::string& token, grpc::ClientContext* context);
 

@@ -338,7 +338,9 @@ class SessionReactor final
   // and answers through the region.
   void ServeSharedMemory() {
     shared_memory::Header& header = region_->header();
-    uint32_t seen = header.request_seq.load(std::memory_order_acquire);
+    // The region is new: no request yet (the client may write its first
+    // before this thread starts).
+    uint32_t seen = 0;
     std::string bytes;
     v1::SessionRequest request;
     v1::SessionResponse response;
