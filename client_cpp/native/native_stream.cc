@@ -130,7 +130,18 @@ struct mll_native_stream {
       return Fail(static_cast<int>(grpc::StatusCode::FAILED_PRECONDITION),
                   "attach without an open, unattached stream");
     }
-    const int fd = open(path, O_RDWR | O_CLOEXEC);
+    // Looked at before it is opened: a path that names something else here
+    // (the server is in another container, whose process ids are not ours)
+    // is never opened, since opening a device can have effects.
+    struct stat before;
+    if (stat(path, &before) != 0 || !S_ISREG(before.st_mode) ||
+        static_cast<uint64_t>(before.st_size) != size) {
+      return Fail(static_cast<int>(grpc::StatusCode::NOT_FOUND),
+                  std::string(path) +
+                      " is not this session's region here: the server is on "
+                      "another host or in another container");
+    }
+    const int fd = open(path, O_RDWR | O_CLOEXEC | O_NOCTTY);
     if (fd < 0) {
       return Fail(static_cast<int>(grpc::StatusCode::NOT_FOUND),
                   std::string(path) + " cannot be opened here (" +
