@@ -87,7 +87,7 @@ def parallel_env(address=None, render_mode: str | None = None, **options) -> Mul
 
 def vector_env(num_envs: int, address=None, **options) -> VectorEnv:
     """`num_envs` environments stepped with one StepBatch per server per step, over
-    `transport=` "auto" (the default), "native" or "grpc" (see VectorEnv)."""
+    `transport=` "auto" (the default), "shared_memory", "native" or "grpc" (see VectorEnv)."""
     return VectorEnv(num_envs, address=address, **options)
 
 

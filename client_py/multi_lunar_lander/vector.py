@@ -3,7 +3,8 @@ in StepBatch's packed form (one actions array in, one array per result column ou
 per-environment messages to build or parse, no per-environment Python loop). Each StepBatch
 travels as one request on a Session stream kept open to its server, which saves a unary call's
 set-up on both sides: over the native library (_native.NativeSessionStream, gRPC C++ in the
-calling thread) when it is available, else over grpcio (SessionStream); see docs/benchmarks.md.
+calling thread) when it is available, else over grpcio (SessionStream); with a server on this
+host the native stream's messages pass through shared memory instead; see docs/benchmarks.md.
 
 Several servers (address= a list or "host:port,host:port"): env i lives on server i mod S for
 its whole life (creation, reset, steps, deletion). Each step sends one StepBatch to every server
@@ -80,11 +81,17 @@ class VectorEnv:
     `parallel_env` (tls_root_cert=, tls_server_name=, token=).
 
     transport= how steps travel (creation, reset and deletion are grpcio calls either way):
+      "shared_memory": through a shared-memory region that a server on this host (loopback
+      address or Unix-domain socket) grants the Session stream: no socket, one futex wake-up
+      each way, the fastest; FAILED_PRECONDITION with the server's reason when refused (or when
+      the region cannot be mapped here: a server in another container).
       "native": over libmll_native_stream.so, gRPC C++ in the calling thread (built with the
       server; `pip install .` at the repository's root installs it beside the package, or set
-      $MLL_NATIVE_LIBRARY to its path); FAILED_PRECONDITION when it is not available.
-      "grpc": over grpcio. "auto" (the default): native when the library loads, else grpc.
-      Both give the same results and errors; native takes less of the caller's CPU per step.
+      $MLL_NATIVE_LIBRARY to its path). Both raise FAILED_PRECONDITION when the library is
+      not available.
+      "grpc": over grpcio. "auto" (the default): shared memory where granted, else native when
+      the library loads, else grpc.
+      All give the same results and errors; the first two take less of the caller's CPU per step.
       The `transport` attribute says which is in use.
 
     reset(seed=None, options=None) -> (observations, infos): observations float32
