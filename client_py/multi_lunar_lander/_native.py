@@ -23,7 +23,7 @@ import weakref
 
 import grpc
 
-from ._errors import MLLError, from_call_status, from_item_error, invalid_argument
+from ._errors import MLLError, from_call_status, invalid_argument
 from ._remote import Connection, SessionStream
 from ._server import checkout_build_path
 from ._stubs import pb
@@ -213,13 +213,7 @@ class NativeSessionStream(SessionStream):
         if code:
             raise self._failure(code)
         response = pb.SessionResponse.FromString(ctypes.string_at(data, size.value))
-        if response.sequence != self._sequence:
-            self.close()
-            raise MLLError(
-                grpc.StatusCode.INTERNAL,
-                f"{self._connection.address} answered Session request {response.sequence}; "
-                f"expected the answer to {self._sequence}",
-            )
+        self._check_sequence(response)
         return response
 
     def send(self, request: "pb.SessionRequest") -> None:
@@ -235,10 +229,7 @@ class NativeSessionStream(SessionStream):
         if self._send_failure is not None:
             failure, self._send_failure = self._send_failure, None
             raise failure
-        response = self._read()
-        if response.HasField("error"):
-            raise from_item_error(response.error.code, response.error.message)
-        return response
+        return self._answer(self._read())
 
     def _failure(self, code: int) -> MLLError:
         message = self._lib.mll_native_stream_message(self._handle).decode(errors="replace")

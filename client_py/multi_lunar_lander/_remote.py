@@ -331,6 +331,13 @@ class SessionStream:
     def _answer(self, response: "pb.SessionResponse") -> "pb.SessionResponse":
         """`response` if it answers the last send(); its operation's error as MLLError; INTERNAL
         (and the stream closed) if it answers another request."""
+        self._check_sequence(response)
+        if response.HasField("error"):
+            raise from_item_error(response.error.code, response.error.message)
+        return response
+
+    def _check_sequence(self, response: "pb.SessionResponse") -> None:
+        """INTERNAL (and the stream closed) unless `response` answers the last send()."""
         if response.sequence != self._sequence:
             self.close()
             raise MLLError(
@@ -338,9 +345,6 @@ class SessionStream:
                 f"{self._connection.address} answered Session request {response.sequence}; "
                 f"expected the answer to {self._sequence}",
             )
-        if response.HasField("error"):
-            raise from_item_error(response.error.code, response.error.message)
-        return response
 
     def close(self) -> None:
         """Half-closes and cancels the stream (idempotent); the next send() opens a new one."""

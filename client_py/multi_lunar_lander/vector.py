@@ -200,6 +200,14 @@ class VectorEnv:
             self._servers.append(
                 _Server(connection, rows, len(names), message, actions, columns, stream_type(connection))
             )
+        if transport == "shared_memory":
+            # Asked for by name: a refusal raises here, not at the first step.
+            try:
+                for server in self._servers:
+                    server.stream.open()
+            except BaseException:
+                self.close()
+                raise
 
     @property
     def transport(self) -> str:

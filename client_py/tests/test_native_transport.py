@@ -1,5 +1,6 @@
-"""vector_env's transport= option: steps over the native library (libmll_native_stream.so) give
-the same bits and the same errors as steps over grpcio; the option is checked, survives
+"""vector_env's transport= option: steps over the native library (libmll_native_stream.so), on
+its gRPC stream or through shared memory, give the same bits and the same errors as steps over
+grpcio; the option is checked, survives
 pickling, and "auto" falls back to grpcio when the library is missing."""
 
 import gc
@@ -42,13 +43,15 @@ def auth_server(tmp_path_factory):
 @needs_native
 @pytest.mark.parametrize("n_landers", [1, 3])
 @pytest.mark.parametrize("servers", ["one", "two"])
-def test_native_and_grpc_give_the_same_bits_across_auto_resets(address, two_servers, continuous, n_landers, servers):
+@pytest.mark.parametrize("transport", ["native", "shared_memory"])
+def test_native_and_grpc_give_the_same_bits_across_auto_resets(
+        address, two_servers, continuous, n_landers, servers, transport):
     # max_cycles 20 over 60 steps auto-resets every env at least twice.
     where = address if servers == "one" else list(two_servers)
     options = dict(address=where, n_landers=n_landers, continuous=continuous, max_cycles=20)
-    with mll.vector_env(5, transport="native", **options) as native, \
+    with mll.vector_env(5, transport=transport, **options) as native, \
             mll.vector_env(5, transport="grpc", **options) as grpcio:
-        assert (native.transport, grpcio.transport) == ("native", "grpc")
+        assert (native.transport, grpcio.transport) == (transport, "grpc")
         ours, reference = rollout(native, 9, 60), rollout(grpcio, 9, 60)
     assert len(ours) == len(reference)
     for got, expected in zip(ours, reference):
@@ -120,10 +123,11 @@ def test_the_token_goes_with_native_steps_and_a_wrong_one_is_unauthenticated(aut
 
 
 @needs_native
-def test_a_stopped_server_is_unavailable_naming_its_address():
+@pytest.mark.parametrize("transport", ["native", "shared_memory"])
+def test_a_stopped_server_is_unavailable_naming_its_address(transport):
     server = mll.ServerProcess(threads=1)
     try:
-        vector = mll.vector_env(2, address=server.address, n_landers=1, transport="native")
+        vector = mll.vector_env(2, address=server.address, n_landers=1, transport=transport)
         vector.reset(seed=1)
         vector.step(np.zeros((2, 1), np.int32))
         server.stop()
@@ -138,8 +142,9 @@ def test_a_stopped_server_is_unavailable_naming_its_address():
 
 
 @needs_native
-def test_a_closed_native_stream_is_reopened_by_the_next_step(address):
-    with mll.vector_env(2, address=address, n_landers=2, transport="native") as vector, \
+@pytest.mark.parametrize("transport", ["native", "shared_memory"])
+def test_a_closed_native_stream_is_reopened_by_the_next_step(address, transport):
+    with mll.vector_env(2, address=address, n_landers=2, transport=transport) as vector, \
             mll.vector_env(2, address=address, n_landers=2, transport="grpc") as reference:
         actions = np.zeros((2, 2), np.int32)
         for env in (vector, reference):
@@ -147,6 +152,7 @@ def test_a_closed_native_stream_is_reopened_by_the_next_step(address):
             env.step(actions)
         vector._servers[0].stream.close()
         assert same_bits(vector.step(actions)[0], reference.step(actions)[0])
+        assert vector.transport == transport  # A new stream attaches shared memory again.
 
 
 def test_transport_survives_pickling(address):
