@@ -190,11 +190,12 @@ class NativeSessionStream(SessionStream):
         if code:
             failure = self._failure(code)
             # The server serves a region this process cannot map (another host or container):
-            # this stream is spent; the next one asks for none.
+            # this stream is spent; the next one, on a new handle, asks for none.
             self.close()
             if self._shared_memory == "require":
                 raise MLLError(grpc.StatusCode.FAILED_PRECONDITION, f"transport='shared_memory': {failure}")
             self._shared_memory = "off"
+            self._new_handle()
             return
         self.shared_memory_in_use = True
 

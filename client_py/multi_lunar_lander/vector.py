@@ -216,6 +216,8 @@ class VectorEnv:
         streams = [server.stream for server in self._servers]
         if not streams or not isinstance(streams[0], _native.NativeSessionStream):
             return "grpc"
+        if all(connection.closed for connection in self._connections):
+            return "native"  # Closed: no stream to look at (nor to open).
         for stream in streams:
             stream.open()
         return "shared_memory" if all(s.shared_memory_in_use for s in streams) else "native"

@@ -5,6 +5,7 @@ and a stream reopened after a close: test_native_transport.py, for both native t
 
 import os
 import pickle
+import queue
 import time
 
 import grpc
@@ -14,6 +15,8 @@ import pytest
 import multi_lunar_lander as mll
 from multi_lunar_lander import _native
 from multi_lunar_lander._stubs import pb, pb_grpc
+
+from mll_test_helpers import same_bits
 
 
 pytestmark = pytest.mark.skipif(
@@ -57,9 +60,10 @@ def test_the_session_limit_leaves_later_sessions_on_their_streams():
         deadline = time.monotonic() + 10
         while True:
             with mll.vector_env(1, address=server.address, n_landers=1) as third:
-                if third.transport == "shared_memory" or time.monotonic() > deadline:
-                    break
-        assert third.transport == "shared_memory"
+                transport = third.transport
+            if transport == "shared_memory" or time.monotonic() > deadline:
+                break
+        assert transport == "shared_memory"
 
 
 def test_shared_memory_survives_pickling(address):
@@ -73,10 +77,10 @@ def test_the_attach_answer_names_a_sealed_region_and_the_stream_then_refuses_req
     """What the server hands out, seen from a plain grpcio Session: a /proc/<pid>/fd path of
     the announced size that cannot be shrunk, and FAILED_PRECONDITION for a request sent on the
     stream once attached (the requests belong in the region)."""
-    requests = [pb.SessionRequest(sequence=1, attach_shared_memory=pb.AttachSharedMemoryRequest()),
-                pb.SessionRequest(sequence=2, get_env=pb.GetEnvRequest(name="envs/0"))]
+    requests = queue.SimpleQueue()  # Open until None: the session (and its region) lives on.
+    requests.put(pb.SessionRequest(sequence=1, attach_shared_memory=pb.AttachSharedMemoryRequest()))
     with grpc.insecure_channel(address) as channel:
-        responses = pb_grpc.MultiLunarLanderStub(channel).Session(iter(requests))
+        responses = pb_grpc.MultiLunarLanderStub(channel).Session(iter(requests.get, None))
         attached = next(responses)
         region = attached.attach_shared_memory
         assert not attached.HasField("error") and region.size == REGION_BYTES
@@ -90,8 +94,45 @@ def test_the_attach_answer_names_a_sealed_region_and_the_stream_then_refuses_req
             assert header[:4] == b"MLL1" and int.from_bytes(header[16:24], "little") == region.nonce
         finally:
             os.close(descriptor)
+        requests.put(pb.SessionRequest(sequence=2, get_env=pb.GetEnvRequest(name="envs/0")))
         refused = next(responses)
         assert refused.sequence == 2 and refused.error.code == grpc.StatusCode.FAILED_PRECONDITION.value[0]
         assert "attached to shared memory" in refused.error.message
+        requests.put(None)
         responses.cancel()
 
+
+
+class _RegionElsewhere:
+    """The native library, except that the attach is given a path that does not exist here, as
+    when the server runs in another container (its /proc/<pid>/fd path names nothing of ours)."""
+
+    def __init__(self, lib):
+        self._lib = lib
+
+    def __getattr__(self, name):
+        return getattr(self._lib, name)
+
+    def mll_native_stream_attach_shared_memory(self, handle, path, size, nonce):
+        return self._lib.mll_native_stream_attach_shared_memory(handle, b"/proc/0/fd/0", size, nonce)
+
+
+def test_a_region_that_cannot_be_mapped_here_leaves_auto_on_a_new_stream(address):
+    with mll.vector_env(3, address=address, n_landers=2, transport="grpc") as reference, \
+            mll.vector_env(3, address=address, n_landers=2) as vector:
+        stream = vector._servers[0].stream
+        stream._lib = _RegionElsewhere(stream._lib)  # Before the first step opens the stream.
+        for env in (vector, reference):
+            env.reset(seed=8)
+        actions = np.ones((3, 2), np.int32)
+        for _ in range(5):
+            assert same_bits(vector.step(actions)[0], reference.step(actions)[0])
+        assert vector.transport == "native"
+    with mll.vector_env(1, address=address, n_landers=1) as vector:
+        stream = vector._servers[0].stream
+        stream._lib = _RegionElsewhere(stream._lib)
+        stream._shared_memory = "require"
+        with pytest.raises(mll.MLLError) as caught:
+            stream.open()
+        assert caught.value.code == grpc.StatusCode.FAILED_PRECONDITION
+        assert "/proc/0/fd/0 is not this session's region here" in caught.value.message
