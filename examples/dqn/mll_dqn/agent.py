@@ -69,6 +69,12 @@ class DQNAgent:
 
     def learn(self, batch) -> float:
         """One gradient step on (obs, actions, rewards, next_obs, discounts)."""
+        return self.learn_weighted(batch, None)[0]
+
+    def learn_weighted(self, batch, weights):
+        """One gradient step with each transition's loss multiplied by its
+        importance weight (None: all 1); returns the loss and the absolute TD
+        errors (numpy), the new priorities of prioritized replay."""
         obs, actions, rewards, next_obs, discounts = (
             torch.from_numpy(array) for array in batch)
         config = self.config
@@ -82,10 +88,17 @@ class DQNAgent:
                 next_value = next_q.max(dim=1)[0]
             targets = rewards + discounts * next_value
         q = self.online(obs).gather(1, actions.unsqueeze(1)).squeeze(1)
-        if config.loss == "huber":
-            loss = F.smooth_l1_loss(q, targets)
+        if weights is None:
+            if config.loss == "huber":
+                loss = F.smooth_l1_loss(q, targets)
+            else:
+                loss = F.mse_loss(q, targets)
         else:
-            loss = F.mse_loss(q, targets)
+            if config.loss == "huber":
+                each = F.smooth_l1_loss(q, targets, reduction="none")
+            else:
+                each = F.mse_loss(q, targets, reduction="none")
+            loss = (torch.from_numpy(weights) * each).mean()
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if config.grad_clip > 0:
@@ -93,7 +106,7 @@ class DQNAgent:
         self.optimizer.step()
         self._soft_update(config.tau)
         self.updates += 1
-        return float(loss)
+        return float(loss), (q.detach() - targets).abs().numpy()
 
     def set_lr(self, lr: float) -> None:
         for group in self.optimizer.param_groups:

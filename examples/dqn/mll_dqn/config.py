@@ -75,6 +75,12 @@ class TrainConfig:
     loss: str = "mse"
     # n-step returns; 1 is the paper's one-step target.
     n_step: int = 1
+    # Prioritized replay (Schaul et al. 2016): transitions sampled in
+    # proportion to |TD error|^alpha; 0 samples uniformly (the paper). Beta,
+    # the importance-weight exponent, rises linearly from `prioritized_beta`
+    # to 1 by the last episode.
+    prioritized_alpha: float = 0.0
+    prioritized_beta: float = 0.4
     # Gradient steps per learning trigger (the paper: 1).
     updates_per_trigger: int = 1
     # Gradient-norm clip; 0 disables (the paper: none).
@@ -130,6 +136,8 @@ class TrainConfig:
                 ("num_envs", self.num_envs >= 1, ">= 1"),
                 ("loss", self.loss in ("mse", "huber"), "mse or huber"),
                 ("n_step", self.n_step >= 1, ">= 1"),
+                ("prioritized_alpha", 0 <= self.prioritized_alpha <= 1, "[0, 1]"),
+                ("prioritized_beta", 0 <= self.prioritized_beta <= 1, "[0, 1]"),
                 ("updates_per_trigger", self.updates_per_trigger >= 1, ">= 1"),
                 ("grad_clip", self.grad_clip >= 0, ">= 0"),
                 ("reward_scale", self.reward_scale > 0, "> 0"),

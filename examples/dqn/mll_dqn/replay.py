@@ -79,6 +79,93 @@ class ReplayBuffer:
         self.next_index = int(state["next_index"]) % self.capacity
 
 
+class PrioritizedReplayBuffer(ReplayBuffer):
+    """ReplayBuffer sampled in proportion to priority^alpha (Schaul et al.,
+    2016: proportional prioritized replay), a priority being the transition's
+    last absolute TD error plus `epsilon`; a new transition gets the largest
+    priority so far, so it is replayed at least once soon. The rare outcome
+    transitions (a landing's +7 after scaling, a crash's -3) keep large errors
+    until learnt, and so are replayed more often than their share of the
+    buffer. The importance weights (N P(i))^-beta undo the bias.
+
+    The priorities live in a sum tree (leaves = transitions, each node the
+    sum of its children), stored as one flat array: sampling descends it for
+    the whole batch at once."""
+
+    def __init__(self, capacity: int, obs_size: int, alpha: float,
+                 epsilon: float = 1e-3):
+        super().__init__(capacity, obs_size)
+        self.alpha = alpha
+        self.epsilon = epsilon
+        self._leaves = 1 << max(0, (capacity - 1).bit_length())
+        self._tree = np.zeros(2 * self._leaves, np.float64)
+        self._max_priority = 1.0
+
+    def add(self, obs, actions, rewards, next_obs, discounts) -> None:
+        count = len(actions)
+        first = self.next_index
+        super().add(obs, actions, rewards, next_obs, discounts)
+        if count:
+            index = (first + np.arange(count)) % self.capacity
+            self._set(index, np.full(count, self._max_priority ** self.alpha))
+
+    def sample_prioritized(self, batch_size: int, rng: np.random.Generator,
+                           beta: float):
+        """(batch, index, weights): a stratified draw (one per equal slice of
+        the total priority), the rows' indices, and float32 importance
+        weights divided by the batch's largest (as Dopamine's Rainbow)."""
+        if batch_size > self.size:
+            raise ValueError(
+                f"batch_size = {batch_size} exceeds the {self.size} stored "
+                "transitions")
+        total = self._tree[1]
+        targets = (np.arange(batch_size) + rng.random(batch_size)) * (
+                total / batch_size)
+        node = np.ones(batch_size, np.int64)
+        while node[0] < self._leaves:
+            left = self._tree[2 * node]
+            right = targets > left
+            targets = np.where(right, targets - left, targets)
+            node = 2 * node + right
+        index = np.minimum(node - self._leaves, self.size - 1)
+        probabilities = np.maximum(self._tree[index + self._leaves] / total,
+                                   np.finfo(np.float64).tiny)
+        weights = (self.size * probabilities) ** -beta
+        weights /= weights.max()
+        batch = (self.obs[index], self.actions[index], self.rewards[index],
+                 self.next_obs[index], self.discounts[index])
+        return batch, index, weights.astype(np.float32)
+
+    def update_priorities(self, index: np.ndarray, td_errors: np.ndarray):
+        """Sets the sampled rows' priorities from their new absolute TD
+        errors (a row drawn twice keeps the last)."""
+        priorities = np.abs(td_errors).astype(np.float64) + self.epsilon
+        self._max_priority = max(self._max_priority, float(priorities.max()))
+        self._set(index, priorities ** self.alpha)
+
+    def _set(self, index: np.ndarray, values: np.ndarray) -> None:
+        node = index + self._leaves
+        self._tree[node] = values
+        node = np.unique(node // 2)
+        while node[0] >= 1:
+            self._tree[node] = self._tree[2 * node] + self._tree[2 * node + 1]
+            if node[0] == 1:
+                break
+            node = np.unique(node // 2)
+
+    def state_dict(self) -> Dict[str, np.ndarray]:
+        state = super().state_dict()
+        state["priorities"] = self._tree[self._leaves:self._leaves + self.size].copy()
+        state["max_priority"] = np.array(self._max_priority)
+        return state
+
+    def load_state_dict(self, state: Dict[str, np.ndarray]) -> None:
+        super().load_state_dict(state)
+        self._tree[:] = 0
+        self._max_priority = float(state["max_priority"])
+        self._set(np.arange(self.size), state["priorities"])
+
+
 class NStepFolder:
     """Turns per-stream one-step transitions into n-step transitions.
 

@@ -18,7 +18,7 @@ from mll_dqn.agent import DQNAgent
 from mll_dqn.blas import loaded_openblas_kernels
 from mll_dqn.collect import EpisodeRecord, Timers, make_collector
 from mll_dqn.config import OBS_SIZE, TrainConfig
-from mll_dqn.replay import ReplayBuffer
+from mll_dqn.replay import PrioritizedReplayBuffer, ReplayBuffer
 
 # Window of the running mean score (the paper's: 50 episodes).
 SCORE_WINDOW = 50
@@ -46,6 +46,13 @@ def use_one_thread(threads: int = 1) -> None:
 def epsilon_after(config: TrainConfig, episodes: int) -> float:
     """Epsilon after `episodes` finished episodes (decayed once per episode)."""
     return max(config.eps_end, config.eps_start * config.eps_decay ** episodes)
+
+
+def beta_after(config: TrainConfig, episodes: int) -> float:
+    """Prioritized replay's importance exponent after `episodes` finished
+    episodes: `prioritized_beta` rising linearly to 1 at the last episode."""
+    fraction = min(1.0, episodes / max(1, config.episodes - 1))
+    return config.prioritized_beta + (1.0 - config.prioritized_beta) * fraction
 
 
 def lr_after(config: TrainConfig, episodes: int) -> float:
@@ -95,7 +102,10 @@ def train(config: TrainConfig, out_dir: str, address: Optional[str] = None,
     checkpoint_path = os.path.join(out_dir, CHECKPOINT)
     log_path = os.path.join(out_dir, LOG)
     agent = DQNAgent(config)
-    buffer = ReplayBuffer(config.buffer_size, OBS_SIZE)
+    buffer = (PrioritizedReplayBuffer(config.buffer_size, OBS_SIZE,
+                                      config.prioritized_alpha)
+              if config.prioritized_alpha > 0
+              else ReplayBuffer(config.buffer_size, OBS_SIZE))
     progress = Progress()
     rng = np.random.default_rng(config.seed)
     if resume and os.path.exists(checkpoint_path):
@@ -136,9 +146,17 @@ def train(config: TrainConfig, out_dir: str, address: Optional[str] = None,
         """The gradient steps owed by the stored transitions."""
         for _ in range(progress.owed_updates):
             start = time.perf_counter()
-            batch = buffer.sample(config.batch_size, rng)
-            mid = time.perf_counter()
-            agent.learn(batch)
+            if config.prioritized_alpha > 0:
+                batch, index, weights = buffer.sample_prioritized(
+                        config.batch_size, rng,
+                        beta_after(config, progress.episodes))
+                mid = time.perf_counter()
+                td_errors = agent.learn_weighted(batch, weights)[1]
+                buffer.update_priorities(index, td_errors)
+            else:
+                batch = buffer.sample(config.batch_size, rng)
+                mid = time.perf_counter()
+                agent.learn(batch)
             timers.add("sample", mid - start)
             timers.add("learn", time.perf_counter() - mid)
         progress.owed_updates = 0

@@ -38,6 +38,28 @@ def test_learning_fits_a_fixed_batch(double_dqn, loss):
     assert agent.updates == 301
 
 
+def test_importance_weights_scale_each_transitions_loss():
+    config = dataclasses.replace(preset("paper"), loss="huber")
+    batch = _batch(np.random.default_rng(2), size=8)
+    agent = DQNAgent(config)
+    before = [p.clone() for p in agent.online.parameters()]
+    loss, td_errors = agent.learn_weighted(batch, np.zeros(8, np.float32))
+    # Weight 0 everywhere: no gradient, the online network is unchanged; the
+    # TD errors are still reported (the new priorities).
+    assert loss == 0.0 and td_errors.shape == (8,) and (td_errors > 0).all()
+    for old, new in zip(before, agent.online.parameters()):
+        assert torch.equal(old, new)
+    # Weight 1 everywhere is the unweighted loss (the same networks).
+    twin = DQNAgent(config)
+    twin.online.load_state_dict(agent.online.state_dict())
+    twin.target.load_state_dict(agent.target.state_dict())
+    unweighted = DQNAgent(config)
+    unweighted.online.load_state_dict(agent.online.state_dict())
+    unweighted.target.load_state_dict(agent.target.state_dict())
+    assert twin.learn_weighted(batch, np.ones(8, np.float32))[0] == pytest.approx(
+            unweighted.learn(batch), rel=1e-6)
+
+
 def test_target_network_follows_by_soft_updates():
     config = dataclasses.replace(preset("paper"), tau=0.25)
     agent = DQNAgent(config)

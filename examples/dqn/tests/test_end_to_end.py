@@ -108,21 +108,24 @@ def test_overlapped_learning_is_deterministic_and_owes_nothing(tmp_path,
         first["time_split_s"]) - {"store"}
 
 
-@pytest.mark.parametrize("mode,explore_zeta", [("parallel", 0.0),
-                                               ("parallel", 2.0),
-                                               ("vector", 2.0)])
-def test_same_seed_same_scores(tmp_path, mode, explore_zeta):
+@pytest.mark.parametrize("mode,explore_zeta,prioritized_alpha",
+                         [("parallel", 0.0, 0.0), ("parallel", 2.0, 0.0),
+                          ("vector", 2.0, 0.0), ("vector", 0.0, 0.6)])
+def test_same_seed_same_scores(tmp_path, mode, explore_zeta, prioritized_alpha):
     config = dataclasses.replace(preset("quick"), episodes=3, mode=mode,
                                  num_envs=2 if mode == "vector" else 1,
-                                 explore_zeta=explore_zeta, eps_decay=0.9)
+                                 explore_zeta=explore_zeta, eps_decay=0.9,
+                                 prioritized_alpha=prioritized_alpha)
     train(config, str(tmp_path / "a"), progress_bar=False)
     train(config, str(tmp_path / "b"), progress_bar=False)
     scores = [[r["score"] for r in _rows(tmp_path / d)] for d in "ab"]
     assert scores[0] == scores[1]
 
 
-def test_resume_continues_the_run(tmp_path):
-    short = dataclasses.replace(preset("quick"), episodes=3)
+@pytest.mark.parametrize("prioritized_alpha", [0.0, 0.6])
+def test_resume_continues_the_run(tmp_path, prioritized_alpha):
+    short = dataclasses.replace(preset("quick"), episodes=3,
+                                prioritized_alpha=prioritized_alpha)
     first = train(short, str(tmp_path), progress_bar=False)
     longer = dataclasses.replace(short, episodes=6)
     second = train(longer, str(tmp_path), resume=True, progress_bar=False)

@@ -105,3 +105,52 @@ def test_nstep_stream_restarts_cleanly_after_an_episode():
                      ones, ones)
     assert [float(r) for r in out[2]] == [5.0, 2.0]
     assert out[0][0, 0] == 7 and out[0][1, 0] == 8
+
+
+def _prioritized(capacity, count, alpha=1.0):
+    from mll_dqn.replay import PrioritizedReplayBuffer
+    buffer = PrioritizedReplayBuffer(capacity, 12, alpha)
+    _fill(buffer, 0, count)
+    return buffer
+
+
+def test_prioritized_sampling_follows_the_priorities():
+    buffer = _prioritized(8, 8)
+    # Row 5's error is 9 times each other row's: with alpha 1 it is drawn
+    # about 9 / (9 + 7) of the time.
+    errors = np.ones(8)
+    errors[5] = 9.0
+    buffer.update_priorities(np.arange(8), errors - buffer.epsilon)
+    rng = np.random.default_rng(0)
+    draws = np.concatenate([buffer.sample_prioritized(8, rng, 0.4)[1]
+                            for _ in range(500)])
+    assert abs(np.mean(draws == 5) - 9 / 16) < 0.02
+    assert set(np.unique(draws)) == set(range(8))
+    batch, index, weights = buffer.sample_prioritized(8, rng, 1.0)
+    # Each row is what was stored at its index, and the frequent row gets the
+    # smallest importance weight (beta 1: weight proportional to 1 / P).
+    np.testing.assert_array_equal(batch[1], index)
+    assert weights.max() == 1.0
+    np.testing.assert_allclose(weights[index == 5], 1 / 9, rtol=1e-5)
+
+
+def test_new_transitions_get_the_largest_priority_and_the_tree_sums():
+    buffer = _prioritized(6, 4)
+    buffer.update_priorities(np.array([0, 1]), np.array([3.0, 0.5]))
+    _fill(buffer, 4, 4)  # Wraps: rows 0 and 1 are overwritten by 6 and 7.
+    leaves = buffer._tree[buffer._leaves:buffer._leaves + 6]
+    assert leaves[0] == leaves[1] == leaves[4] == leaves[5] == buffer._max_priority
+    assert buffer._max_priority == 3.0 + buffer.epsilon
+    assert buffer._tree[1] == leaves.sum()
+
+
+def test_prioritized_state_round_trips():
+    from mll_dqn.replay import PrioritizedReplayBuffer
+    buffer = _prioritized(10, 7, alpha=0.6)
+    buffer.update_priorities(np.arange(3), np.array([0.1, 2.0, 0.7]))
+    copy = PrioritizedReplayBuffer(10, 12, 0.6)
+    copy.load_state_dict(buffer.state_dict())
+    rng_a, rng_b = np.random.default_rng(3), np.random.default_rng(3)
+    first, second = buffer.sample_prioritized(5, rng_a, 0.5), copy.sample_prioritized(5, rng_b, 0.5)
+    np.testing.assert_array_equal(first[1], second[1])
+    np.testing.assert_array_equal(first[2], second[2])
