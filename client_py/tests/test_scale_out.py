@@ -14,7 +14,7 @@ import multi_lunar_lander as mll
 from multi_lunar_lander._stubs import pb, pb_grpc
 from mll_test_helpers import url_in_log
 
-from mll_test_helpers import listed_names
+from mll_test_helpers import listed_names, rollout
 
 
 @pytest.fixture(scope="module")
@@ -53,18 +53,6 @@ def metric(url, series):
             if line.startswith(series + " "):
                 return float(line.split()[-1])
     raise AssertionError(f"{series} not in {url}")
-
-
-def rollout(vector, seed, steps):
-    """Every array the vector env returns over `steps` heuristic steps after reset(seed)."""
-    observations, _ = vector.reset(seed=seed)
-    record = [observations]
-    for _ in range(steps):
-        result = vector.step(mll.heuristic(observations, vector.continuous))
-        observations, infos = result[0], result[-1]
-        record.extend(result[:-1])
-        record.extend(infos[key] for key in sorted(infos))
-    return record
 
 
 def test_vector_env_spreads_envs_round_robin_over_the_servers(two_servers):
