@@ -146,11 +146,15 @@ grpc::ServerUnaryReactor* RunUnary(grpc::CallbackServerContext* context,
 // Whether a call's peer (grpc::ServerContext::peer) is on this host: a
 // loopback address or a Unix-domain socket. Only such a caller can share
 // memory with the server.
+// (gRPC may write an IPv6 peer's brackets percent-encoded, and a server on
+// [::] sees an IPv4 client as an IPv4-mapped address.)
 bool IsLocalPeer(absl::string_view peer) {
-  return absl::StartsWith(peer, "unix:") ||
-         absl::StartsWith(peer, "ipv4:127.") ||
-         absl::StartsWith(peer, "ipv6:[::1]") ||
-         absl::StartsWith(peer, "ipv6:%5B::1%5D");
+  for (absl::string_view local :
+       {"unix:", "ipv4:127.", "ipv6:[::1]", "ipv6:%5B::1%5D",
+        "ipv6:[::ffff:127.", "ipv6:%5B::ffff:127."}) {
+    if (absl::StartsWith(peer, local)) return true;
+  }
+  return false;
 }
 
 // One Session stream: reads a request, runs it, writes its response, reads
@@ -160,7 +164,7 @@ bool IsLocalPeer(absl::string_view peer) {
 // the stream opens; every request then acts as that owner.
 //
 // After attach_shared_memory succeeds, the requests come through the
-// client's shared-memory region instead (mll/shared_memory_pipe.h), served
+// session's shared-memory region instead (mll/shared_memory_pipe.h), served
 // by a thread of the session's own; the stream then only marks the
 // session's life, and a request sent on it gets FAILED_PRECONDITION.
 class SessionReactor final
