@@ -11,6 +11,7 @@
 #include <cstdint>
 #include <cstring>
 #include <memory>
+#include <optional>
 #include <string>
 #include <utility>
 
@@ -73,7 +74,7 @@ struct mll_native_stream {
       stream_ =
           stub_->PrepareCall(context_.get(), kSessionMethod, queue_.get());
       stream_->StartCall(TagOf(kStart));
-      if (!Await(kStart)) return Finish();
+      if (!*Await(kStart)) return Finish();
     }
     if (attached_) {
       if (size > capacity_) {
@@ -97,17 +98,35 @@ struct mll_native_stream {
     return 0;
   }
 
-  int Read(const char** data, size_t* size) {
+  int Read(const char** data, size_t* size, int timeout_ms) {
     if (stream_ == nullptr) {
       return Fail(static_cast<int>(grpc::StatusCode::FAILED_PRECONDITION),
                   "read without a write in flight");
     }
-    if (attached_) return ReadSharedMemory(data, size);
-    stream_->Read(&response_, TagOf(kRead));
-    const bool read = Await(kRead);
-    const bool written = Await(kWrite);
+    const gpr_timespec deadline =
+        timeout_ms < 0
+            ? gpr_inf_future(GPR_CLOCK_MONOTONIC)
+            : gpr_time_add(gpr_now(GPR_CLOCK_MONOTONIC),
+                           gpr_time_from_millis(timeout_ms, GPR_TIMESPAN));
+    if (attached_) return ReadSharedMemory(data, size, deadline);
+    if (!read_started_) {
+      stream_->Read(&response_, TagOf(kRead));
+      read_started_ = true;
+    }
+    // The write completes before any answer can come, so it is awaited
+    // first; either wait may run out of time and be taken up by the next
+    // call.
+    if (!written_.has_value()) {
+      written_ = Await(kWrite, deadline);
+      if (!written_.has_value()) return MLL_NATIVE_STREAM_PENDING;
+    }
+    const std::optional<bool> read = Await(kRead, deadline);
+    if (!read.has_value()) return MLL_NATIVE_STREAM_PENDING;
+    const bool written = *written_;
+    written_.reset();
+    read_started_ = false;
     write_pending_ = false;
-    if (!read || !written) return Finish();
+    if (!*read || !written) return Finish();
     if (!response_.DumpToSingleSlice(&response_slice_).ok()) {
       return Fail(static_cast<int>(grpc::StatusCode::INTERNAL),
                   "cannot read the Session response's bytes");
@@ -209,7 +228,7 @@ struct mll_native_stream {
 
   // Waits for the server's answer in the region; between futex waits it
   // looks whether the stream ended (the server went or ended the session).
-  int ReadSharedMemory(const char** data, size_t* size) {
+  int ReadSharedMemory(const char** data, size_t* size, gpr_timespec deadline) {
     if (!write_pending_) {
       return Fail(static_cast<int>(grpc::StatusCode::FAILED_PRECONDITION),
                   "read without a write in flight");
@@ -222,6 +241,9 @@ struct mll_native_stream {
                                         std::chrono::nanoseconds(0),
                                         std::chrono::milliseconds(20))) {
         continue;
+      }
+      if (gpr_time_cmp(gpr_now(GPR_CLOCK_MONOTONIC), deadline) >= 0) {
+        return MLL_NATIVE_STREAM_PENDING;
       }
       void* tag = nullptr;
       bool ok = false;
@@ -245,12 +267,21 @@ struct mll_native_stream {
   }
 
   // Waits for `operation` to complete (recording any other that completes
-  // first) and returns its outcome.
-  bool Await(Operation operation) {
+  // first) and returns its outcome, or nothing if `deadline` came first.
+  std::optional<bool> Await(
+      Operation operation,
+      gpr_timespec deadline = gpr_inf_future(GPR_CLOCK_MONOTONIC)) {
     while (!done_[operation]) {
       void* tag = nullptr;
       bool ok = false;
-      if (!queue_->Next(&tag, &ok)) return false;
+      switch (queue_->AsyncNext(&tag, &ok, deadline)) {
+        case grpc::CompletionQueue::SHUTDOWN:
+          return false;
+        case grpc::CompletionQueue::TIMEOUT:
+          return std::nullopt;
+        case grpc::CompletionQueue::GOT_EVENT:
+          break;
+      }
       const Operation completed = OperationOf(tag);
       done_[completed] = true;
       ok_[completed] = ok;
@@ -264,7 +295,7 @@ struct mll_native_stream {
   grpc::Status End() {
     // Attached, no write is pending on the stream (the read pending since
     // the attach completes when the call ends).
-    if (write_pending_ && !attached_) Await(kWrite);
+    if (write_pending_ && !attached_ && !written_.has_value()) Await(kWrite);
     write_pending_ = false;
     grpc::Status status;
     stream_->Finish(&status, TagOf(kFinish));
@@ -300,6 +331,8 @@ struct mll_native_stream {
     context_.reset();
     queue_.reset();
     done_.fill(false);
+    read_started_ = false;
+    written_.reset();
     DropSharedMemory();
   }
 
@@ -310,6 +343,10 @@ struct mll_native_stream {
   std::unique_ptr<grpc::ClientContext> context_;
   std::unique_ptr<grpc::GenericClientAsyncReaderWriter> stream_;
   bool write_pending_ = false;
+  // A read that ran out of time (MLL_NATIVE_STREAM_PENDING) is taken up by
+  // the next: its stream read is started once, and the write's outcome kept.
+  bool read_started_ = false;
+  std::optional<bool> written_;
   std::array<bool, kOperations> done_{};
   std::array<bool, kOperations> ok_{};
   // The shared-memory region, once created; attached_ once the server uses
@@ -356,8 +393,8 @@ int mll_native_stream_write(mll_native_stream* stream, const char* data,
 }
 
 int mll_native_stream_read(mll_native_stream* stream, const char** data,
-                           size_t* size) {
-  return stream->Read(data, size);
+                           size_t* size, int timeout_ms) {
+  return stream->Read(data, size, timeout_ms);
 }
 
 const char* mll_native_stream_message(const mll_native_stream* stream) {

@@ -39,12 +39,19 @@ MLL_NATIVE_API mll_native_stream* mll_native_stream_open(
 MLL_NATIVE_API int mll_native_stream_write(mll_native_stream* stream,
                                            const char* data, size_t size);
 
-/* Waits for the answer to the last write: 0 with `*data` and `*size` set to
- * the serialized SessionResponse (valid until the next call on the handle),
- * or the gRPC status code of the broken stream (the server's code and
- * message; UNAVAILABLE when the server ended the stream cleanly). */
+/* Returned by mll_native_stream_read when `timeout_ms` passed first. */
+#define MLL_NATIVE_STREAM_PENDING (-1)
+
+/* Waits for the answer to the last write, for at most `timeout_ms` (< 0:
+ * until it comes): 0 with `*data` and `*size` set to the serialized
+ * SessionResponse (valid until the next call on the handle), the gRPC status
+ * code of the broken stream (the server's code and message; UNAVAILABLE when
+ * the server ended the stream cleanly), or MLL_NATIVE_STREAM_PENDING, after
+ * which the caller reads again (or closes the handle): a caller that waits in
+ * slices can handle its signals between them. */
 MLL_NATIVE_API int mll_native_stream_read(mll_native_stream* stream,
-                                          const char** data, size_t* size);
+                                          const char** data, size_t* size,
+                                          int timeout_ms);
 
 /* The message of the last failed write or read. */
 MLL_NATIVE_API const char* mll_native_stream_message(

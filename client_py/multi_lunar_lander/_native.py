@@ -31,6 +31,10 @@ from ._stubs import pb
 LIBRARY_ENV = "MLL_NATIVE_LIBRARY"
 LIBRARY_NAME = "libmll_native_stream.so"
 TRANSPORTS = ("auto", "shared_memory", "native", "grpc")
+# mll_native_stream_read's answer when its wait ran out (MLL_NATIVE_STREAM_PENDING), and how long
+# each wait is: Python handles signals between waits.
+_PENDING = -1
+READ_SLICE_MS = 100
 
 _lock = threading.Lock()
 _loaded: tuple[ctypes.CDLL | None, str] | None = None  # (library or None, why not)
@@ -55,7 +59,12 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     lib.mll_native_stream_write.restype = ctypes.c_int
     lib.mll_native_stream_write.argtypes = [handle, text, size]
     lib.mll_native_stream_read.restype = ctypes.c_int
-    lib.mll_native_stream_read.argtypes = [handle, ctypes.POINTER(ctypes.c_void_p), ctypes.POINTER(size)]
+    lib.mll_native_stream_read.argtypes = [
+        handle,
+        ctypes.POINTER(ctypes.c_void_p),
+        ctypes.POINTER(size),
+        ctypes.c_int,
+    ]
     lib.mll_native_stream_message.restype = text
     lib.mll_native_stream_message.argtypes = [handle]
     lib.mll_native_stream_close.restype = None
@@ -208,9 +217,20 @@ class NativeSessionStream(SessionStream):
             raise self._failure(code)
 
     def _read(self) -> "pb.SessionResponse":
-        """The answer to the last write, its sequence checked; the stream's failure raised."""
+        """The answer to the last write, its sequence checked; the stream's failure raised. The
+        library waits in slices of READ_SLICE_MS, so that Ctrl-C (KeyboardInterrupt) and other
+        signals are handled while a server is slow; an interrupted read closes the stream (the
+        next send opens a new one)."""
         data, size = ctypes.c_void_p(), ctypes.c_size_t()
-        code = self._lib.mll_native_stream_read(self._handle, ctypes.byref(data), ctypes.byref(size))
+        try:
+            code = _PENDING
+            while code == _PENDING:
+                code = self._lib.mll_native_stream_read(
+                    self._handle, ctypes.byref(data), ctypes.byref(size), READ_SLICE_MS
+                )
+        except BaseException:
+            self.close()
+            raise
         if code:
             raise self._failure(code)
         response = pb.SessionResponse.FromString(ctypes.string_at(data, size.value))

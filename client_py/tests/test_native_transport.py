@@ -231,3 +231,38 @@ def test_a_forked_child_refuses_the_parents_native_stream_and_steps_its_own_over
     assert (transport, shape) == ("grpc", (2, 1, 12))
     assert vector.step(np.zeros((2, 1), np.int32))[0].shape == (2, 1, 12)  # The parent's stream still works.
     vector.close()
+
+
+@needs_native
+@pytest.mark.parametrize("transport", ["native", "shared_memory"])
+def test_ctrl_c_interrupts_a_step_that_waits_for_a_stalled_server(transport):
+    """KeyboardInterrupt reaches a step whose server does not answer (stopped with SIGSTOP);
+    the interrupted stream is closed, and once the server runs again the next step works."""
+    import _thread
+    import os
+    import signal
+    import threading
+    import time
+
+    server = mll.ServerProcess(threads=1)
+    try:
+        vector = mll.vector_env(2, address=server.address, n_landers=1, transport=transport)
+        vector.reset(seed=1)
+        vector.step(np.zeros((2, 1), np.int32))
+        os.kill(server.pid, signal.SIGSTOP)
+        timer = threading.Timer(0.5, _thread.interrupt_main)
+        timer.start()
+        started = time.monotonic()
+        try:
+            with pytest.raises(KeyboardInterrupt):
+                vector.step(np.zeros((2, 1), np.int32))
+            assert time.monotonic() - started < 5
+        finally:
+            timer.cancel()
+            os.kill(server.pid, signal.SIGCONT)
+        # The interrupted step's result is lost; the env stepped or not, but steps go on.
+        assert vector.step(np.zeros((2, 1), np.int32))[0].shape == (2, 1, 12)
+        assert vector.transport == transport
+        vector.close()
+    finally:
+        server.stop()
