@@ -326,6 +326,9 @@ class SessionStream:
             raise MLLError(
                 grpc.StatusCode.UNAVAILABLE, f"{self._connection._what}: the server ended the Session stream"
             ) from None
+        except BaseException:  # E.g. Ctrl-C while the server is slow: the answer is not awaited.
+            self.close()
+            raise
         return self._answer(response)
 
     def _answer(self, response: "pb.SessionResponse") -> "pb.SessionResponse":

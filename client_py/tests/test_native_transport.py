@@ -234,7 +234,7 @@ def test_a_forked_child_refuses_the_parents_native_stream_and_steps_its_own_over
 
 
 @needs_native
-@pytest.mark.parametrize("transport", ["native", "shared_memory"])
+@pytest.mark.parametrize("transport", ["native", "shared_memory", "grpc"])
 def test_ctrl_c_interrupts_a_step_that_waits_for_a_stalled_server(transport):
     """KeyboardInterrupt reaches a step whose server does not answer (stopped with SIGSTOP);
     the interrupted stream is closed, and once the server runs again the next step works."""
