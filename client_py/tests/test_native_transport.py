@@ -250,6 +250,11 @@ def test_ctrl_c_interrupts_a_step_that_waits_for_a_stalled_server(transport):
         vector.reset(seed=1)
         vector.step(np.zeros((2, 1), np.int32))
         os.kill(server.pid, signal.SIGSTOP)
+        # The signal is delivered asynchronously: wait until the server is stopped (state T).
+        deadline = time.monotonic() + 10
+        while open(f"/proc/{server.pid}/stat").read().rsplit(")", 1)[1].split()[0] != "T":
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
         timer = threading.Timer(0.5, _thread.interrupt_main)
         timer.start()
         started = time.monotonic()
