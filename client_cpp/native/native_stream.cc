@@ -149,36 +149,27 @@ struct mll_native_stream {
       return Fail(static_cast<int>(grpc::StatusCode::FAILED_PRECONDITION),
                   "attach without an open, unattached stream");
     }
-    // Looked at before it is opened: a path that names something else here
-    // (the server is in another container, whose process ids are not ours)
-    // is never opened, since opening a device can have effects.
-    struct stat before;
-    if (stat(path, &before) != 0 || !S_ISREG(before.st_mode) ||
-        static_cast<uint64_t>(before.st_size) != size) {
+    // A regular file of the announced size, looked at before it is opened
+    // (a path that names something else here, e.g. a device, is never
+    // opened) and again once open (mapping past a file's end would fault).
+    const auto is_region = [size](const struct stat& info) {
+      return S_ISREG(info.st_mode) &&
+             static_cast<uint64_t>(info.st_size) == size &&
+             size >= shared_memory::kHeaderBytes;
+    };
+    const auto not_here = [&] {
       return Fail(static_cast<int>(grpc::StatusCode::NOT_FOUND),
                   std::string(path) +
                       " is not this session's region here: the server is on "
                       "another host or in another container");
-    }
-    const int fd = open(path, O_RDWR | O_CLOEXEC | O_NOCTTY);
-    if (fd < 0) {
-      return Fail(static_cast<int>(grpc::StatusCode::NOT_FOUND),
-                  std::string(path) + " cannot be opened here (" +
-                      std::strerror(errno) +
-                      "): the server is on another host or in another "
-                      "container");
-    }
-    // A file of another size is not the region (and mapping past its end
-    // would fault on the first access).
+    };
     struct stat info;
-    if (fstat(fd, &info) != 0 || !S_ISREG(info.st_mode) ||
-        static_cast<uint64_t>(info.st_size) != size ||
-        size < shared_memory::kHeaderBytes) {
+    if (stat(path, &info) != 0 || !is_region(info)) return not_here();
+    const int fd = open(path, O_RDWR | O_CLOEXEC | O_NOCTTY);
+    if (fd < 0) return not_here();
+    if (fstat(fd, &info) != 0 || !is_region(info)) {
       close(fd);
-      return Fail(static_cast<int>(grpc::StatusCode::NOT_FOUND),
-                  std::string(path) +
-                      " is not this session's region (the server runs in "
-                      "another container or on another host)");
+      return not_here();
     }
     void* region =
         mmap(nullptr, size, PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
@@ -195,10 +186,7 @@ struct mll_native_stream {
         header.version != shared_memory::kVersion || header.nonce != nonce ||
         size != shared_memory::RegionBytes(header.capacity)) {
       DropSharedMemory();
-      return Fail(static_cast<int>(grpc::StatusCode::NOT_FOUND),
-                  std::string(path) +
-                      " is not this session's region (another process's "
-                      "file: the server runs in another container)");
+      return not_here();
     }
     capacity_ = header.capacity;
     sent_ = header.request_seq.load(std::memory_order_acquire);
@@ -234,9 +222,8 @@ struct mll_native_stream {
                   "read without a write in flight");
     }
     shared_memory::Header& header = Header();
-    while (header.response_seq.load(std::memory_order_acquire) != sent_) {
-      const uint32_t seen = header.response_seq.load(std::memory_order_acquire);
-      if (seen == sent_) break;
+    for (uint32_t seen; (seen = header.response_seq.load(
+                             std::memory_order_acquire)) != sent_;) {
       if (shared_memory::WaitWhileEqual(header.response_seq, seen,
                                         std::chrono::nanoseconds(0),
                                         std::chrono::milliseconds(20))) {

@@ -183,6 +183,7 @@ class NativeSessionStream(SessionStream):
             return  # The next write opens the stream.
         self._write(pb.SessionRequest(attach_shared_memory=pb.AttachSharedMemoryRequest()))
         response = self._read()
+        self._check_sequence(response)
         if response.HasField("error"):
             if self._shared_memory == "require":
                 self.close()
@@ -217,7 +218,7 @@ class NativeSessionStream(SessionStream):
             raise self._failure(code)
 
     def _read(self) -> "pb.SessionResponse":
-        """The answer to the last write, its sequence checked; the stream's failure raised. The
+        """The answer to the last write (its sequence not yet checked); the stream's failure raised. The
         library waits in slices of READ_SLICE_MS, so that Ctrl-C (KeyboardInterrupt) and other
         signals are handled while a server is slow; an interrupted read closes the stream (the
         next send opens a new one)."""
@@ -233,9 +234,7 @@ class NativeSessionStream(SessionStream):
             raise
         if code:
             raise self._failure(code)
-        response = pb.SessionResponse.FromString(ctypes.string_at(data, size.value))
-        self._check_sequence(response)
-        return response
+        return pb.SessionResponse.FromString(ctypes.string_at(data, size.value))
 
     def send(self, request: "pb.SessionRequest") -> None:
         """As SessionStream.send; the request is encoded here, so the caller may change it at once."""

@@ -385,16 +385,16 @@ class SessionReactor final
         response.clear_result();
         FillItemError(status, response.mutable_error());
       }
-      if (response.ByteSizeLong() > region_->capacity()) {
-        const uint64_t needed = response.ByteSizeLong();
+      uint64_t written = response.ByteSizeLong();
+      if (written > region_->capacity()) {
         response.clear_result();
-        FillItemError(absl::ResourceExhaustedError(absl::StrCat(
-                          "response: ", needed, " bytes; allowed: 0..",
-                          region_->capacity(),
-                          " (the region's capacity; attach a larger one)")),
-                      response.mutable_error());
+        FillItemError(
+            absl::ResourceExhaustedError(absl::StrCat(
+                "response: ", written, " bytes; allowed: 0..",
+                region_->capacity(), " (the shared-memory region's capacity)")),
+            response.mutable_error());
+        written = response.ByteSizeLong();
       }
-      const uint64_t written = response.ByteSizeLong();
       response.SerializeWithCachedSizesToArray(
           reinterpret_cast<uint8_t*>(region_->response()));
       header.response_size.store(written, std::memory_order_release);
