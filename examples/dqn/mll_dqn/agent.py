@@ -9,6 +9,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+import multi_lunar_lander
+
 from mll_dqn.config import N_ACTIONS, OBS_SIZE, TrainConfig
 
 
@@ -52,12 +54,17 @@ class DQNAgent:
 
     def act(self, obs: np.ndarray, epsilon: float,
             rng: np.random.Generator) -> np.ndarray:
-        """Epsilon-greedy actions for a batch of observations [B, 12]."""
+        """Epsilon-greedy actions for a batch of observations [B, 12]; a
+        share `explore_guide` of the exploring ones is the heuristic pilot's."""
         count = len(obs)
         if count == 0:
             return np.zeros(0, np.int64)
         explore = rng.random(count) < epsilon
         actions = rng.integers(0, N_ACTIONS, count)
+        if self.config.explore_guide:
+            guided = explore & (rng.random(count) < self.config.explore_guide)
+            if guided.any():
+                actions[guided] = multi_lunar_lander.heuristic(obs[guided])
         if not explore.all():
             actions = np.where(explore, actions, self.greedy(obs))
         return actions

@@ -58,6 +58,12 @@ class TrainConfig:
     # exploring action lasts one step (the paper's epsilon-greedy).
     explore_zeta: float = 0.0
     explore_max_steps: int = 100
+    # Share of the exploring actions that Gymnasium's heuristic pilot chooses
+    # (the rest are uniform): exploration that reaches the ground slowly and
+    # rests on its legs, so landings are in the replay buffer while epsilon is
+    # still high. The network learns from every transition by the same
+    # Q-learning update; 0: uniform exploration only (the paper).
+    explore_guide: float = 0.0
     hidden: tuple = (256, 64)
     # Learning starts once the buffer holds more than this many transitions
     # (the paper: more than one batch).
@@ -132,6 +138,7 @@ class TrainConfig:
                 ("explore_zeta", self.explore_zeta == 0 or self.explore_zeta > 1,
                  "0 (off) or > 1"),
                 ("explore_max_steps", self.explore_max_steps >= 1, ">= 1"),
+                ("explore_guide", 0 <= self.explore_guide <= 1, "[0, 1]"),
                 ("mode", self.mode in ("parallel", "vector"), "parallel or vector"),
                 ("num_envs", self.num_envs >= 1, ">= 1"),
                 ("loss", self.loss in ("mse", "huber"), "mse or huber"),
@@ -152,6 +159,11 @@ class TrainConfig:
                 raise ValueError(
                         f"{name} = {getattr(self, name)!r} is out of range; allowed: "
                         f"{allowed}")
+        if self.explore_guide and self.explore_zeta:
+            raise ValueError(
+                    f"explore_guide = {self.explore_guide} with explore_zeta = "
+                    f"{self.explore_zeta}; allowed: one of them 0 (a guided "
+                    "exploring action lasts one step)")
         if self.mode == "parallel" and self.num_envs != 1:
             raise ValueError(
                     f"num_envs = {self.num_envs} with mode = 'parallel'; allowed: 1 "

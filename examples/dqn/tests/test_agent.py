@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+import multi_lunar_lander
 from mll_dqn.agent import DQNAgent, RepeatedExploration
 from mll_dqn.config import TrainConfig, preset
 from mll_dqn.train import epsilon_after, lr_after
@@ -101,6 +102,22 @@ def test_epsilon_greedy_extremes():
     assert set(np.unique(random_actions)) == {0, 1, 2, 3}
 
 
+def test_guided_exploration_takes_the_heuristic_pilots_share_of_exploring_actions():
+    rng = np.random.default_rng(5)
+    obs = rng.normal(size=(2000, 12)).astype(np.float32)
+    pilot = multi_lunar_lander.heuristic(obs)
+    agent = DQNAgent(dataclasses.replace(preset("paper"), explore_guide=1.0))
+    np.testing.assert_array_equal(agent.act(obs, 1.0, rng), pilot)
+    np.testing.assert_array_equal(agent.act(obs, 0.0, rng), agent.greedy(obs))
+    # Half guided: uniform actions agree with the pilot's a quarter of the
+    # time, so 1/2 + 1/2 * 1/4 of all actions are the pilot's.
+    agent = DQNAgent(dataclasses.replace(preset("paper"), explore_guide=0.5))
+    assert 0.59 < (agent.act(obs, 1.0, rng) == pilot).mean() < 0.66
+    with pytest.raises(ValueError, match="explore_guide = 0.5 with explore_zeta = 2.0"):
+        dataclasses.replace(preset("paper"), explore_guide=0.5,
+                            explore_zeta=2.0).validate()
+
+
 def test_repeated_exploration_keeps_an_exploring_action_for_its_run():
     agent = DQNAgent(preset("paper"))
     rng = np.random.default_rng(4)
@@ -185,6 +202,7 @@ def test_paper_preset_is_table_iv():
     ("lr_end", 1.0, "lr_end = 1.0 is out of range; allowed: [0, lr]"),
     ("torch_threads", 0, "torch_threads = 0 is out of range; allowed: >= 1"),
     ("explore_zeta", 1.0, "explore_zeta = 1.0 is out of range; allowed: 0 (off) or > 1"),
+    ("explore_guide", 1.5, "explore_guide = 1.5 is out of range; allowed: [0, 1]"),
 ])
 def test_bad_config_names_field_value_and_range(field, value, message):
     config = dataclasses.replace(TrainConfig(), **{field: value})
