@@ -176,7 +176,12 @@ def main(argv=None) -> int:
 
     if args.command == "train":
         from mll_dqn.train import train
-        summary = train(_config_from_args(args), args.out, args.address,
+        config = _config_from_args(args)
+        try:
+            config.validate()
+        except ValueError as error:
+            parser.error(str(error))
+        summary = train(config, args.out, args.address,
                         resume=args.resume, progress_bar=not args.no_progress)
         summary.pop("config")
         print(json.dumps(summary, indent=2))

@@ -108,14 +108,17 @@ def test_overlapped_learning_is_deterministic_and_owes_nothing(tmp_path,
         first["time_split_s"]) - {"store"}
 
 
-@pytest.mark.parametrize("mode,explore_zeta,prioritized_alpha",
-                         [("parallel", 0.0, 0.0), ("parallel", 2.0, 0.0),
-                          ("vector", 2.0, 0.0), ("vector", 0.0, 0.6)])
-def test_same_seed_same_scores(tmp_path, mode, explore_zeta, prioritized_alpha):
+@pytest.mark.parametrize("mode,explore_zeta,prioritized_alpha,explore_guide",
+                         [("parallel", 0.0, 0.0, 0.0), ("parallel", 2.0, 0.0, 0.0),
+                          ("vector", 2.0, 0.0, 0.0), ("vector", 0.0, 0.6, 0.0),
+                          ("vector", 0.0, 0.0, 1.0)])
+def test_same_seed_same_scores(tmp_path, mode, explore_zeta, prioritized_alpha,
+                               explore_guide):
     config = dataclasses.replace(preset("quick"), episodes=3, mode=mode,
                                  num_envs=2 if mode == "vector" else 1,
                                  explore_zeta=explore_zeta, eps_decay=0.9,
-                                 prioritized_alpha=prioritized_alpha)
+                                 prioritized_alpha=prioritized_alpha,
+                                 explore_guide=explore_guide)
     train(config, str(tmp_path / "a"), progress_bar=False)
     train(config, str(tmp_path / "b"), progress_bar=False)
     scores = [[r["score"] for r in _rows(tmp_path / d)] for d in "ab"]
@@ -170,6 +173,17 @@ def test_command_line_evaluate_gif_and_plot(tmp_path, capsys):
     capsys.readouterr()
     assert main(["plot", str(run / LOG), "--out", str(png)]) == 0
     assert png.stat().st_size > 1000
+
+
+def test_command_line_refuses_a_bad_flag_naming_it_and_its_range(tmp_path,
+                                                                  capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["train", "--preset", "quick", "--explore-guide", "1.5", "--out",
+              str(tmp_path / "run")])
+    assert exit_info.value.code == 2
+    assert ("explore_guide = 1.5 is out of range; allowed: [0, 1]"
+            in capsys.readouterr().err)
+    assert not (tmp_path / "run").exists()
 
 
 def test_resume_after_the_server_restarted(tmp_path):
