@@ -18,6 +18,7 @@ from mll_dqn.agent import DQNAgent
 from mll_dqn.blas import loaded_openblas_kernels
 from mll_dqn.collect import EpisodeRecord, Timers, make_collector
 from mll_dqn.config import OBS_SIZE, TrainConfig
+from mll_dqn.heap import keep_freed_memory
 from mll_dqn.replay import PrioritizedReplayBuffer, ReplayBuffer
 
 # Window of the running mean score (the paper's: 50 episodes).
@@ -98,6 +99,7 @@ def train(config: TrainConfig, out_dir: str, address: Optional[str] = None,
     """Trains; returns the summary (also written to out_dir/summary.json)."""
     config.validate()
     use_one_thread(config.torch_threads)
+    keep_freed_memory()
     os.makedirs(out_dir, exist_ok=True)
     checkpoint_path = os.path.join(out_dir, CHECKPOINT)
     log_path = os.path.join(out_dir, LOG)
