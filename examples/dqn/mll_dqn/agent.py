@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Sequence
+import math
+from typing import List, Sequence
 
 import numpy as np
 import torch
@@ -30,9 +31,109 @@ class QNetwork(nn.Module):
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         return self.layers(obs)
 
+    def linear_layers(self) -> List[nn.Linear]:
+        return [layer for layer in self.layers if isinstance(layer, nn.Linear)]
+
+
+def flatten_parameters(network: nn.Module) -> torch.Tensor:
+    """Moves the network's parameters into one flat tensor, each parameter
+    becoming a view of it (state_dict and load_state_dict work as before),
+    so that the optimiser and the target update are a few operations on one
+    tensor instead of a few per parameter."""
+    params = list(network.parameters())
+    flat = torch.cat([param.detach().reshape(-1) for param in params])
+    _view_as(flat, [param.data for param in params], params)
+    return flat
+
+
+def _view_as(flat: torch.Tensor, shapes_of, into=None) -> List[torch.Tensor]:
+    """Views of `flat` shaped like the tensors `shapes_of`, in order; with
+    `into` (parameters), each parameter's data becomes its view."""
+    views, offset = [], 0
+    for index, like in enumerate(shapes_of):
+        view = flat[offset:offset + like.numel()].view_as(like)
+        offset += like.numel()
+        if into is not None:
+            into[index].data = view
+        views.append(view)
+    return views
+
+
+class FlatAdam:
+    """Adam (torch.optim.Adam's arithmetic: no weight decay, no amsgrad)
+    over one flat tensor of parameters and one of their gradients."""
+
+    def __init__(self, params: torch.Tensor, grads: torch.Tensor, lr: float,
+                 betas=(0.9, 0.999), eps: float = 1e-8):
+        self.params, self.grads = params, grads
+        self.lr, self.betas, self.eps = lr, tuple(betas), eps
+        self.step_count = 0
+        self.exp_avg = torch.zeros_like(params)
+        self.exp_avg_sq = torch.zeros_like(params)
+
+    @torch.no_grad()
+    def step(self) -> None:
+        beta1, beta2 = self.betas
+        self.step_count += 1
+        self.exp_avg.mul_(beta1).add_(self.grads, alpha=1 - beta1)
+        self.exp_avg_sq.mul_(beta2).addcmul_(self.grads, self.grads,
+                                             value=1 - beta2)
+        bias_correction1 = 1 - beta1 ** self.step_count
+        bias_correction2 = 1 - beta2 ** self.step_count
+        denominator = (self.exp_avg_sq.sqrt() / math.sqrt(bias_correction2)
+                       ).add_(self.eps)
+        self.params.addcdiv_(self.exp_avg, denominator,
+                             value=-self.lr / bias_correction1)
+
+    def state_dict(self):
+        return dict(lr=self.lr, betas=self.betas, eps=self.eps,
+                    step=self.step_count, exp_avg=self.exp_avg.clone(),
+                    exp_avg_sq=self.exp_avg_sq.clone())
+
+    def load_state_dict(self, state) -> None:
+        self.lr, self.betas, self.eps = (state["lr"], tuple(state["betas"]),
+                                         state["eps"])
+        self.step_count = int(state["step"])
+        self.exp_avg.copy_(state["exp_avg"])
+        self.exp_avg_sq.copy_(state["exp_avg_sq"])
+
+
+def _forward_keeping_activations(layers: List[nn.Linear],
+                                 obs: torch.Tensor) -> List[torch.Tensor]:
+    """[obs, each hidden layer's output (after ReLU), Q-values]."""
+    activations = [obs]
+    for index, layer in enumerate(layers):
+        out = torch.addmm(layer.bias, activations[-1], layer.weight.t())
+        if index < len(layers) - 1:
+            out.relu_()
+        activations.append(out)
+    return activations
+
+
+def _backward(layers: List[nn.Linear], activations: List[torch.Tensor],
+              grad_q: torch.Tensor, grads: List[torch.Tensor]) -> None:
+    """Writes the loss's gradient for each layer's weight and bias (`grads`:
+    weight, bias, weight, ... as the network's parameters) given its
+    gradient for the Q-values, by the chain rule through the layers."""
+    grad_out = grad_q
+    for index in reversed(range(len(layers))):
+        inputs = activations[index]
+        torch.mm(grad_out.t(), inputs, out=grads[2 * index])
+        torch.sum(grad_out, 0, out=grads[2 * index + 1])
+        if index > 0:
+            # Through the ReLU: no gradient where its output was 0.
+            grad_out = torch.ops.aten.threshold_backward(
+                grad_out.mm(layers[index].weight), inputs, 0)
+
 
 class DQNAgent:
-    """Online and target networks, Adam, epsilon-greedy action selection."""
+    """Online and target networks, Adam, epsilon-greedy action selection.
+
+    The learning step computes the gradient by hand (the network is a
+    stack of linear layers and ReLUs): the same arithmetic as autograd,
+    test_agent checks it against autograd and torch's Adam, in half the
+    time, as it keeps no graph, fuses the two forward passes of the online
+    network and updates one flat tensor of parameters."""
 
     def __init__(self, config: TrainConfig):
         self.config = config
@@ -44,12 +145,12 @@ class DQNAgent:
         self.target.load_state_dict(self.online.state_dict())
         for param in self.target.parameters():
             param.requires_grad_(False)
-        # foreach: one fused kernel per op over all parameters instead of one
-        # per tensor (same arithmetic, less Python overhead).
-        self.optimizer = torch.optim.Adam(self.online.parameters(), lr=config.lr,
-                                          foreach=True)
-        self._online_params = list(self.online.parameters())
-        self._target_params = list(self.target.parameters())
+        self._online_flat = flatten_parameters(self.online)
+        self._target_flat = flatten_parameters(self.target)
+        self._grad_flat = torch.zeros_like(self._online_flat)
+        self._grads = _view_as(self._grad_flat, list(self.online.parameters()))
+        self.optimizer = FlatAdam(self._online_flat, self._grad_flat,
+                                  lr=config.lr)
         self.updates = 0
 
     def act(self, obs: np.ndarray, epsilon: float,
@@ -78,6 +179,7 @@ class DQNAgent:
         """One gradient step on (obs, actions, rewards, next_obs, discounts)."""
         return self.learn_weighted(batch, None)[0]
 
+    @torch.no_grad()
     def learn_weighted(self, batch, weights):
         """One gradient step with each transition's loss multiplied by its
         importance weight (None: all 1); returns the loss and the absolute TD
@@ -85,45 +187,58 @@ class DQNAgent:
         obs, actions, rewards, next_obs, discounts = (
             torch.from_numpy(array) for array in batch)
         config = self.config
-        with torch.no_grad():
-            next_q = self.target(next_obs)
-            if config.double_dqn:
-                # The online network picks, the target network evaluates.
-                best = self.online(next_obs).argmax(dim=1, keepdim=True)
-                next_value = next_q.gather(1, best).squeeze(1)
-            else:
-                next_value = next_q.max(dim=1)[0]
-            targets = rewards + discounts * next_value
-        q = self.online(obs).gather(1, actions.unsqueeze(1)).squeeze(1)
-        if weights is None:
-            if config.loss == "huber":
-                loss = F.smooth_l1_loss(q, targets)
-            else:
-                loss = F.mse_loss(q, targets)
+        size = len(obs)
+        online = self.online.linear_layers()
+        if config.double_dqn:
+            # One pass of the online network over obs and next_obs.
+            activations = _forward_keeping_activations(
+                online, torch.cat((obs, next_obs)))
+            next_online_q = activations[-1][size:]
+            activations = [a[:size] for a in activations]
         else:
-            if config.loss == "huber":
-                each = F.smooth_l1_loss(q, targets, reduction="none")
-            else:
-                each = F.mse_loss(q, targets, reduction="none")
-            loss = (torch.from_numpy(weights) * each).mean()
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+            activations = _forward_keeping_activations(online, obs)
+        next_q = self.target(next_obs)
+        if config.double_dqn:
+            # The online network picks, the target network evaluates.
+            best = next_online_q.argmax(dim=1, keepdim=True)
+            next_value = next_q.gather(1, best).squeeze(1)
+        else:
+            next_value = next_q.max(dim=1)[0]
+        targets = rewards + discounts * next_value
+        index = actions.unsqueeze(1)
+        q = activations[-1].gather(1, index).squeeze(1)
+        errors = q - targets
+        # d(loss)/dq of the mean loss over the batch.
+        if config.loss == "huber":
+            each = F.smooth_l1_loss(q, targets, reduction="none")
+            grad = errors.clamp(-1.0, 1.0)
+        else:
+            each = F.mse_loss(q, targets, reduction="none")
+            grad = 2.0 * errors
+        if weights is not None:
+            weights = torch.from_numpy(weights)
+            each = each * weights
+            grad = grad * weights
+        grad_q = torch.zeros_like(activations[-1]).scatter_(
+            1, index, (grad / size).unsqueeze(1))
+        _backward(online, activations, grad_q, self._grads)
         if config.grad_clip > 0:
-            nn.utils.clip_grad_norm_(self._online_params, config.grad_clip)
+            # As nn.utils.clip_grad_norm_: scale to the norm's limit.
+            norm = float(self._grad_flat.norm())
+            if norm > config.grad_clip:
+                self._grad_flat.mul_(config.grad_clip / (norm + 1e-6))
         self.optimizer.step()
         self._soft_update(config.tau)
         self.updates += 1
-        return float(loss), (q.detach() - targets).abs().numpy()
+        return float(each.mean()), errors.abs().numpy()
 
     def set_lr(self, lr: float) -> None:
-        for group in self.optimizer.param_groups:
-            group["lr"] = lr
+        self.optimizer.lr = lr
 
     @torch.no_grad()
     def _soft_update(self, tau: float) -> None:
         # target = tau * online + (1 - tau) * target
-        torch._foreach_mul_(self._target_params, 1.0 - tau)
-        torch._foreach_add_(self._target_params, self._online_params, alpha=tau)
+        self._target_flat.mul_(1.0 - tau).add_(self._online_flat, alpha=tau)
 
     def state_dict(self):
         return dict(online=self.online.state_dict(),

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import multi_lunar_lander
-from mll_dqn.agent import DQNAgent, RepeatedExploration
+from mll_dqn.agent import DQNAgent, QNetwork, RepeatedExploration
 from mll_dqn.config import TrainConfig, preset
 from mll_dqn.train import epsilon_after, lr_after
 
@@ -59,6 +59,66 @@ def test_importance_weights_scale_each_transitions_loss():
     unweighted.target.load_state_dict(agent.target.state_dict())
     assert twin.learn_weighted(batch, np.ones(8, np.float32))[0] == pytest.approx(
             unweighted.learn(batch), rel=1e-6)
+
+
+def _autograd_step(config, online, target, batch, weights, optimizer):
+    """The learning step as autograd, torch's Adam and clip_grad_norm_ make
+    it: the reference for the agent's hand-written gradient."""
+    obs, actions, rewards, next_obs, discounts = (
+        torch.from_numpy(array) for array in batch)
+    with torch.no_grad():
+        next_q = target(next_obs)
+        if config.double_dqn:
+            best = online(next_obs).argmax(dim=1, keepdim=True)
+            next_value = next_q.gather(1, best).squeeze(1)
+        else:
+            next_value = next_q.max(dim=1)[0]
+        targets = rewards + discounts * next_value
+    q = online(obs).gather(1, actions.unsqueeze(1)).squeeze(1)
+    loss_of = (torch.nn.functional.smooth_l1_loss if config.loss == "huber"
+               else torch.nn.functional.mse_loss)
+    each = loss_of(q, targets, reduction="none")
+    loss = (each if weights is None else torch.from_numpy(weights) * each).mean()
+    optimizer.zero_grad()
+    loss.backward()
+    if config.grad_clip > 0:
+        torch.nn.utils.clip_grad_norm_(online.parameters(), config.grad_clip)
+    optimizer.step()
+    with torch.no_grad():
+        for t, o in zip(target.parameters(), online.parameters()):
+            t.mul_(1 - config.tau).add_(o, alpha=config.tau)
+    return float(loss)
+
+
+@pytest.mark.parametrize("name,changes,weighted", [
+    ("paper", {}, False),
+    ("default", {}, False),
+    ("default", dict(loss="mse", grad_clip=0.05), True),
+    ("default", dict(double_dqn=False, grad_clip=0.0), True),
+])
+def test_hand_written_step_is_autograd_with_torchs_adam(name, changes, weighted):
+    """Ten learning steps of the agent (its hand-written gradient, flat Adam,
+    clip and target update) leave the networks where autograd, torch.optim.Adam
+    and clip_grad_norm_ take copies of them, for each loss, with and without
+    Double DQN, importance weights and a clip that bites."""
+    torch.set_num_threads(1)
+    config = dataclasses.replace(preset(name), **changes)
+    agent = DQNAgent(config)
+    online, target = QNetwork(config.hidden), QNetwork(config.hidden)
+    online.load_state_dict(agent.online.state_dict())
+    target.load_state_dict(agent.target.state_dict())
+    optimizer = torch.optim.Adam(online.parameters(), lr=config.lr)
+    rng = np.random.default_rng(4)
+    for _ in range(10):
+        batch = _batch(rng, size=config.batch_size)
+        weights = rng.random(config.batch_size).astype(np.float32) if weighted else None
+        loss, _ = agent.learn_weighted(batch, weights)
+        assert loss == pytest.approx(
+            _autograd_step(config, online, target, batch, weights, optimizer),
+            rel=1e-5)
+    for ours, reference in ((agent.online, online), (agent.target, target)):
+        for got, want in zip(ours.parameters(), reference.parameters()):
+            torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
 
 
 def test_target_network_follows_by_soft_updates():
@@ -163,7 +223,7 @@ def test_learning_rate_decays_linearly_to_lr_end():
     assert lr_after(paper, 0) == lr_after(paper, 999) == paper.lr
     agent = DQNAgent(config)
     agent.set_lr(lr_after(config, 50))
-    assert agent.optimizer.param_groups[0]["lr"] == pytest.approx(5.5e-4)
+    assert agent.optimizer.lr == pytest.approx(5.5e-4)
 
 
 def test_learning_rate_reaches_lr_end_at_lr_decay_episodes_then_holds():

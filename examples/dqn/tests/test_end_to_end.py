@@ -77,7 +77,7 @@ def test_best_network_is_kept_with_its_running_mean(tmp_path):
     assert policy(np.zeros((3, 12), np.float32)).shape == (3,)
     # The learning rate was decayed to lr_end by the last episode.
     last = torch.load(tmp_path / CHECKPOINT)["agent"]["optimizer"]
-    assert last["param_groups"][0]["lr"] == pytest.approx(1e-4)
+    assert last["lr"] == pytest.approx(1e-4)
 
 
 @pytest.mark.parametrize("mode", ["parallel", "vector"])

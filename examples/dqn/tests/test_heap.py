@@ -1,6 +1,7 @@
 """keep_freed_memory: freed blocks of a gradient step's size are reused
 without page faults."""
 
+import pathlib
 import subprocess
 import sys
 
@@ -29,6 +30,7 @@ print(faults() - before)
 
 def _faults(mode: str) -> int:
     out = subprocess.run([sys.executable, "-c", _FAULTS, mode], check=True,
+                         cwd=pathlib.Path(__file__).parents[1],  # examples/dqn
                          capture_output=True, text=True)
     return int(out.stdout)
 
