@@ -70,8 +70,9 @@ def table(rows: Sequence[Dict]) -> str:
         met = sum(r["met"] for r in rows)
         in_time = sum(r["in_time"] for r in rows)
         lines.append(f"| {name} | " + " | ".join(cells) + " | "
-                     + (f"{met} of {len(rows)} met, {in_time} within "
-                        f"{TIME_LIMIT_S:.0f} s" if name == "mean" else "")
+                     + (f"{met} of {len(rows)} met, {in_time} of them "
+                        f"within {TIME_LIMIT_S:.0f} s" if name == "mean"
+                        else "")
                      + " |")
     return "\n".join(lines)
 

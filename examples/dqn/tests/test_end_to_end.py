@@ -255,5 +255,5 @@ def test_export_chooses_and_report_tabulates_seeds(tmp_path, capsys):
     for line, run in zip(lines[2:4], runs):
         landing = json.loads((run / "eval.json").read_text())["landing_rate"]
         assert f"| {100 * landing:.0f}% | missed |" in line
-    assert "0 of 2 met, 0 within 600 s" in lines[4]
+    assert "0 of 2 met, 0 of them within 600 s" in lines[4]
     assert (tmp_path / "seeds.png").stat().st_size > 1000
