@@ -91,6 +91,17 @@ class FlatAdam:
                     exp_avg_sq=self.exp_avg_sq.clone())
 
     def load_state_dict(self, state) -> None:
+        """Loads state_dict()'s dict, or torch.optim.Adam's over the network's
+        parameters in order (as checkpoints of earlier versions hold)."""
+        if "param_groups" in state:
+            group = state["param_groups"][0]
+            per_param = [state["state"][index] for index in group["params"]]
+            state = dict(
+                lr=group["lr"], betas=group["betas"], eps=group["eps"],
+                step=int(per_param[0]["step"]),
+                exp_avg=torch.cat([p["exp_avg"].reshape(-1) for p in per_param]),
+                exp_avg_sq=torch.cat([p["exp_avg_sq"].reshape(-1)
+                                      for p in per_param]))
         self.lr, self.betas, self.eps = (state["lr"], tuple(state["betas"]),
                                          state["eps"])
         self.step_count = int(state["step"])

@@ -121,6 +121,31 @@ def test_hand_written_step_is_autograd_with_torchs_adam(name, changes, weighted)
             torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
 
 
+def test_adam_state_of_an_earlier_checkpoint_loads_and_steps_as_torchs():
+    """A checkpoint of an earlier version holds torch.optim.Adam's state: it
+    loads into the flat Adam, whose next steps match torch's."""
+    torch.set_num_threads(1)
+    config = preset("default")
+    agent = DQNAgent(config)
+    online, target = QNetwork(config.hidden), QNetwork(config.hidden)
+    online.load_state_dict(agent.online.state_dict())
+    target.load_state_dict(agent.target.state_dict())
+    optimizer = torch.optim.Adam(online.parameters(), lr=config.lr)
+    rng = np.random.default_rng(5)
+    for _ in range(3):
+        _autograd_step(config, online, target, _batch(rng, 512), None, optimizer)
+    agent.load_state_dict(dict(online=online.state_dict(),
+                               target=target.state_dict(),
+                               optimizer=optimizer.state_dict(), updates=3))
+    assert agent.optimizer.step_count == 3
+    for _ in range(3):
+        batch = _batch(rng, 512)
+        agent.learn(batch)
+        _autograd_step(config, online, target, batch, None, optimizer)
+    for got, want in zip(agent.online.parameters(), online.parameters()):
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+
+
 def test_target_network_follows_by_soft_updates():
     config = dataclasses.replace(preset("paper"), tau=0.25)
     agent = DQNAgent(config)
