@@ -23,6 +23,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from mll_dqn.agent import DQNAgent  # noqa: E402
 from mll_dqn.collect import Timers, VectorCollector  # noqa: E402
 from mll_dqn.config import PAPER_ENV_CONFIG, preset  # noqa: E402
+from mll_dqn.heap import keep_freed_memory  # noqa: E402
 from mll_dqn.replay import ReplayBuffer  # noqa: E402
 
 
@@ -60,6 +61,7 @@ def main() -> None:
     parser.add_argument("--address", default=None)
     args = parser.parse_args()
     torch.set_num_threads(1)
+    keep_freed_memory()  # as `train` does
     rng = np.random.default_rng(0)
     rows = []
 
