@@ -90,6 +90,16 @@ def _autograd_step(config, online, target, batch, weights, optimizer):
     return float(loss)
 
 
+def _agent_and_autograd_twin(config):
+    """An agent, and copies of its networks with torch's Adam over the copy
+    of the online one, for _autograd_step."""
+    agent = DQNAgent(config)
+    online, target = QNetwork(config.hidden), QNetwork(config.hidden)
+    online.load_state_dict(agent.online.state_dict())
+    target.load_state_dict(agent.target.state_dict())
+    return agent, online, target, torch.optim.Adam(online.parameters(), lr=config.lr)
+
+
 @pytest.mark.parametrize("name,changes,weighted", [
     ("paper", {}, False),
     ("default", {}, False),
@@ -103,11 +113,7 @@ def test_hand_written_step_is_autograd_with_torchs_adam(name, changes, weighted)
     Double DQN, importance weights and a clip that bites."""
     torch.set_num_threads(1)
     config = dataclasses.replace(preset(name), **changes)
-    agent = DQNAgent(config)
-    online, target = QNetwork(config.hidden), QNetwork(config.hidden)
-    online.load_state_dict(agent.online.state_dict())
-    target.load_state_dict(agent.target.state_dict())
-    optimizer = torch.optim.Adam(online.parameters(), lr=config.lr)
+    agent, online, target, optimizer = _agent_and_autograd_twin(config)
     rng = np.random.default_rng(4)
     for _ in range(10):
         batch = _batch(rng, size=config.batch_size)
@@ -126,11 +132,7 @@ def test_adam_state_of_an_earlier_checkpoint_loads_and_steps_as_torchs():
     loads into the flat Adam, whose next steps match torch's."""
     torch.set_num_threads(1)
     config = preset("default")
-    agent = DQNAgent(config)
-    online, target = QNetwork(config.hidden), QNetwork(config.hidden)
-    online.load_state_dict(agent.online.state_dict())
-    target.load_state_dict(agent.target.state_dict())
-    optimizer = torch.optim.Adam(online.parameters(), lr=config.lr)
+    agent, online, target, optimizer = _agent_and_autograd_twin(config)
     rng = np.random.default_rng(5)
     for _ in range(3):
         _autograd_step(config, online, target, _batch(rng, 512), None, optimizer)
