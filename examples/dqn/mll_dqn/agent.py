@@ -42,20 +42,17 @@ def flatten_parameters(network: nn.Module) -> torch.Tensor:
     tensor instead of a few per parameter."""
     params = list(network.parameters())
     flat = torch.cat([param.detach().reshape(-1) for param in params])
-    _view_as(flat, [param.data for param in params], params)
+    for param, view in zip(params, _views_of(flat, params)):
+        param.data = view
     return flat
 
 
-def _view_as(flat: torch.Tensor, shapes_of, into=None) -> List[torch.Tensor]:
-    """Views of `flat` shaped like the tensors `shapes_of`, in order; with
-    `into` (parameters), each parameter's data becomes its view."""
+def _views_of(flat: torch.Tensor, shapes_of) -> List[torch.Tensor]:
+    """Views of `flat` shaped like the tensors `shapes_of`, in order."""
     views, offset = [], 0
-    for index, like in enumerate(shapes_of):
-        view = flat[offset:offset + like.numel()].view_as(like)
+    for like in shapes_of:
+        views.append(flat[offset:offset + like.numel()].view_as(like))
         offset += like.numel()
-        if into is not None:
-            into[index].data = view
-        views.append(view)
     return views
 
 
@@ -159,7 +156,7 @@ class DQNAgent:
         self._online_flat = flatten_parameters(self.online)
         self._target_flat = flatten_parameters(self.target)
         self._grad_flat = torch.zeros_like(self._online_flat)
-        self._grads = _view_as(self._grad_flat, list(self.online.parameters()))
+        self._grads = _views_of(self._grad_flat, list(self.online.parameters()))
         self.optimizer = FlatAdam(self._online_flat, self._grad_flat,
                                   lr=config.lr)
         self.updates = 0
