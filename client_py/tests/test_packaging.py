@@ -116,7 +116,7 @@ def test_pip_install_client_py_is_the_pure_python_client(fresh_clone, tmp_path):
         "package = pathlib.Path(mll.__file__).parent\n"
         "print('typed', (package / 'py.typed').exists())\n"
         "print('stubs', (package / '_proto' / 'multi_lunar_lander_pb2.py').exists())\n"
-        "print('license', m.metadata('multi_lunar_lander')['License'])\n"
+        "print('license', m.metadata('multi_lunar_lander')['License-Expression'])\n"
         "print('location', package)\n"
         "print('native', mll._native.available())\n"
     )
