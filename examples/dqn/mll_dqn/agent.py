@@ -15,12 +15,33 @@ import multi_lunar_lander
 from mll_dqn.config import N_ACTIONS, OBS_SIZE, TrainConfig
 
 
+# World units per observation unit of a neighbor's offset (x: W/2, y: H/2).
+_NEIGHBOR_SCALE = torch.tensor([10.0, 20.0 / 3.0])
+NEIGHBOR_REACH = 2.0
+
+
+def neighbor_closeness(obs: torch.Tensor) -> torch.Tensor:
+    """obs with each neighbor's offset [8:10], [10:12] replaced by its
+    direction times exp(-distance / NEIGHBOR_REACH): large when near, 0 when
+    absent (the environment writes an absent neighbor as a zero offset, the
+    offset of one that overlaps)."""
+    offsets = obs[:, 8:12].reshape(-1, 2, 2) * _NEIGHBOR_SCALE
+    distance = offsets.norm(dim=2, keepdim=True)
+    present = distance > 0
+    safe = torch.where(present, distance, torch.ones_like(distance))
+    closeness = torch.where(present, torch.exp(-distance / NEIGHBOR_REACH) / safe,
+                            torch.zeros_like(distance))
+    return torch.cat((obs[:, :8], (offsets * closeness).reshape(-1, 4)), dim=1)
+
+
 class QNetwork(nn.Module):
     """MLP obs -> Q-values, 12-256-64-4 in the paper; no agent id input."""
 
     def __init__(self, hidden: Sequence[int] = (256, 64),
-                 obs_size: int = OBS_SIZE, n_actions: int = N_ACTIONS):
+                 obs_size: int = OBS_SIZE, n_actions: int = N_ACTIONS,
+                 neighbor_input: str = "offset"):
         super().__init__()
+        self.neighbor_input = neighbor_input
         sizes = [obs_size, *hidden]
         layers = []
         for n_in, n_out in zip(sizes[:-1], sizes[1:]):
@@ -29,7 +50,12 @@ class QNetwork(nn.Module):
         self.layers = nn.Sequential(*layers)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.layers(obs)
+        return self.layers(self.inputs(obs))
+
+    def inputs(self, obs: torch.Tensor) -> torch.Tensor:
+        if self.neighbor_input == "closeness":
+            return neighbor_closeness(obs)
+        return obs
 
     def linear_layers(self) -> List[nn.Linear]:
         return [layer for layer in self.layers if isinstance(layer, nn.Linear)]
@@ -148,8 +174,8 @@ class DQNAgent:
         # The paper seeds torch before building each network, so both start
         # equal; we copy instead, to the same effect.
         torch.manual_seed(config.seed)
-        self.online = QNetwork(config.hidden)
-        self.target = QNetwork(config.hidden)
+        self.online = QNetwork(config.hidden, neighbor_input=config.neighbor_input)
+        self.target = QNetwork(config.hidden, neighbor_input=config.neighbor_input)
         self.target.load_state_dict(self.online.state_dict())
         for param in self.target.parameters():
             param.requires_grad_(False)
@@ -200,11 +226,12 @@ class DQNAgent:
         if config.double_dqn:
             # One pass of the online network over obs and next_obs.
             activations = _forward_keeping_activations(
-                online, torch.cat((obs, next_obs)))
+                online, self.online.inputs(torch.cat((obs, next_obs))))
             next_online_q = activations[-1][size:]
             activations = [a[:size] for a in activations]
         else:
-            activations = _forward_keeping_activations(online, obs)
+            activations = _forward_keeping_activations(
+                online, self.online.inputs(obs))
         next_q = self.target(next_obs)
         if config.double_dqn:
             # The online network picks, the target network evaluates.

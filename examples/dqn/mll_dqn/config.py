@@ -30,6 +30,11 @@ PAPER_ENV_CONFIG: Dict[str, Any] = dict(
         remove_on_damage=True,
 )
 
+# How the network may see a lander's two nearest neighbors (agent.py:
+# neighbor_closeness): the observation's offsets as they are, or each
+# neighbor's direction times its closeness.
+NEIGHBOR_INPUTS = ("offset", "closeness")
+
 # Observation size and number of discrete actions of one lander.
 OBS_SIZE = 12
 N_ACTIONS = 4
@@ -66,6 +71,12 @@ class TrainConfig:
     # default preset: 1.
     explore_guide: float = 0.0
     hidden: tuple = (256, 64)
+    # How the network sees a neighbor: "offset", the observation as it is
+    # (the paper), where an absent neighbor is a zero offset, next to the
+    # offset of a neighbor about to collide; "closeness", the neighbor's
+    # direction times exp(-distance / 2 world units): 0 when absent or far,
+    # largest when near. The default preset: "closeness".
+    neighbor_input: str = "offset"
     # Learning starts once the buffer holds more than this many transitions
     # (the paper: more than one batch).
     learn_start: Optional[int] = None
@@ -140,6 +151,8 @@ class TrainConfig:
                  "0 (off) or > 1"),
                 ("explore_max_steps", self.explore_max_steps >= 1, ">= 1"),
                 ("explore_guide", 0 <= self.explore_guide <= 1, "[0, 1]"),
+                ("neighbor_input", self.neighbor_input in NEIGHBOR_INPUTS,
+                 " or ".join(NEIGHBOR_INPUTS)),
                 ("mode", self.mode in ("parallel", "vector"), "parallel or vector"),
                 ("num_envs", self.num_envs >= 1, ">= 1"),
                 ("loss", self.loss in ("mse", "huber"), "mse or huber"),
@@ -242,13 +255,16 @@ def _default() -> TrainConfig:
     # - epsilon decaying twice as fast (0.98 per episode: 0.01 by episode
     #   228), so the greedy policy is reached with episodes to spare;
     # - the learning rate at its tenth from episode 700, so the last 300
-    #   episodes take small steps.
+    #   episodes take small steps;
+    # and the neighbors seen by their closeness (neighbor_input), so that a
+    # neighbor about to collide no longer looks like no neighbor at all.
     return dataclasses.replace(
         _target10(),
         explore_guide=1.0,
         buffer_size=1_000_000,
         eps_decay=0.98,
         lr_decay_episodes=700,
+        neighbor_input="closeness",
     )
 
 

@@ -33,7 +33,7 @@ def load_network(checkpoint_path: str):
     """(the checkpoint's online QNetwork, its TrainConfig)."""
     saved = torch.load(checkpoint_path)
     config = TrainConfig.from_dict(saved["config"])
-    net = QNetwork(config.hidden)
+    net = QNetwork(config.hidden, neighbor_input=config.neighbor_input)
     net.load_state_dict(saved["agent"]["online"])
     net.eval()
     return net, config
