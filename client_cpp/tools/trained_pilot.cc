@@ -1,6 +1,7 @@
 #include "trained_pilot.h"
 
 #include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <cstring>
 #include <fstream>
@@ -15,7 +16,8 @@ namespace mll::client {
 namespace {
 
 constexpr char kMagic[] = "MLLQ";
-constexpr uint32_t kVersion = 1;
+// Version 1 has no neighbor-input field (its networks see offsets).
+constexpr uint32_t kVersion = 2;
 // As qnet_file.py: bounds what a damaged header can ask for.
 constexpr uint32_t kMaxLayers = 16;
 constexpr uint32_t kMaxLayerSize = 1 << 16;
@@ -34,6 +36,26 @@ float ReadF32(const std::string& data, size_t offset) {
   float value;
   std::memcpy(&value, &bits, sizeof(value));
   return value;
+}
+
+// As qnet_file.py's NEIGHBOR_SCALE and NEIGHBOR_REACH: world units per
+// observation unit of a neighbor's offset (W/2, H/2), and the distance over
+// which closeness falls by e.
+constexpr float kNeighborScale[2] = {10.0f, 20.0f / 3.0f};
+constexpr float kNeighborReach = 2.0f;
+
+// Replaces each neighbor's offset in x[8:12] by its direction times
+// exp(-distance / kNeighborReach); an absent neighbor (zero offset) stays 0.
+void SeeNeighborsByCloseness(std::vector<float>& x) {
+  for (int slot = 8; slot < 12; slot += 2) {
+    const float dx = x[slot] * kNeighborScale[0];
+    const float dy = x[slot + 1] * kNeighborScale[1];
+    const float distance = std::sqrt(dx * dx + dy * dy);
+    const float closeness =
+        distance > 0 ? std::exp(-distance / kNeighborReach) / distance : 0.0f;
+    x[slot] = dx * closeness;
+    x[slot + 1] = dy * closeness;
+  }
 }
 
 }  // namespace
@@ -64,16 +86,28 @@ absl::StatusOr<QNetwork> QNetwork::Parse(const std::string& data,
   if (data.size() < 12 || data.compare(0, 4, kMagic) != 0) {
     return invalid("is not a .qnet file (no \"MLLQ\" header)");
   }
-  if (const uint32_t version = ReadU32(data, 4); version != kVersion) {
-    return invalid("has version ", version, "; allowed: ", kVersion);
-  }
-  const uint32_t n_layers = ReadU32(data, 8);
-  if (n_layers < 1 || n_layers > kMaxLayers ||
-      data.size() < 12 + 4 * (n_layers + 1)) {
-    return invalid("has ", n_layers, " layers; allowed: 1..", kMaxLayers);
+  const uint32_t version = ReadU32(data, 4);
+  if (version != 1 && version != kVersion) {
+    return invalid("has version ", version, "; allowed: 1 or ", kVersion);
   }
   QNetwork network;
-  size_t offset = 12;
+  size_t offset = 8;
+  if (version >= 2) {
+    if (data.size() < 16) return invalid("ends inside its header");
+    const uint32_t inputs = ReadU32(data, 8);
+    if (inputs > static_cast<uint32_t>(NeighborInput::kCloseness)) {
+      return invalid("has inputs ", inputs,
+                     "; allowed: 0 (offset) or 1 (closeness)");
+    }
+    network.neighbor_input_ = static_cast<NeighborInput>(inputs);
+    offset = 12;
+  }
+  const uint32_t n_layers = ReadU32(data, offset);
+  offset += 4;
+  if (n_layers < 1 || n_layers > kMaxLayers ||
+      data.size() < offset + 4 * (n_layers + 1)) {
+    return invalid("has ", n_layers, " layers; allowed: 1..", kMaxLayers);
+  }
   size_t expected = offset + 4 * (n_layers + 1);
   for (uint32_t i = 0; i <= n_layers; ++i, offset += 4) {
     const uint32_t size = ReadU32(data, offset);
@@ -83,6 +117,12 @@ absl::StatusOr<QNetwork> QNetwork::Parse(const std::string& data,
     }
     network.sizes_.push_back(static_cast<int>(size));
     if (i > 0) expected += size_t{4} * size * (network.sizes_[i - 1] + 1);
+  }
+  if (network.neighbor_input_ == NeighborInput::kCloseness &&
+      network.sizes_.front() != 12) {
+    return invalid("has ", network.sizes_.front(),
+                   " inputs; a network that sees neighbors by closeness has "
+                   "12");
   }
   if (data.size() != expected) {
     return invalid("has ", data.size(), " bytes; layer sizes [",
@@ -103,6 +143,7 @@ std::vector<float> QNetwork::QValues(
     absl::Span<const float> observation) const {
   std::vector<float> x(observation.begin(), observation.end());
   x.resize(sizes_.front(), 0.0f);
+  if (neighbor_input_ == NeighborInput::kCloseness) SeeNeighborsByCloseness(x);
   for (size_t l = 0; l < layers_.size(); ++l) {
     const int n_in = sizes_[l];
     const int n_out = sizes_[l + 1];

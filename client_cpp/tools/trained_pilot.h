@@ -1,11 +1,12 @@
 // The trained DQN pilot of examples/dqn: a Q-network read from a .qnet file
-// (the format of examples/dqn/mll_dqn/qnet_file.py: "MLLQ", version, layer
-// sizes, then float32 weights and biases, all little-endian) and flown
-// greedily, plus PlayPilot, which mll_cli's play uses to fly either it or a
-// RemotePilot.
+// (the format of examples/dqn/mll_dqn/qnet_file.py: "MLLQ", version, how the
+// network sees the neighbors (version 2), layer sizes, then float32 weights
+// and biases, all little-endian) and flown greedily, plus PlayPilot, which
+// mll_cli's play uses to fly either it or a RemotePilot.
 #ifndef MLL_CLIENT_TOOLS_TRAINED_PILOT_H_
 #define MLL_CLIENT_TOOLS_TRAINED_PILOT_H_
 
+#include <cstdint>
 #include <memory>
 #include <optional>
 #include <string>
@@ -21,6 +22,15 @@ namespace mll::client {
 // An MLP with ReLU between layers and a linear output layer.
 class QNetwork {
  public:
+  // How the network sees an observation's two nearest neighbors [8:12].
+  enum class NeighborInput : uint32_t {
+    // The offsets as the environment writes them.
+    kOffset = 0,
+    // Each neighbor's direction times exp(-distance / 2 world units), 0 for
+    // an absent one (mll_dqn.agent.neighbor_closeness).
+    kCloseness = 1,
+  };
+
   // INVALID_ARGUMENT naming the file and what is wrong with it (NOT_FOUND if
   // it cannot be read).
   static absl::StatusOr<QNetwork> Load(const std::string& path);
@@ -38,8 +48,10 @@ class QNetwork {
 
   const std::vector<int>& sizes() const { return sizes_; }
   int input_size() const { return sizes_.front(); }
+  NeighborInput neighbor_input() const { return neighbor_input_; }
 
  private:
+  NeighborInput neighbor_input_ = NeighborInput::kOffset;
   std::vector<int> sizes_;
   // Per layer: weight [out][in] row-major, then bias [out].
   std::vector<std::vector<float>> layers_;

@@ -4,6 +4,7 @@
 // flying the shipped network through the real mll_server.
 #include "trained_pilot.h"
 
+#include <cmath>
 #include <cstdint>
 #include <cstring>
 #include <fstream>
@@ -64,6 +65,43 @@ TEST(QNetworkTest, ForwardPassOfASmallNetwork) {
   EXPECT_EQ(network->Greedy(std::vector<float>{-1.0f, 0.0f}), 2);
 }
 
+// Version 2, neighbors seen by closeness: 12 inputs -> 2 Q-values, the first
+// the input [8] (the nearest neighbor's x), the second the input [11] (the
+// second neighbor's y), as the network sees them.
+std::string ClosenessNetwork() {
+  std::string bytes = "MLLQ" + U32(2) + U32(1) + U32(1) + U32(12) + U32(2);
+  for (int out = 0; out < 2; ++out) {
+    for (int in = 0; in < 12; ++in) {
+      bytes += F32((out == 0 && in == 8) || (out == 1 && in == 11) ? 1.0f
+                                                                   : 0.0f);
+    }
+  }
+  return bytes + F32(0.0f) + F32(0.0f);
+}
+
+TEST(QNetworkTest, ANetworkOfVersion2SeesNeighborsByCloseness) {
+  absl::StatusOr<QNetwork> network =
+      QNetwork::Load(WriteFile("closeness.qnet", ClosenessNetwork()));
+  ASSERT_TRUE(network.ok()) << network.status();
+  EXPECT_EQ(network->neighbor_input(), QNetwork::NeighborInput::kCloseness);
+  // The nearest neighbor 1 world unit to the right (x offsets are in units of
+  // W/2 = 10), the second 6 units below (y offsets: H/2 = 20/3).
+  std::vector<float> obs(12, 0.0f);
+  obs[8] = -0.1f;
+  obs[11] = 0.9f;
+  std::vector<float> q = network->QValues(obs);
+  EXPECT_NEAR(q[0], -std::exp(-0.5f), 1e-6);
+  EXPECT_NEAR(q[1], std::exp(-3.0f), 1e-6);
+  // No neighbors: zero offsets are seen as 0, not as a neighbor on top.
+  q = network->QValues(std::vector<float>(12, 0.0f));
+  EXPECT_THAT(q, ElementsAre(0.0f, 0.0f));
+  // A version 1 file sees offsets as they are.
+  absl::StatusOr<QNetwork> small =
+      QNetwork::Load(WriteFile("small.qnet", SmallNetwork()));
+  ASSERT_TRUE(small.ok()) << small.status();
+  EXPECT_EQ(small->neighbor_input(), QNetwork::NeighborInput::kOffset);
+}
+
 TEST(QNetworkTest, DamagedFilesAreRefusedNamingWhatIsWrong) {
   const std::string good = SmallNetwork();
   const struct {
@@ -71,7 +109,12 @@ TEST(QNetworkTest, DamagedFilesAreRefusedNamingWhatIsWrong) {
     std::string message;
   } cases[] = {
       {"XXXX" + good.substr(4), "not a .qnet file"},
-      {good.substr(0, 4) + U32(7) + good.substr(8), "version 7; allowed: 1"},
+      {good.substr(0, 4) + U32(7) + good.substr(8),
+       "version 7; allowed: 1 or 2"},
+      {good.substr(0, 4) + U32(2) + U32(9) + good.substr(8),
+       "inputs 9; allowed: 0 (offset) or 1 (closeness)"},
+      {good.substr(0, 4) + U32(2) + U32(1) + good.substr(8),
+       "2 inputs; a network that sees neighbors by closeness has 12"},
       {good.substr(0, 8) + U32(99) + good.substr(12), "99 layers"},
       {good.substr(0, good.size() - 4), "layer sizes [2, 2, 3] need"},
       {good.substr(0, 12) + U32(0) + good.substr(16), "layer of size 0"},

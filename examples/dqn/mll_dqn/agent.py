@@ -12,25 +12,26 @@ from torch.nn import functional as F
 
 import multi_lunar_lander
 
+from mll_dqn import qnet_file
 from mll_dqn.config import N_ACTIONS, OBS_SIZE, TrainConfig
 
 
-# World units per observation unit of a neighbor's offset (x: W/2, y: H/2).
-_NEIGHBOR_SCALE = torch.tensor([10.0, 20.0 / 3.0])
-NEIGHBOR_REACH = 2.0
+_NEIGHBOR_SCALE = torch.from_numpy(qnet_file.NEIGHBOR_SCALE)
 
 
 def neighbor_closeness(obs: torch.Tensor) -> torch.Tensor:
-    """obs with each neighbor's offset [8:10], [10:12] replaced by its
-    direction times exp(-distance / NEIGHBOR_REACH): large when near, 0 when
-    absent (the environment writes an absent neighbor as a zero offset, the
-    offset of one that overlaps)."""
+    """obs with each neighbor's offset [8:10], [10:12] (in world units)
+    replaced by its direction times exp(-distance / NEIGHBOR_REACH): near 1
+    when near, 0 when absent or far. The environment writes an absent
+    neighbor as a zero offset, next to the offset of one about to collide;
+    here the two are the furthest apart. qnet_file has the same in numpy."""
     offsets = obs[:, 8:12].reshape(-1, 2, 2) * _NEIGHBOR_SCALE
     distance = offsets.norm(dim=2, keepdim=True)
     present = distance > 0
     safe = torch.where(present, distance, torch.ones_like(distance))
-    closeness = torch.where(present, torch.exp(-distance / NEIGHBOR_REACH) / safe,
-                            torch.zeros_like(distance))
+    closeness = torch.where(
+        present, torch.exp(-distance / qnet_file.NEIGHBOR_REACH) / safe,
+        torch.zeros_like(distance))
     return torch.cat((obs[:, :8], (offsets * closeness).reshape(-1, 4)), dim=1)
 
 

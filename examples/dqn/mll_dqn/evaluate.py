@@ -41,10 +41,10 @@ def load_network(checkpoint_path: str):
 
 def export_qnet(checkpoint_path: str, out_path: str) -> None:
     """Writes the checkpoint's online network as a .qnet file (qnet_file)."""
-    net, _ = load_network(checkpoint_path)
+    net, config = load_network(checkpoint_path)
     qnet_file.save(out_path, [
         (layer.weight.detach().numpy(), layer.bias.detach().numpy())
-        for layer in net.layers if isinstance(layer, torch.nn.Linear)])
+        for layer in net.linear_layers()], config.neighbor_input)
 
 
 def export_best(checkpoints, out_path: str, episodes: int = 30,

@@ -1,13 +1,15 @@
 """The shared Q-network's learning step and the config's validation."""
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
 import torch
 
 import multi_lunar_lander
-from mll_dqn.agent import DQNAgent, QNetwork, RepeatedExploration
+from mll_dqn.agent import (DQNAgent, QNetwork, RepeatedExploration,
+                           neighbor_closeness)
 from mll_dqn.config import TrainConfig, preset
 from mll_dqn.train import epsilon_after, lr_after
 
@@ -94,7 +96,8 @@ def _agent_and_autograd_twin(config):
     """An agent, and copies of its networks with torch's Adam over the copy
     of the online one, for _autograd_step."""
     agent = DQNAgent(config)
-    online, target = QNetwork(config.hidden), QNetwork(config.hidden)
+    online, target = (QNetwork(config.hidden, neighbor_input=config.neighbor_input)
+                      for _ in range(2))
     online.load_state_dict(agent.online.state_dict())
     target.load_state_dict(agent.target.state_dict())
     return agent, online, target, torch.optim.Adam(online.parameters(), lr=config.lr)
@@ -275,7 +278,8 @@ def test_default_preset_is_target10_with_the_changes_docs_list():
     changed = {f.name: getattr(default, f.name) for f in dataclasses.fields(default)
                if getattr(default, f.name) != getattr(target10, f.name)}
     assert changed == dict(explore_guide=1.0, buffer_size=1_000_000,
-                           eps_decay=0.98, lr_decay_episodes=700)
+                           eps_decay=0.98, lr_decay_episodes=700,
+                           neighbor_input="closeness")
     default.validate()
 
 
@@ -299,12 +303,36 @@ def test_paper_preset_is_table_iv():
     ("torch_threads", 0, "torch_threads = 0 is out of range; allowed: >= 1"),
     ("explore_zeta", 1.0, "explore_zeta = 1.0 is out of range; allowed: 0 (off) or > 1"),
     ("explore_guide", 1.5, "explore_guide = 1.5 is out of range; allowed: [0, 1]"),
+    ("neighbor_input", "raw",
+     "neighbor_input = 'raw' is out of range; allowed: offset or closeness"),
 ])
 def test_bad_config_names_field_value_and_range(field, value, message):
     config = dataclasses.replace(TrainConfig(), **{field: value})
     with pytest.raises(ValueError) as error:
         config.validate()
     assert message in str(error.value)
+
+
+def test_neighbor_closeness_is_largest_near_and_zero_when_absent():
+    # Lander 0 has a neighbor 1 world unit to its right and one 6 units below
+    # it; lander 1 has none. Offsets are own minus neighbor, in W/2 and H/2.
+    obs = torch.zeros(2, 12)
+    obs[:, :8] = torch.arange(8.0)
+    obs[0, 8:12] = torch.tensor([-1.0 / 10, 0.0, 0.0, 6.0 / (20.0 / 3.0)])
+    seen = neighbor_closeness(obs)
+    assert torch.equal(seen[:, :8], obs[:, :8])
+    expected = [-math.exp(-0.5), 0.0, 0.0, math.exp(-3.0)]
+    assert seen[0, 8:].tolist() == pytest.approx(expected, rel=1e-6)
+    assert seen[1, 8:].tolist() == [0.0] * 4
+    # A neighbor nearly overlapping sees ~1, not the 0 of an absent one.
+    obs[1, 8] = 1e-4
+    assert neighbor_closeness(obs)[1, 8] == pytest.approx(1.0, abs=1e-3)
+    # The network applies it only when configured to.
+    paper, default = QNetwork(), QNetwork(neighbor_input="closeness")
+    default.load_state_dict(paper.state_dict())
+    with torch.no_grad():
+        assert torch.equal(default(obs), paper(neighbor_closeness(obs)))
+        assert not torch.equal(default(obs), paper(obs))
 
 
 def test_target10_is_target_with_overlap():

@@ -13,22 +13,26 @@ from mll_dqn.config import preset
 from mll_dqn.train import _save_best, Progress
 
 
-def _checkpoint(tmp_path, seed=3):
-    config = dataclasses.replace(preset("quick"), seed=seed)
+def _checkpoint(tmp_path, seed=3, neighbor_input="offset"):
+    config = dataclasses.replace(preset("quick"), seed=seed,
+                                 neighbor_input=neighbor_input)
     agent = DQNAgent(config)
     path = str(tmp_path / "net.pt")
     _save_best(path, config, agent, Progress())
     return path, agent
 
 
-def test_export_matches_torch_forward(tmp_path):
-    path, agent = _checkpoint(tmp_path)
+@pytest.mark.parametrize("neighbor_input", ["offset", "closeness"])
+def test_export_matches_torch_forward(tmp_path, neighbor_input):
+    path, agent = _checkpoint(tmp_path, neighbor_input=neighbor_input)
     out = str(tmp_path / "net.qnet")
     evaluate.export_qnet(path, out)
-    # 12-256-64-4 in float32 plus a 28-byte header.
-    assert (tmp_path / "net.qnet").stat().st_size == 28 + 4 * (
+    # 12-256-64-4 in float32 plus a 32-byte header.
+    assert (tmp_path / "net.qnet").stat().st_size == 32 + 4 * (
         12 * 256 + 256 + 256 * 64 + 64 + 64 * 4 + 4)
+    assert qnet_file.load(out).neighbor_input == neighbor_input
     obs = np.random.default_rng(0).normal(size=(64, 12)).astype(np.float32)
+    obs[::4, 8:12] = 0  # Landers without neighbors.
     with torch.no_grad():
         expected = agent.online(torch.from_numpy(obs)).numpy()
     got = qnet_file.q_values(qnet_file.load(out), obs)
@@ -45,11 +49,17 @@ def test_export_best_chooses_the_one_given_alone(tmp_path):
 
 @pytest.mark.parametrize("damage, message", [
     (lambda d: b"XXXX" + d[4:], "not a .qnet file"),
-    (lambda d: d[:4] + (7).to_bytes(4, "little") + d[8:], "version 7"),
-    (lambda d: d[:8] + (99).to_bytes(4, "little") + d[12:], "99 layers"),
+    (lambda d: d[:4] + (7).to_bytes(4, "little") + d[8:],
+     "version 7 is not supported; allowed: 1 or 2"),
+    (lambda d: d[:8] + (9).to_bytes(4, "little") + d[12:],
+     "inputs 9; allowed: 0 \\(offset\\) or 1 \\(closeness\\)"),
+    (lambda d: d[:12] + (99).to_bytes(4, "little") + d[16:], "99 layers"),
     (lambda d: d[:-4], "bytes; layer sizes \\[12, 256, 64, 4\\] need"),
-    (lambda d: d[:12] + (0).to_bytes(4, "little") + d[16:],
+    (lambda d: d[:16] + (0).to_bytes(4, "little") + d[20:],
      "layer sizes \\[0, 256, 64, 4\\]"),
+    (lambda d: d[:8] + (1).to_bytes(4, "little") + d[12:16]
+     + (13).to_bytes(4, "little") + d[20:],
+     "13 inputs; a network that sees neighbors by closeness has 12"),
 ])
 def test_damaged_files_are_refused(tmp_path, damage, message):
     path, _ = _checkpoint(tmp_path)
