@@ -72,8 +72,8 @@ std::string ClosenessNetwork() {
   std::string bytes = "MLLQ" + U32(2) + U32(1) + U32(1) + U32(12) + U32(2);
   for (int out = 0; out < 2; ++out) {
     for (int in = 0; in < 12; ++in) {
-      bytes += F32((out == 0 && in == 8) || (out == 1 && in == 11) ? 1.0f
-                                                                   : 0.0f);
+      bytes +=
+          F32((out == 0 && in == 8) || (out == 1 && in == 11) ? 1.0f : 0.0f);
     }
   }
   return bytes + F32(0.0f) + F32(0.0f);
@@ -136,17 +136,18 @@ TEST(QNetworkTest, ShippedNetworkMatchesNumpy) {
   absl::StatusOr<QNetwork> network = QNetwork::Load(MLL_SHIPPED_QNET);
   ASSERT_TRUE(network.ok()) << network.status();
   EXPECT_THAT(network->sizes(), ElementsAre(12, 256, 64, 4));
+  EXPECT_EQ(network->neighbor_input(), QNetwork::NeighborInput::kCloseness);
   const std::vector<std::vector<float>> observations = {
       {0.0f, 1.4f, 0.0f, 0.0f, 0.0f, 0.0f, 0, 0, 0, 0, 0, 0},
       {0.3f, 0.5f, -0.2f, -0.4f, 0.1f, 0.05f, 0, 0, 0.2f, -0.3f, 0.1f, 0.0f},
       {-0.5f, 0.2f, 0.3f, -0.1f, -0.2f, -0.1f, 1, 0, -0.4f, 0.6f, 0, 1},
   };
   const std::vector<std::vector<float>> expected = {
-      {0.243949f, 0.231144f, 0.230262f, 0.247317f},
-      {0.458062f, 0.453306f, 0.521354f, 0.501651f},
-      {-0.739899f, -0.848510f, -0.728249f, -0.744601f},
+      {0.675502f, 0.639469f, 0.624980f, 0.667969f},
+      {-2.340131f, -1.910421f, -2.127151f, -1.987894f},
+      {0.409632f, 0.406116f, 0.444865f, 0.358943f},
   };
-  const int greedy[] = {3, 2, 2};
+  const int greedy[] = {0, 1, 2};
   for (size_t k = 0; k < observations.size(); ++k) {
     const std::vector<float> q = network->QValues(observations[k]);
     ASSERT_EQ(q.size(), 4u);

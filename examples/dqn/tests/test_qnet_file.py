@@ -80,13 +80,14 @@ SHIPPED_OBS = [
     [-0.5, 0.2, 0.3, -0.1, -0.2, -0.1, 1, 0, -0.4, 0.6, 0, 1],
 ]
 SHIPPED_Q = [
-    [0.243949, 0.231144, 0.230262, 0.247317],
-    [0.458062, 0.453306, 0.521354, 0.501651],
-    [-0.739899, -0.848510, -0.728249, -0.744601],
+    [0.675502, 0.639469, 0.624980, 0.667969],
+    [-2.340131, -1.910421, -2.127151, -1.987894],
+    [0.409632, 0.406116, 0.444865, 0.358943],
 ]
 
 
 def test_shipped_network_q_values():
-    layers = qnet_file.load(qnet_file.SHIPPED)
-    q = qnet_file.q_values(layers, np.array(SHIPPED_OBS, np.float32))
+    net = qnet_file.load(qnet_file.SHIPPED)
+    assert net.neighbor_input == "closeness"
+    q = qnet_file.q_values(net, np.array(SHIPPED_OBS, np.float32))
     np.testing.assert_allclose(q, SHIPPED_Q, atol=2e-6)

@@ -19,7 +19,7 @@ from mll_dqn.qnet_file import SHIPPED, TrainedPilot
 # evaluation episodes is stated there).
 EPISODES = 8
 SEED = 3_000_000
-MIN_LANDING_RATE = 0.5
+MIN_LANDING_RATE = 0.8
 PLAY = pathlib.Path(__file__).resolve().parents[2] / "play.py"
 
 
