@@ -226,14 +226,18 @@ class DQNAgent:
         online = self.online.linear_layers()
         if config.double_dqn:
             # One pass of the online network over obs and next_obs.
-            activations = _forward_keeping_activations(
-                online, self.online.inputs(torch.cat((obs, next_obs))))
+            seen = self.online.inputs(torch.cat((obs, next_obs)))
+            activations = _forward_keeping_activations(online, seen)
             next_online_q = activations[-1][size:]
             activations = [a[:size] for a in activations]
+            next_seen = seen[size:]
         else:
             activations = _forward_keeping_activations(
                 online, self.online.inputs(obs))
-        next_q = self.target(next_obs)
+            next_seen = self.target.inputs(next_obs)
+        # The target network on next_obs as the online network saw it (the
+        # input transform is the same for both, and done once).
+        next_q = self.target.layers(next_seen)
         if config.double_dqn:
             # The online network picks, the target network evaluates.
             best = next_online_q.argmax(dim=1, keepdim=True)

@@ -139,7 +139,7 @@ def neighbor_closeness(obs: np.ndarray) -> np.ndarray:
         / np.where(present, distance, np.float32(1)),
         np.float32(0))
     return np.concatenate((obs[:, :8], (offsets * closeness).reshape(-1, 4)),
-                          axis=1).astype(np.float32)
+                          axis=1)
 
 
 def q_values(net: QNet, obs: np.ndarray) -> np.ndarray:
