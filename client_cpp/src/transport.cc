@@ -185,70 +185,6 @@ class UnaryTransport final : public Transport {
   }
 };
 
-// One Session stream; calls are serialised on it (a request, then its
-// response), which is what keeps responses in request order.
-class SessionTransport final : public Transport {
- public:
-  SessionTransport(std::string address, std::shared_ptr<grpc::Channel> channel,
-                   ClientOptions options)
-      : Transport(std::move(address), std::move(channel), std::move(options)) {
-    Prepare(&context_, /*unary=*/false);
-    stream_ = stub_->Session(&context_);
-  }
-
-  // Half-closes and waits for the server's end of stream; the server
-  // destroys the session's environments as the stream ends (possibly just
-  // after this returns: it sends the final status first).
-  ~SessionTransport() override {
-    absl::MutexLock lock(&mu_);
-    if (!finished_) {
-      stream_->WritesDone();
-      (void)FinishLocked();
-    }
-  }
-
-  absl::Status Call(v1::SessionRequest& request,
-                    v1::SessionResponse* response) override {
-    absl::MutexLock lock(&mu_);
-    if (finished_) return end_status_;
-    const uint64_t sequence = ++last_sequence_;
-    request.set_sequence(sequence);
-    if (!stream_->Write(request) || !stream_->Read(response)) {
-      return FinishLocked();
-    }
-    if (response->sequence() != sequence) {
-      return absl::InternalError(absl::StrCat("session response has sequence ",
-                                              response->sequence(),
-                                              "; expected ", sequence));
-    }
-    if (response->has_error()) return FromItemError(response->error());
-    return absl::OkStatus();
-  }
-
-  bool is_session() const override { return true; }
-
- private:
-  // The stream has ended: its final status, or UNAVAILABLE if the server
-  // closed it cleanly while a call was waiting.
-  absl::Status FinishLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_) {
-    finished_ = true;
-    end_status_ = FromGrpc(stream_->Finish());
-    if (end_status_.ok()) {
-      end_status_ = absl::UnavailableError("the server ended the session");
-    }
-    return end_status_;
-  }
-
-  absl::Mutex mu_;
-  grpc::ClientContext context_;
-  std::unique_ptr<
-      grpc::ClientReaderWriter<v1::SessionRequest, v1::SessionResponse>>
-      stream_;
-  uint64_t last_sequence_ ABSL_GUARDED_BY(mu_) = 0;
-  bool finished_ ABSL_GUARDED_BY(mu_) = false;
-  absl::Status end_status_ ABSL_GUARDED_BY(mu_);
-};
-
 }  // namespace
 
 absl::Status FromGrpc(const grpc::Status& status) {
@@ -378,8 +314,72 @@ absl::Status Transport::CheckHealth(absl::string_view service) const {
 }
 
 absl::StatusOr<std::shared_ptr<Transport>> Transport::OpenSession() const {
-  return std::shared_ptr<Transport>(
-      std::make_shared<SessionTransport>(address_, channel_, options_));
+  auto session =
+      std::make_shared<StreamTransport>(address_, channel_, options_);
+  // Asked for by name, shared memory is refused here, not at the first call.
+  if (options_.session_transport == SessionTransport::kSharedMemory) {
+    absl::Status status = session->Open();
+    if (!status.ok()) return status;
+  }
+  return std::shared_ptr<Transport>(std::move(session));
+}
+
+StreamTransport::StreamTransport(std::string address,
+                                 std::shared_ptr<grpc::Channel> channel,
+                                 ClientOptions options)
+    : Transport(std::move(address), std::move(channel), std::move(options)),
+      stream_(channel_, options_.token, absl::StrCat("server ", address_),
+              options_.session_transport) {}
+
+// Half-closing is not needed: cancelling the stream ends the session, and
+// the server deletes its bound envs as it does.
+StreamTransport::~StreamTransport() {
+  absl::MutexLock lock(&mu_);
+  stream_.Close();
+}
+
+absl::Status StreamTransport::Open() {
+  absl::MutexLock lock(&mu_);
+  return stream_.Open();
+}
+
+absl::StatusOr<uint64_t> StreamTransport::Send(v1::SessionRequest& request) {
+  absl::MutexLock lock(&mu_);
+  return stream_.Send(request);
+}
+
+absl::Status StreamTransport::Receive(uint64_t sequence,
+                                      v1::SessionResponse* response) {
+  absl::MutexLock lock(&mu_);
+  return stream_.Receive(sequence, response);
+}
+
+absl::Status StreamTransport::Call(v1::SessionRequest& request,
+                                   v1::SessionResponse* response) {
+  absl::MutexLock lock(&mu_);
+  absl::StatusOr<uint64_t> sequence = stream_.Send(request);
+  if (!sequence.ok()) return sequence.status();
+  return stream_.Receive(*sequence, response);
+}
+
+std::future<absl::Status> StreamTransport::CallAsync(
+    v1::SessionRequest& request, v1::SessionResponse* response) {
+  absl::StatusOr<uint64_t> sequence = Send(request);
+  if (!sequence.ok()) {
+    std::promise<absl::Status> failed;
+    failed.set_value(sequence.status());
+    return failed.get_future();
+  }
+  return std::async(std::launch::deferred, [this, sequence, response] {
+    return Receive(*sequence, response);
+  });
+}
+
+std::string StreamTransport::transport_name() {
+  absl::MutexLock lock(&mu_);
+  // The choice is made as the stream opens.
+  if (!stream_.Open().ok()) return "native";
+  return std::string(stream_.transport_name());
 }
 
 absl::StatusOr<std::shared_ptr<Transport>> MakeUnaryTransport(

@@ -7,6 +7,7 @@
 
 #include <future>
 #include <memory>
+#include <optional>
 #include <string>
 #include <thread>
 
@@ -22,6 +23,7 @@
 #include "grpcpp/support/status.h"
 #include "mll/client.h"
 #include "mll/v1/multi_lunar_lander.grpc.pb.h"
+#include "session_stream.h"
 
 namespace mll::client {
 namespace internal {
@@ -73,6 +75,11 @@ class Transport {
   void Hold(const std::string& name, double idle_timeout_s);
   void Unhold(const std::string& name);
 
+  // GetServerInfo (server_info.cc): asked by the first call, remembered for
+  // the transport's life; a server without the RPC (UNIMPLEMENTED) is
+  // remembered as protocol 1.0. Failures are not remembered.
+  absl::StatusOr<v1::ServerInfo> ServerInfo();
+
  protected:
   // Adds the token and, for unary calls, the deadline.
   void Prepare(grpc::ClientContext* context, bool unary) const;
@@ -92,6 +99,38 @@ class Transport {
       absl::InfiniteDuration();
   bool stopping_ ABSL_GUARDED_BY(lease_mu_) = false;
   std::thread renewer_;  // Started by the first Hold.
+
+  absl::Mutex server_info_mu_;
+  std::optional<v1::ServerInfo> server_info_ ABSL_GUARDED_BY(server_info_mu_);
+};
+
+// A session: one Session stream (SessionStream), shared by the threads
+// using it. Call sends and waits; Send and Receive let several requests be
+// in flight (pipelined on the stream), as CallAsync does.
+class StreamTransport final : public Transport {
+ public:
+  StreamTransport(std::string address, std::shared_ptr<grpc::Channel> channel,
+                  ClientOptions options);
+  ~StreamTransport() override;
+
+  absl::Status Call(v1::SessionRequest& request,
+                    v1::SessionResponse* response) override;
+  std::future<absl::Status> CallAsync(v1::SessionRequest& request,
+                                      v1::SessionResponse* response) override;
+  bool is_session() const override { return true; }
+
+  // Opens the stream now (shared memory as ClientOptions::session_transport
+  // asks).
+  absl::Status Open();
+  // As SessionStream::Send and Receive, each under the transport's lock.
+  absl::StatusOr<uint64_t> Send(v1::SessionRequest& request);
+  absl::Status Receive(uint64_t sequence, v1::SessionResponse* response);
+  // "shared_memory" or "native" (opening the stream when none is open).
+  std::string transport_name();
+
+ private:
+  absl::Mutex mu_;
+  SessionStream stream_ ABSL_GUARDED_BY(mu_);
 };
 
 // A unary transport for `address`.

@@ -1,8 +1,9 @@
-"""The native transport of a vector env's steps: `libmll_native_stream.so` (built from
-client_cpp/native with the C++ server), loaded with ctypes, carries each StepBatch on a Session
-stream of gRPC C++ in the calling thread. The grpcio stream it replaces hands every message
-between threads; this one costs the Python side only the message's encoding and decoding (the
-GIL is released while the library waits for the server). With a server on this host the stream
+"""The native transport of a vector env's steps: `libmll_native_stream.so` (the C interface of
+the C++ client's Session stream, client_cpp/native, built with the C++ server), loaded with
+ctypes, carries each StepBatch on a Session stream of gRPC C++ in the calling thread: the same
+protocol code as the C++ client's. The grpcio stream it replaces hands every message between
+threads; this one costs the Python side only the message's encoding and decoding (the GIL is
+released while the library waits for the server). With a server on this host the library
 attaches shared memory (attach_shared_memory in the proto): each message then passes through a
 region both processes map, with one futex wake-up each way and no socket.
 
@@ -51,11 +52,18 @@ def library_paths() -> list[pathlib.Path]:
     return [pathlib.Path(__file__).resolve().parent / LIBRARY_NAME, checkout_build_path("client_cpp", LIBRARY_NAME)]
 
 
+# MLL_NATIVE_TRANSPORT_* of client_cpp/native/session_c_api.h, by NativeSessionStream's
+# shared_memory= argument.
+_SHARED_MEMORY_MODES = {"try": 0, "require": 1, "off": 2}
+
+
 def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
-    """Sets the C signatures of client_cpp/native/native_stream.h."""
+    """Sets the C signatures of client_cpp/native/session_c_api.h."""
     handle, text, size = ctypes.c_void_p, ctypes.c_char_p, ctypes.c_size_t
-    lib.mll_native_stream_open.restype = handle
-    lib.mll_native_stream_open.argtypes = [text, text, size, text, text]
+    lib.mll_native_stream_new.restype = handle
+    lib.mll_native_stream_new.argtypes = [text, text, size, text, text, ctypes.c_int]
+    lib.mll_native_stream_open.restype = ctypes.c_int
+    lib.mll_native_stream_open.argtypes = [handle]
     lib.mll_native_stream_write.restype = ctypes.c_int
     lib.mll_native_stream_write.argtypes = [handle, text, size]
     lib.mll_native_stream_read.restype = ctypes.c_int
@@ -67,12 +75,12 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     ]
     lib.mll_native_stream_message.restype = text
     lib.mll_native_stream_message.argtypes = [handle]
-    lib.mll_native_stream_close.restype = None
-    lib.mll_native_stream_close.argtypes = [handle]
-    lib.mll_native_stream_is_open.restype = ctypes.c_int
-    lib.mll_native_stream_is_open.argtypes = [handle]
-    lib.mll_native_stream_attach_shared_memory.restype = ctypes.c_int
-    lib.mll_native_stream_attach_shared_memory.argtypes = [handle, text, ctypes.c_uint64, ctypes.c_uint64]
+    lib.mll_native_stream_free.restype = None
+    lib.mll_native_stream_free.argtypes = [handle]
+    for flag in ("is_open", "shared_memory_in_use", "in_flight"):
+        function = getattr(lib, f"mll_native_stream_{flag}")
+        function.restype = ctypes.c_int
+        function.argtypes = [handle]
     return lib
 
 
@@ -131,7 +139,7 @@ def uses_native(transport: str) -> bool:
 
 def _close_handle(lib: ctypes.CDLL, handle: int, pid: int) -> None:
     if os.getpid() == pid:  # A forked child's copy is the parent's to close.
-        lib.mll_native_stream_close(handle)
+        lib.mll_native_stream_free(handle)
 
 
 class NativeSessionStream(SessionStream):
@@ -140,9 +148,11 @@ class NativeSessionStream(SessionStream):
     reopening of a broken stream as SessionStream.
 
     shared_memory= "try": each stream it opens asks the server for shared memory and uses it
-    when granted (a server on this host), else goes on over the stream; "require": as "try", but
-    a refusal raises FAILED_PRECONDITION with the server's reason; "off": never asks.
-    `shared_memory_in_use` says whether the open stream passes its messages through it."""
+    when granted and mappable here (a server on this host, outside other containers), else goes
+    on over the stream; "require": as "try", but a refusal raises FAILED_PRECONDITION with the
+    reason; "off": never asks. The choice and its messages are the C++ client's
+    (SessionTransport). `shared_memory_in_use` says whether the open stream passes its messages
+    through it."""
 
     def __init__(self, connection: Connection, shared_memory: str = "off"):
         super().__init__(connection)
@@ -150,64 +160,38 @@ class NativeSessionStream(SessionStream):
         if self._lib is None:
             uses_native("native")  # Raises, saying why.
         self._shared_memory = shared_memory
-        self.shared_memory_in_use = False
         self._handle: int | None = None
         self._send_failure: MLLError | None = None  # A stream that did not open, raised by receive().
+
+    @property
+    def shared_memory_in_use(self) -> bool:
+        return self._handle is not None and bool(self._lib.mll_native_stream_shared_memory_in_use(self._handle))
 
     def open(self) -> None:
         """Opens the stream now, if it is not open (attaching shared memory as asked)."""
         self._connection.check_process()
-        if self._handle is None or not self._lib.mll_native_stream_is_open(self._handle):
-            self._open()
+        if self._handle is None:
+            self._new_handle()
+        code = self._lib.mll_native_stream_open(self._handle)
+        if code:
+            failure = self._failure(code)
+            self.close()
+            raise failure
 
     def _new_handle(self) -> None:
         global _started_in
         _started_in = _started_in or os.getpid()
         security = self._connection.security
         root = security.root_certificates
-        self._handle = self._lib.mll_native_stream_open(
+        self._handle = self._lib.mll_native_stream_new(
             self._connection.address.encode(),
             root,
             len(root or b""),
             (security.server_name or "").encode(),
             (security.token or "").encode(),
+            _SHARED_MEMORY_MODES[self._shared_memory],
         )
         self._finalizer = weakref.finalize(self, _close_handle, self._lib, self._handle, os.getpid())
-
-    def _open(self) -> None:
-        """A new stream; with shared memory asked for, its first exchange is the attach."""
-        if self._handle is None:
-            self._new_handle()
-        self.shared_memory_in_use = False
-        if self._shared_memory == "off":
-            return  # The next write opens the stream.
-        self._write(pb.SessionRequest(attach_shared_memory=pb.AttachSharedMemoryRequest()))
-        response = self._read()
-        self._check_sequence(response)
-        if response.HasField("error"):
-            if self._shared_memory == "require":
-                self.close()
-                raise MLLError(
-                    grpc.StatusCode.FAILED_PRECONDITION,
-                    f"transport='shared_memory': {self._connection._what} refused shared memory "
-                    f"({response.error.message}); transport='auto' goes on over the stream",
-                )
-            return
-        region = response.attach_shared_memory
-        code = self._lib.mll_native_stream_attach_shared_memory(
-            self._handle, region.path.encode(), region.size, region.nonce
-        )
-        if code:
-            failure = self._failure(code)
-            # The server serves a region this process cannot map (another host or container):
-            # this stream is spent; the next one, on a new handle, asks for none.
-            self.close()
-            if self._shared_memory == "require":
-                raise MLLError(grpc.StatusCode.FAILED_PRECONDITION, f"transport='shared_memory': {failure}")
-            self._shared_memory = "off"
-            self._new_handle()
-            return
-        self.shared_memory_in_use = True
 
     def _write(self, request: "pb.SessionRequest") -> None:
         self._sequence += 1
@@ -257,7 +241,6 @@ class NativeSessionStream(SessionStream):
 
     def close(self) -> None:
         """Cancels the stream (idempotent); the next send() opens a new one."""
-        self.shared_memory_in_use = False
         if self._handle is not None:
             self._finalizer()
             self._handle = self._finalizer = None

@@ -6,6 +6,8 @@ and a stream reopened after a close: test_native_transport.py, for both native t
 import os
 import pickle
 import queue
+import shutil
+import subprocess
 import time
 
 import grpc
@@ -103,36 +105,39 @@ def test_the_attach_answer_names_a_sealed_region_and_the_stream_then_refuses_req
 
 
 
-class _RegionElsewhere:
-    """The native library, except that the attach is given a path that does not exist here, as
-    when the server runs in another container (its /proc/<pid>/fd path names nothing of ours)."""
+@pytest.fixture(scope="module")
+def server_in_another_pid_namespace(tmp_path_factory):
+    """A real mll_server in a PID namespace of its own, as in another container: the
+    /proc/<pid>/fd path of its region names another process's file here."""
+    if shutil.which("unshare") is None or subprocess.run(
+        ["unshare", "--pid", "--fork", "--mount-proc", "true"], capture_output=True
+    ).returncode:
+        pytest.skip("unshare --pid --mount-proc is not permitted here (needs root or user namespaces)")
+    wrapper = tmp_path_factory.mktemp("namespace") / "mll_server_in_namespace"
+    # --parent_pid is dropped: the test's pid means nothing inside the namespace (unshare's
+    # --kill-child ends the server with the wrapper instead).
+    wrapper.write_text(
+        "#!/bin/bash\n"
+        'args=(); for arg in "$@"; do [[ $arg == --parent_pid=* ]] || args+=("$arg"); done\n'
+        "exec unshare --pid --fork --mount-proc --kill-child=SIGTERM "
+        f'{mll.find_server_binary()} "${{args[@]}}"\n'
+    )
+    wrapper.chmod(0o755)
+    with mll.ServerProcess(binary=str(wrapper), threads=1) as server:
+        yield server.address
 
-    def __init__(self, lib):
-        self._lib = lib
 
-    def __getattr__(self, name):
-        return getattr(self._lib, name)
-
-    def mll_native_stream_attach_shared_memory(self, handle, path, size, nonce):
-        return self._lib.mll_native_stream_attach_shared_memory(handle, b"/proc/0/fd/0", size, nonce)
-
-
-def test_a_region_that_cannot_be_mapped_here_leaves_auto_on_a_new_stream(address):
+def test_a_region_that_cannot_be_mapped_here_leaves_auto_on_a_new_stream(address, server_in_another_pid_namespace):
+    elsewhere = server_in_another_pid_namespace
     with mll.vector_env(3, address=address, n_landers=2, transport="grpc") as reference, \
-            mll.vector_env(3, address=address, n_landers=2) as vector:
-        stream = vector._servers[0].stream
-        stream._lib = _RegionElsewhere(stream._lib)  # Before the first step opens the stream.
+            mll.vector_env(3, address=elsewhere, n_landers=2) as vector:
         for env in (vector, reference):
             env.reset(seed=8)
         actions = np.ones((3, 2), np.int32)
         for _ in range(5):
             assert same_bits(vector.step(actions)[0], reference.step(actions)[0])
         assert vector.transport == "native"
-    with mll.vector_env(1, address=address, n_landers=1) as vector:
-        stream = vector._servers[0].stream
-        stream._lib = _RegionElsewhere(stream._lib)
-        stream._shared_memory = "require"
-        with pytest.raises(mll.MLLError) as caught:
-            stream.open()
-        assert caught.value.code == grpc.StatusCode.FAILED_PRECONDITION
-        assert "/proc/0/fd/0 is not this session's region here" in caught.value.message
+    with pytest.raises(mll.MLLError) as caught:
+        mll.vector_env(1, address=elsewhere, n_landers=1, transport="shared_memory")
+    assert caught.value.code == grpc.StatusCode.FAILED_PRECONDITION
+    assert "is not this session's region here" in caught.value.message

@@ -53,6 +53,20 @@ namespace internal {
 class Transport;
 }  // namespace internal
 
+// How the messages of a session client (Client::OpenSession, VectorEnv)
+// travel; the names are those of the Python client's `transport=`.
+enum class SessionTransport {
+  // "auto": shared memory where the server grants it and this process can
+  // map its region (a server on this host, outside other containers), else
+  // the gRPC stream.
+  kAuto,
+  // "shared_memory": shared memory, or FAILED_PRECONDITION saying why not
+  // (the server's refusal, or a region this process cannot map).
+  kSharedMemory,
+  // "native": the gRPC stream always.
+  kNative,
+};
+
 // How the client reaches the server.
 struct ClientOptions {
   // TLS instead of a plaintext channel.
@@ -74,6 +88,8 @@ struct ClientOptions {
   // Largest message the client accepts (a batch of many 32-lander envs, or a
   // raw frame, exceeds gRPC's 4 MB default).
   int max_receive_message_bytes = 256 << 20;
+  // How session clients carry their messages (unary calls are unaffected).
+  SessionTransport session_transport = SessionTransport::kAuto;
 };
 
 // How a lander's episode ended (wire codes of StepData.outcomes).
@@ -337,6 +353,34 @@ struct BatchStep {
   Actions actions;
 };
 
+// What a server is and offers (Client::GetServerInfo; the proto's
+// ServerInfo, whose comments say more). A server that predates
+// GetServerInfo is reported as protocol 1.0 with an empty server_version,
+// no capabilities (unknown) and zero limits (unknown).
+struct ServerInfo {
+  // The mll_server release, e.g. "0.1.0".
+  std::string server_version;
+  // The wire protocol: mll.v<major>, minor raised by each addition.
+  int protocol_major = 1;
+  int protocol_minor = 0;
+  // Optional features offered, e.g. "packed_step_batch", "keep_alive",
+  // "shared_memory_sessions".
+  std::vector<std::string> capabilities;
+  // Limits (the server's flags); 0 where the server did not say.
+  int max_envs = 0;
+  int max_envs_per_token = 0;  // 0 also: unlimited (no tokens).
+  int64_t max_message_bytes = 0;
+  double idle_timeout_s = 0;
+  int max_landers = 0;
+  int threads = 0;
+  int shared_memory_sessions = 0;
+  // The answer in protobuf's JSON mapping (field names as in the proto),
+  // for logs and tools such as `mll_cli info`.
+  std::string json;
+
+  bool has_capability(absl::string_view name) const;
+};
+
 class Client {
  public:
   // A client for the server at `address` ("host:port", or any gRPC target).
@@ -401,6 +445,27 @@ class Client {
   // call failed (the first such status).
   absl::StatusOr<std::vector<absl::StatusOr<StepData>>> StepBatch(
       absl::Span<const BatchStep> steps) const;
+
+  // Server information and compatibility (server_info.cc). The wire
+  // protocol this client speaks: mll.v1 up to minor 1.
+  static constexpr int kProtocolMajor = 1;
+  static constexpr int kProtocolMinor = 1;
+  // This library's release (the project's version), e.g. "0.1.0".
+  static absl::string_view Version();
+  // GetServerInfo of server `server` (INVALID_ARGUMENT when it is not in
+  // 0..server_count()-1), asked once per connection and then remembered.
+  // Needs the token as every call does. CreateEnv asks it first, and fails
+  // with CheckCompatible's error on a server this client cannot use.
+  absl::StatusOr<ServerInfo> GetServerInfo(int server = 0) const;
+  // OK when this client can use the server `info` describes (at `address`,
+  // named in errors) for features needing `capabilities`; else
+  // FAILED_PRECONDITION naming both protocol versions, both releases and
+  // what to upgrade: a protocol major other than kProtocolMajor, or a
+  // capability missing from a server that lists its capabilities (protocol
+  // 1.1 and later; a 1.0 server is given the benefit of the doubt).
+  static absl::Status CheckCompatible(
+      const ServerInfo& info, absl::string_view address,
+      absl::Span<const absl::string_view> capabilities = {});
 
  private:
   friend class RemoteEnv;

@@ -1,0 +1,104 @@
+#include "session_c_api.h"
+
+#include <memory>
+#include <optional>
+#include <string>
+
+#include "absl/status/status.h"
+#include "absl/strings/str_cat.h"
+#include "absl/time/time.h"
+#include "channel.h"
+#include "grpc/grpc.h"
+#include "mll/client.h"
+#include "session_stream.h"
+
+namespace {
+
+using ::mll::client::ClientOptions;
+using ::mll::client::SessionTransport;
+using ::mll::client::internal::SessionStream;
+
+// The largest message either way, as the Python client's own channels.
+constexpr int kMaxMessageBytes = 64 << 20;
+
+int CodeOf(const absl::Status& status) {
+  return static_cast<int>(status.code());
+}
+
+}  // namespace
+
+struct mll_native_stream {
+  std::unique_ptr<SessionStream> session;
+};
+
+extern "C" {
+
+mll_native_stream* mll_native_stream_new(const char* address,
+                                         const char* root_cert_pem,
+                                         size_t root_cert_size,
+                                         const char* server_name,
+                                         const char* token, int transport) {
+  // gRPC stays initialised for the life of the process: without a reference
+  // of its own, freeing the last handle would shut gRPC down (joining its
+  // threads, a few hundred milliseconds) and the next would start it again.
+  static const bool initialised = (grpc_init(), true);
+  (void)initialised;
+  ClientOptions options;
+  options.use_tls = root_cert_pem != nullptr;
+  if (options.use_tls) {
+    options.tls_root_certificates.assign(root_cert_pem, root_cert_size);
+  }
+  if (server_name != nullptr) options.tls_target_name_override = server_name;
+  if (token != nullptr) options.token = token;
+  options.max_receive_message_bytes = kMaxMessageBytes;
+  SessionTransport mode = SessionTransport::kNative;
+  if (transport == MLL_NATIVE_TRANSPORT_AUTO) mode = SessionTransport::kAuto;
+  if (transport == MLL_NATIVE_TRANSPORT_SHARED_MEMORY) {
+    mode = SessionTransport::kSharedMemory;
+  }
+  return new mll_native_stream{std::make_unique<SessionStream>(
+      mll::client::internal::OpenChannel(address, options), options.token,
+      absl::StrCat("server ", address), mode)};
+}
+
+int mll_native_stream_open(mll_native_stream* stream) {
+  return CodeOf(stream->session->Open());
+}
+
+int mll_native_stream_write(mll_native_stream* stream, const char* data,
+                            size_t size) {
+  return CodeOf(stream->session->SendBytes(absl::string_view(data, size)));
+}
+
+int mll_native_stream_read(mll_native_stream* stream, const char** data,
+                           size_t* size, int timeout_ms) {
+  absl::string_view response;
+  const std::optional<absl::Status> status = stream->session->ReceiveBytes(
+      &response, timeout_ms < 0 ? absl::InfiniteDuration()
+                                : absl::Milliseconds(timeout_ms));
+  if (!status.has_value()) return MLL_NATIVE_STREAM_PENDING;
+  if (!status->ok()) return CodeOf(*status);
+  *data = response.data();
+  *size = response.size();
+  return 0;
+}
+
+const char* mll_native_stream_message(const mll_native_stream* stream) {
+  return stream->session->last_message().c_str();
+}
+
+int mll_native_stream_is_open(const mll_native_stream* stream) {
+  return stream->session->is_open() ? 1 : 0;
+}
+
+int mll_native_stream_shared_memory_in_use(const mll_native_stream* stream) {
+  return stream->session->shared_memory_in_use() ? 1 : 0;
+}
+
+int mll_native_stream_in_flight(const mll_native_stream* stream) {
+  return stream->session->in_flight();
+}
+
+void mll_native_stream_free(mll_native_stream* stream) { delete stream; }
+
+}  // extern "C"

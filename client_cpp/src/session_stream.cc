@@ -1,0 +1,436 @@
+#include "session_stream.h"
+
+#include <fcntl.h>
+#include <sys/mman.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+#include <cerrno>
+#include <chrono>
+#include <cstring>
+#include <utility>
+
+#include "absl/strings/str_cat.h"
+#include "channel.h"
+#include "grpc/grpc.h"
+#include "mll/shared_memory_pipe.h"
+#include "transport.h"
+
+namespace mll::client {
+namespace internal {
+namespace {
+
+namespace shared_memory = ::mll::shared_memory;
+
+constexpr char kSessionMethod[] = "/mll.v1.MultiLunarLander/Session";
+// How long one futex wait on the region lasts before the stream is looked
+// at (did the session end?) and the caller's deadline checked.
+constexpr auto kRegionWaitSlice = std::chrono::milliseconds(20);
+
+void* TagOf(intptr_t operation) {
+  return reinterpret_cast<void*>(operation + 1);
+}
+
+intptr_t OperationOf(void* tag) {
+  return reinterpret_cast<intptr_t>(tag) - 1;
+}
+
+gpr_timespec DeadlineAfter(absl::Duration timeout) {
+  if (timeout == absl::InfiniteDuration()) {
+    return gpr_inf_future(GPR_CLOCK_MONOTONIC);
+  }
+  return gpr_time_add(
+      gpr_now(GPR_CLOCK_MONOTONIC),
+      gpr_time_from_micros(absl::ToInt64Microseconds(timeout), GPR_TIMESPAN));
+}
+
+}  // namespace
+
+absl::string_view SessionTransportName(SessionTransport transport) {
+  switch (transport) {
+    case SessionTransport::kAuto:
+      return "auto";
+    case SessionTransport::kSharedMemory:
+      return "shared_memory";
+    case SessionTransport::kNative:
+      return "native";
+  }
+  return "unknown";
+}
+
+SessionStream::SessionStream(
+    absl::StatusOr<std::shared_ptr<grpc::Channel>> channel, std::string token,
+    std::string what, SessionTransport mode)
+    : channel_status_(channel.status()),
+      token_(std::move(token)),
+      what_(std::move(what)),
+      mode_(mode) {
+  if (channel.ok()) {
+    stub_ = std::make_unique<grpc::GenericStub>(*std::move(channel));
+  }
+}
+
+SessionStream::~SessionStream() { Close(); }
+
+absl::string_view SessionStream::transport_name() const {
+  return attached_ ? "shared_memory" : "native";
+}
+
+absl::Status SessionStream::Open() {
+  if (stream_ != nullptr) return absl::OkStatus();
+  absl::Status status = OpenStream();
+  if (status.ok() && mode_ != SessionTransport::kNative) {
+    status = NegotiateSharedMemory();
+  }
+  return Fail(status);
+}
+
+absl::Status SessionStream::OpenStream() {
+  if (!channel_status_.ok()) return channel_status_;
+  queue_ = std::make_unique<grpc::CompletionQueue>();
+  context_ = std::make_unique<grpc::ClientContext>();
+  AddToken(context_.get(), token_);
+  stream_ = stub_->PrepareCall(context_.get(), kSessionMethod, queue_.get());
+  stream_->StartCall(TagOf(kStart));
+  const std::optional<bool> started =
+      Await(kStart, gpr_inf_future(GPR_CLOCK_MONOTONIC));
+  if (!started.value_or(false)) return EndStream();
+  return absl::OkStatus();
+}
+
+// The first exchange of a stream that may use shared memory: the attach
+// request (sequence 0, which typed requests never use) and its answer.
+absl::Status SessionStream::NegotiateSharedMemory() {
+  v1::SessionRequest attach;
+  attach.mutable_attach_shared_memory();
+  absl::Status status = SendBytes(attach.SerializeAsString());
+  absl::string_view bytes;
+  if (status.ok()) status = *ReceiveBytes(&bytes, absl::InfiniteDuration());
+  if (!status.ok()) return status;
+  v1::SessionResponse answer;
+  if (!answer.ParseFromArray(bytes.data(), static_cast<int>(bytes.size()))) {
+    Close();
+    return absl::InternalError(
+        absl::StrCat(what_, " answered attach_shared_memory with bytes that "
+                            "are not a SessionResponse"));
+  }
+  if (answer.has_error()) {
+    if (mode_ == SessionTransport::kAuto) return absl::OkStatus();
+    Close();
+    return absl::FailedPreconditionError(absl::StrCat(
+        "transport \"shared_memory\": ", what_, " refused shared memory (",
+        answer.error().message(),
+        "); transport \"auto\" goes on over the stream"));
+  }
+  status = MapRegion(answer.attach_shared_memory());
+  if (status.ok()) return absl::OkStatus();
+  // The server serves a region this process cannot map (it runs on another
+  // host or in another container): this stream is spent, and the next ones
+  // ask for none.
+  Close();
+  if (mode_ == SessionTransport::kSharedMemory) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("transport \"shared_memory\": ", status.message()));
+  }
+  mode_ = SessionTransport::kNative;
+  return OpenStream();
+}
+
+absl::Status SessionStream::MapRegion(
+    const v1::AttachSharedMemoryResponse& answer) {
+  const std::string& path = answer.path();
+  const uint64_t size = answer.size();
+  // A regular file of the announced size, looked at before it is opened (a
+  // path that names something else here, e.g. a device, is never opened) and
+  // again once open (mapping past a file's end would fault).
+  const auto is_region = [size](const struct stat& info) {
+    return S_ISREG(info.st_mode) &&
+           static_cast<uint64_t>(info.st_size) == size &&
+           size >= shared_memory::kHeaderBytes;
+  };
+  const absl::Status not_here = absl::NotFoundError(
+      absl::StrCat(path, " is not this session's region here: ", what_,
+                   " is on another host or in another container"));
+  struct stat info;
+  if (stat(path.c_str(), &info) != 0 || !is_region(info)) return not_here;
+  const int fd = open(path.c_str(), O_RDWR | O_CLOEXEC | O_NOCTTY);
+  if (fd < 0) return not_here;
+  if (fstat(fd, &info) != 0 || !is_region(info)) {
+    close(fd);
+    return not_here;
+  }
+  void* region = mmap(nullptr, size, PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
+  close(fd);
+  if (region == MAP_FAILED) {
+    return absl::ResourceExhaustedError(absl::StrCat(
+        path, " cannot be mapped: ", std::strerror(errno)));
+  }
+  region_ = region;
+  region_bytes_ = size;
+  const auto& header = *static_cast<const shared_memory::Header*>(region_);
+  if (header.magic != shared_memory::kMagic ||
+      header.version != shared_memory::kVersion ||
+      header.nonce != answer.nonce() ||
+      size != shared_memory::RegionBytes(header.capacity)) {
+    DropRegion();
+    return not_here;
+  }
+  capacity_ = header.capacity;
+  region_sequence_ = header.request_seq.load(std::memory_order_acquire);
+  // The stream keeps a read pending, which completes only when the session
+  // ends.
+  stream_->Read(&response_buffer_, TagOf(kRead));
+  read_outstanding_ = true;
+  attached_ = true;
+  return absl::OkStatus();
+}
+
+void SessionStream::DropRegion() {
+  attached_ = false;
+  region_busy_ = false;
+  region_queue_.clear();
+  if (region_ != nullptr) munmap(region_, region_bytes_);
+  region_ = nullptr;
+}
+
+absl::Status SessionStream::SendBytes(absl::string_view request) {
+  if (stream_ == nullptr) {
+    absl::Status status = Open();
+    if (!status.ok()) return status;
+  }
+  if (attached_) {
+    if (request.size() > capacity_) {
+      return Fail(absl::ResourceExhaustedError(absl::StrCat(
+          "request of ", request.size(),
+          " bytes; allowed: up to the shared-memory region's ", capacity_)));
+    }
+    region_queue_.emplace_back(request);
+    ++sent_;
+    FeedRegion();
+    return absl::OkStatus();
+  }
+  absl::Status status = WriteToStream(request);
+  if (status.ok()) ++sent_;
+  return Fail(status);
+}
+
+absl::Status SessionStream::WriteToStream(absl::string_view request) {
+  // gRPC takes one write at a time: the previous one is handed to the
+  // transport first (it does not wait for the server, only for HTTP/2 flow
+  // control).
+  if (write_outstanding_) {
+    const std::optional<bool> written =
+        Await(kWrite, gpr_inf_future(GPR_CLOCK_MONOTONIC));
+    write_outstanding_ = false;
+    if (!written.value_or(false)) {
+      // Reported here, and to the Receives of the requests in flight.
+      lost_status_ = EndStream();
+      return lost_status_;
+    }
+  }
+  grpc::Slice slice(request.data(), request.size());
+  request_buffer_ = grpc::ByteBuffer(&slice, 1);
+  stream_->Write(request_buffer_, TagOf(kWrite));
+  write_outstanding_ = true;
+  return absl::OkStatus();
+}
+
+// Moves the oldest queued request into the region when the region is free.
+// Called at the start of each call, never after handing out an answer: the
+// answer lies in the region until the caller's next call.
+void SessionStream::FeedRegion() {
+  if (!attached_ || region_busy_ || region_queue_.empty()) return;
+  const std::string& request = region_queue_.front();
+  auto& header = *static_cast<shared_memory::Header*>(region_);
+  std::memcpy(shared_memory::RequestArea(region_), request.data(),
+              request.size());
+  header.request_size.store(request.size(), std::memory_order_release);
+  header.request_seq.store(++region_sequence_, std::memory_order_release);
+  shared_memory::Wake(header.request_seq);
+  region_queue_.pop_front();
+  region_busy_ = true;
+}
+
+std::optional<absl::Status> SessionStream::ReceiveBytes(
+    absl::string_view* response, absl::Duration timeout) {
+  if (lost_ > 0) {
+    --lost_;
+    return Fail(lost_status_);
+  }
+  if (sent_ == received_) {
+    return Fail(absl::FailedPreconditionError(
+        "receive without a request in flight"));
+  }
+  const gpr_timespec deadline = DeadlineAfter(timeout);
+  if (attached_) return ReceiveFromRegion(response, deadline);
+  if (!read_outstanding_) {
+    stream_->Read(&response_buffer_, TagOf(kRead));
+    read_outstanding_ = true;
+  }
+  const std::optional<bool> read = Await(kRead, deadline);
+  if (!read.has_value()) return std::nullopt;
+  read_outstanding_ = false;
+  if (!*read) {
+    lost_status_ = EndStream();
+    --lost_;
+    return Fail(lost_status_);
+  }
+  ++received_;
+  if (!response_buffer_.DumpToSingleSlice(&response_slice_).ok()) {
+    return Fail(absl::InternalError("cannot read the Session answer's bytes"));
+  }
+  *response =
+      absl::string_view(reinterpret_cast<const char*>(response_slice_.begin()),
+                        response_slice_.size());
+  return absl::OkStatus();
+}
+
+// Waits for the server's answer in the region; between futex waits it looks
+// whether the stream ended (the server went or ended the session).
+std::optional<absl::Status> SessionStream::ReceiveFromRegion(
+    absl::string_view* response, gpr_timespec deadline) {
+  FeedRegion();
+  auto& header = *static_cast<shared_memory::Header*>(region_);
+  for (uint32_t seen; (seen = header.response_seq.load(
+                           std::memory_order_acquire)) != region_sequence_;) {
+    if (shared_memory::WaitWhileEqual(header.response_seq, seen,
+                                      std::chrono::nanoseconds(0),
+                                      kRegionWaitSlice)) {
+      continue;
+    }
+    if (gpr_time_cmp(gpr_now(GPR_CLOCK_MONOTONIC), deadline) >= 0) {
+      return std::nullopt;
+    }
+    void* tag = nullptr;
+    bool ok = false;
+    if (queue_->AsyncNext(&tag, &ok, gpr_time_0(GPR_CLOCK_MONOTONIC)) ==
+        grpc::CompletionQueue::GOT_EVENT) {
+      // Only the pending read can complete: the session ended.
+      done_[OperationOf(tag)] = true;
+      read_outstanding_ = false;
+      lost_status_ = EndStream();
+      --lost_;
+      return Fail(lost_status_);
+    }
+  }
+  region_busy_ = false;
+  ++received_;
+  const uint64_t size = header.response_size.load(std::memory_order_acquire);
+  if (size > capacity_) {
+    return Fail(absl::InternalError(absl::StrCat(
+        what_, "'s answer overflows the shared-memory region")));
+  }
+  *response = absl::string_view(
+      shared_memory::ResponseArea(region_, capacity_), size);
+  return absl::OkStatus();
+}
+
+absl::StatusOr<uint64_t> SessionStream::Send(v1::SessionRequest& request) {
+  request.set_sequence(++last_sequence_);
+  absl::Status status = SendBytes(request.SerializeAsString());
+  if (!status.ok()) return status;
+  return last_sequence_;
+}
+
+absl::Status SessionStream::Receive(uint64_t sequence,
+                                    v1::SessionResponse* response) {
+  if (auto early = early_answers_.find(sequence);
+      early != early_answers_.end()) {
+    *response = std::move(early->second);
+    early_answers_.erase(early);
+  } else {
+    while (true) {
+      absl::string_view bytes;
+      std::optional<absl::Status> status;
+      while (!(status = ReceiveBytes(&bytes, absl::InfiniteDuration()))) {
+      }
+      if (!status->ok()) return *status;
+      v1::SessionResponse answer;
+      if (!answer.ParseFromArray(bytes.data(),
+                                 static_cast<int>(bytes.size()))) {
+        return absl::InternalError(absl::StrCat(
+            what_, " answered with bytes that are not a SessionResponse"));
+      }
+      if (answer.sequence() == sequence) {
+        *response = std::move(answer);
+        break;
+      }
+      if (answer.sequence() == 0 || answer.sequence() > last_sequence_ ||
+          early_answers_.contains(answer.sequence())) {
+        return absl::InternalError(
+            absl::StrCat(what_, " answered sequence ", answer.sequence(),
+                         " while ", sequence, " was awaited"));
+      }
+      early_answers_[answer.sequence()] = std::move(answer);
+    }
+  }
+  if (response->has_error()) return FromItemError(response->error());
+  return absl::OkStatus();
+}
+
+void SessionStream::Close() {
+  if (stream_ == nullptr) return;
+  context_->TryCancel();
+  (void)EndStream();
+  lost_ = 0;
+}
+
+std::optional<bool> SessionStream::Await(Operation operation,
+                                         gpr_timespec deadline) {
+  while (!done_[operation]) {
+    void* tag = nullptr;
+    bool ok = false;
+    switch (queue_->AsyncNext(&tag, &ok, deadline)) {
+      case grpc::CompletionQueue::SHUTDOWN:
+        return false;
+      case grpc::CompletionQueue::TIMEOUT:
+        return std::nullopt;
+      case grpc::CompletionQueue::GOT_EVENT:
+        break;
+    }
+    const intptr_t completed = OperationOf(tag);
+    done_[completed] = true;
+    ok_[completed] = ok;
+  }
+  done_[operation] = false;
+  return ok_[operation];
+}
+
+// The stream's final status, once its pending operations are done; the
+// stream is forgotten, and what was in flight counted as lost.
+absl::Status SessionStream::EndStream() {
+  if (write_outstanding_) {
+    (void)Await(kWrite, gpr_inf_future(GPR_CLOCK_MONOTONIC));
+  }
+  grpc::Status final_status;
+  stream_->Finish(&final_status, TagOf(kFinish));
+  (void)Await(kFinish, gpr_inf_future(GPR_CLOCK_MONOTONIC));
+  // Drains the queue, as gRPC requires before it is destroyed.
+  queue_->Shutdown();
+  void* tag = nullptr;
+  bool ok = false;
+  while (queue_->Next(&tag, &ok)) {
+  }
+  stream_.reset();
+  context_.reset();
+  queue_.reset();
+  done_.fill(false);
+  write_outstanding_ = false;
+  read_outstanding_ = false;
+  DropRegion();
+  lost_ = sent_ - received_;
+  sent_ = received_ = 0;
+  if (final_status.ok()) {
+    return absl::UnavailableError(
+        absl::StrCat(what_, " ended the Session stream"));
+  }
+  return FromGrpc(final_status);
+}
+
+absl::Status SessionStream::Fail(absl::Status status) {
+  if (!status.ok()) last_message_ = std::string(status.message());
+  return status;
+}
+
+}  // namespace internal
+}  // namespace mll::client

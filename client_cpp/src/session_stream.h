@@ -1,0 +1,167 @@
+// One Session stream to one server: the client side of the wire protocol's
+// Session, the only one in the project. The C++ client's session clients and
+// VectorEnv use it typed (SessionRequest / SessionResponse); the Python
+// client reaches it through the C interface of client_cpp/native (serialized
+// messages), so both languages speak the same protocol through this code.
+//
+// Requests are pipelined: Send returns once the request is handed to gRPC (it
+// does not wait for the server), and several may be in flight; Receive
+// returns the answers in request order (the server answers a stream's
+// requests in order). All waiting happens in the calling thread, on a
+// completion queue of the stream's own: no thread is made. One thread at a
+// time uses a stream.
+//
+// Shared memory: for a server on the same host, the stream can ask for a
+// shared-memory region (attach_shared_memory in the proto) and pass every
+// further message through it: no socket, one futex wake-up each way. The
+// region holds one request at a time, so further requests wait in the
+// stream's queue and go in as answers come back.
+//
+// A broken stream (the server went, or cancelled the session) reports the
+// stream's gRPC status to every waiting Receive; the next Send opens a new
+// stream (and asks for shared memory again, as the first did).
+#ifndef MLL_CLIENT_SRC_SESSION_STREAM_H_
+#define MLL_CLIENT_SRC_SESSION_STREAM_H_
+
+#include <array>
+#include <cstdint>
+#include <deque>
+#include <memory>
+#include <optional>
+#include <string>
+
+#include "absl/container/flat_hash_map.h"
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "absl/strings/string_view.h"
+#include "absl/time/time.h"
+#include "grpc/support/time.h"
+#include "grpcpp/channel.h"
+#include "grpcpp/client_context.h"
+#include "grpcpp/completion_queue.h"
+#include "grpcpp/generic/generic_stub.h"
+#include "grpcpp/support/byte_buffer.h"
+#include "grpcpp/support/slice.h"
+#include "mll/client.h"
+#include "mll/v1/multi_lunar_lander.pb.h"
+
+namespace mll::client {
+namespace internal {
+
+class SessionStream {
+ public:
+  // A stream to the server of `channel` (an error status there is reported
+  // by the first Open or Send), sending `token` on its call. `what` names
+  // the server in messages ("server 127.0.0.1:50051"). Nothing is opened
+  // until the first Open or Send.
+  SessionStream(absl::StatusOr<std::shared_ptr<grpc::Channel>> channel,
+                std::string token, std::string what, SessionTransport mode);
+  // Cancels the open stream.
+  ~SessionStream();
+  SessionStream(const SessionStream&) = delete;
+  SessionStream& operator=(const SessionStream&) = delete;
+
+  // Opens the stream now if none is open, with shared memory as the mode
+  // asks: kAuto uses it where granted and mappable, else goes on over the
+  // stream; kSharedMemory fails FAILED_PRECONDITION with the reason instead;
+  // kNative never asks.
+  absl::Status Open();
+  bool is_open() const { return stream_ != nullptr; }
+  // Whether the open stream passes its messages through shared memory.
+  bool shared_memory_in_use() const { return attached_; }
+  // "shared_memory" while it does, else "native".
+  absl::string_view transport_name() const;
+  // Requests sent and not yet answered (by Receive) on the open stream.
+  int in_flight() const { return static_cast<int>(sent_ - received_); }
+
+  // Starts sending one serialized SessionRequest (copied); opens the stream
+  // when none is open. A stream that cannot be opened or broke before this
+  // request went out fails here, and nothing is in flight for it.
+  absl::Status SendBytes(absl::string_view request);
+  // Waits for the answer to the oldest request in flight, at most `timeout`:
+  // nothing when it ran out (call again: the answer is still due), OK with
+  // `*response` set to the serialized SessionResponse (valid until the next
+  // call on the stream), or the status of the broken stream (the server's
+  // code and message; UNAVAILABLE when it ended the stream cleanly), after
+  // which nothing is in flight. FAILED_PRECONDITION when nothing is.
+  std::optional<absl::Status> ReceiveBytes(absl::string_view* response,
+                                           absl::Duration timeout);
+
+  // Typed forms: Send numbers the request (its `sequence`) and returns the
+  // number; Receive waits for the answer to request `sequence` (answers to
+  // other requests that come first are kept for their own Receive), checks
+  // its sequence, and turns a SessionResponse.error into its status.
+  absl::StatusOr<uint64_t> Send(v1::SessionRequest& request);
+  absl::Status Receive(uint64_t sequence, v1::SessionResponse* response);
+
+  // Cancels the open stream, if any (the server then ends the session and
+  // deletes its bound envs); the next Send opens a new one. What was in
+  // flight is lost.
+  void Close();
+
+  // The last status message of a failed call, for the C interface.
+  const std::string& last_message() const { return last_message_; }
+
+ private:
+  // The stream's operations, as completion queue tags.
+  enum Operation : intptr_t { kStart, kWrite, kRead, kFinish, kOperations };
+
+  absl::Status OpenStream();
+  absl::Status NegotiateSharedMemory();
+  absl::Status MapRegion(const v1::AttachSharedMemoryResponse& region);
+  void DropRegion();
+  absl::Status WriteToStream(absl::string_view request);
+  void FeedRegion();
+  std::optional<absl::Status> ReceiveFromRegion(absl::string_view* response,
+                                                gpr_timespec deadline);
+  std::optional<bool> Await(Operation operation, gpr_timespec deadline);
+  absl::Status EndStream();
+  absl::Status Fail(absl::Status status);
+
+  absl::Status channel_status_;
+  std::unique_ptr<grpc::GenericStub> stub_;
+  std::string token_;
+  std::string what_;
+  SessionTransport mode_;
+
+  std::unique_ptr<grpc::CompletionQueue> queue_;
+  std::unique_ptr<grpc::ClientContext> context_;
+  std::unique_ptr<grpc::GenericClientAsyncReaderWriter> stream_;
+  std::array<bool, kOperations> done_{};
+  std::array<bool, kOperations> ok_{};
+  bool write_outstanding_ = false;
+  bool read_outstanding_ = false;
+  uint64_t sent_ = 0;
+  uint64_t received_ = 0;
+  // Requests lost with a broken stream, whose Receives report lost_status_.
+  uint64_t lost_ = 0;
+  absl::Status lost_status_;
+  grpc::ByteBuffer request_buffer_;
+  grpc::ByteBuffer response_buffer_;
+  grpc::Slice response_slice_;
+
+  // The shared-memory region while attached: requests not yet written into
+  // it wait in region_queue_; region_busy_ while one is in it unanswered.
+  void* region_ = nullptr;
+  uint64_t region_bytes_ = 0;
+  uint64_t capacity_ = 0;
+  bool attached_ = false;
+  bool region_busy_ = false;
+  uint32_t region_sequence_ = 0;
+  std::deque<std::string> region_queue_;
+
+  // Typed use: the last number given, and answers that came before their
+  // Receive.
+  uint64_t last_sequence_ = 0;
+  absl::flat_hash_map<uint64_t, v1::SessionResponse> early_answers_;
+  std::string last_message_;
+};
+
+// "shared_memory" while ... (see SessionStream::transport_name) and the
+// names of SessionTransport: "auto", "shared_memory", "native".
+absl::string_view SessionTransportName(SessionTransport transport);
+
+}  // namespace internal
+}  // namespace mll::client
+
+#endif  // MLL_CLIENT_SRC_SESSION_STREAM_H_
