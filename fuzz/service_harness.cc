@@ -325,6 +325,9 @@ void RunOp(Service& service, service::Method method, const std::string& bytes,
       }
       return;
     }
+    case service::Method::kGetServerInfo:
+      // Answered by the service from its options; nothing of Operations.
+      return;
     case service::Method::kSession:
       // RunSessionOp never comes back here: a SessionRequest cannot nest one.
       RunSessionOp(service, bytes, created);

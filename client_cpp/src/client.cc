@@ -334,6 +334,13 @@ absl::StatusOr<RemoteEnv> Client::CreateEnvOn(int server,
 absl::StatusOr<RemoteEnv> Client::CreateEnvAt(size_t server,
                                               const RemoteEnvConfig& config,
                                               bool detached) const {
+  // Asked once per connection: a server this client cannot use is refused
+  // before anything is created on it.
+  const int index = static_cast<int>(server);
+  absl::StatusOr<ServerInfo> server_info = GetServerInfo(index);
+  if (!server_info.ok()) return server_info.status();
+  absl::Status compatible = CheckCompatible(*server_info, address(index));
+  if (!compatible.ok()) return compatible;
   v1::SessionRequest request;
   v1::CreateEnvRequest& create = *request.mutable_create_env();
   internal::EncodeConfig(config, create.mutable_config());

@@ -2,6 +2,7 @@
 // C++ client library. Output is JSON, one object per line.
 //
 //   mll_cli health
+//   mll_cli info
 //   mll_cli list
 //   mll_cli create --n_landers=5 --continuous --render_mode=rgb_array
 //   mll_cli get envs/ID
@@ -265,6 +266,20 @@ Result Health(const Client& client, const std::vector<std::string>&) {
   absl::Status status = client.CheckHealth();
   if (!status.ok()) return Server(status);
   std::cout << "{\"status\":\"SERVING\"}" << std::endl;
+  return std::nullopt;
+}
+
+// One JSON line per server: its address and GetServerInfo's answer (a
+// release without GetServerInfo shows as protocol 1.0), in address order.
+Result Info(const Client& client, const std::vector<std::string>&) {
+  for (int server = 0; server < client.server_count(); ++server) {
+    absl::StatusOr<ServerInfo> info = client.GetServerInfo(server);
+    if (!info.ok()) return Server(info.status());
+    absl::string_view fields = info->json;
+    absl::ConsumePrefix(&fields, "{");
+    std::cout << "{\"address\":" << Quoted(client.address(server))
+              << (fields == "}" ? "" : ",") << fields << std::endl;
+  }
   return std::nullopt;
 }
 
@@ -651,6 +666,14 @@ const std::map<std::string, CommandSpec>& Commands() {
   static const auto* const kCommands = new std::map<std::string, CommandSpec>{
       {"health",
        {Health, 0, "", "checks that the server is serving", {}, false}},
+      {"info",
+       {Info,
+        0,
+        "",
+        "prints each server's release, protocol version, capabilities and "
+        "limits (one JSON line each)",
+        {},
+        false}},
       {"list",
        {List, 0, "", "lists the environments (one JSON line each)", {}, false}},
       {"create",

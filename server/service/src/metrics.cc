@@ -13,8 +13,9 @@ namespace {
 constexpr std::memory_order kRelaxed = std::memory_order_relaxed;
 
 constexpr absl::string_view kMethodNames[kMethodCount] = {
-    "CreateEnv", "GetEnv",    "ListEnvs",  "DeleteEnv", "ResetEnv", "StepEnv",
-    "StepAgent", "StepBatch", "RenderEnv", "Session",   "KeepAlive"};
+    "CreateEnv", "GetEnv",  "ListEnvs",  "DeleteEnv",
+    "ResetEnv",  "StepEnv", "StepAgent", "StepBatch",
+    "RenderEnv", "Session", "KeepAlive", "GetServerInfo"};
 
 // The methods that step environments, the only ones with step counters.
 constexpr Method kStepMethods[] = {Method::kStepEnv, Method::kStepAgent,

@@ -142,9 +142,11 @@ absl::StatusOr<std::unique_ptr<Server>> Server::Start(
   grpc::reflection::InitProtoReflectionServerBuilderPlugin();
 
   std::unique_ptr<Server> server(new Server());
-  server->service_ = std::make_unique<MultiLunarLanderService>(options.service);
-  grpc::ServerBuilder builder;
   const int max_bytes = options.max_message_mb * 1024 * 1024;
+  ServiceOptions service_options = options.service;
+  service_options.max_message_bytes = max_bytes;
+  server->service_ = std::make_unique<MultiLunarLanderService>(service_options);
+  grpc::ServerBuilder builder;
   builder.SetMaxReceiveMessageSize(max_bytes);
   builder.SetMaxSendMessageSize(max_bytes);
   builder.RegisterService(server->service_.get());

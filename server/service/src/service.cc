@@ -15,6 +15,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/synchronization/notification.h"
 #include "mll/service/convert.h"
+#include "mll/service/server_info.h"
 #include "mll/shared_memory_pipe.h"
 #include "shared_memory_region.h"
 
@@ -493,7 +494,8 @@ MultiLunarLanderService::MultiLunarLanderService(const ServiceOptions& options)
                 EffectiveMaxEnvsPerToken(options)),
       operations_(&registry_, &pool_),
       pool_(options.threads),
-      shared_memory_sessions_(options.shared_memory_sessions) {
+      shared_memory_sessions_(options.shared_memory_sessions),
+      server_info_(MakeServerInfo(options)) {
   SetMessageAllocatorFor_StepBatch(&step_batch_arenas_);
 }
 
@@ -605,6 +607,18 @@ grpc::ServerUnaryReactor* MultiLunarLanderService::KeepAlive(
   return RunUnary(
       context, Admit(*context), &operations_, &metrics_, Method::kKeepAlive,
       [&](const Dispatch& run) { return run.KeepAlive(*request, response); });
+}
+
+// Admitted like every call (a token when the server has tokens): what the
+// server is and its limits are for its clients only.
+grpc::ServerUnaryReactor* MultiLunarLanderService::GetServerInfo(
+    grpc::CallbackServerContext* context,
+    const v1::GetServerInfoRequest* /*request*/, v1::ServerInfo* response) {
+  return RunUnary(context, Admit(*context), &operations_, &metrics_,
+                  Method::kGetServerInfo, [&](const Dispatch&) {
+                    *response = server_info_;
+                    return absl::OkStatus();
+                  });
 }
 
 grpc::ServerBidiReactor<v1::SessionRequest, v1::SessionResponse>*

@@ -31,8 +31,9 @@ enum class Method {
   kRenderEnv,
   kSession,  // Each request of a Session stream counts as one call.
   kKeepAlive,
+  kGetServerInfo,
 };
-inline constexpr int kMethodCount = 11;
+inline constexpr int kMethodCount = 12;
 
 absl::string_view MethodName(Method method);
 

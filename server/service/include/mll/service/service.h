@@ -7,6 +7,7 @@
 #define MLL_SERVICE_SERVICE_H_
 
 #include <atomic>
+#include <cstdint>
 #include <string>
 #include <utility>
 #include <vector>
@@ -41,6 +42,10 @@ struct ServiceOptions {
   // thread of its own (--shared_memory_sessions). >= 0; 0 refuses every
   // attach (the sessions stay on their streams).
   int shared_memory_sessions = 64;
+  // The largest message the server's listener takes or sends, in bytes, as
+  // GetServerInfo reports it (Server::Start sets it from --max_message_mb);
+  // 0: unknown.
+  int64_t max_message_bytes = 0;
 };
 
 // The count of Sessions attached to shared memory, bounded by
@@ -132,6 +137,10 @@ class MultiLunarLanderService final
   grpc::ServerUnaryReactor* KeepAlive(grpc::CallbackServerContext* context,
                                       const v1::KeepAliveRequest* request,
                                       v1::KeepAliveResponse* response) override;
+  grpc::ServerUnaryReactor* GetServerInfo(
+      grpc::CallbackServerContext* context,
+      const v1::GetServerInfoRequest* request,
+      v1::ServerInfo* response) override;
 
  private:
   // The caller of a new call (see Authenticator), or UNAVAILABLE once
@@ -161,6 +170,8 @@ class MultiLunarLanderService final
   Operations operations_;
   WorkerPool pool_;
   SharedMemorySessions shared_memory_sessions_;
+  // GetServerInfo's answer, fixed at construction (server_info.h).
+  const v1::ServerInfo server_info_;
 };
 
 }  // namespace mll::service
