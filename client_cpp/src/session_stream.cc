@@ -17,6 +17,19 @@
 #include "transport.h"
 
 namespace mll::client {
+
+absl::string_view SessionTransportName(SessionTransport transport) {
+  switch (transport) {
+    case SessionTransport::kAuto:
+      return "auto";
+    case SessionTransport::kSharedMemory:
+      return "shared_memory";
+    case SessionTransport::kNative:
+      return "native";
+  }
+  return "unknown";
+}
+
 namespace internal {
 namespace {
 
@@ -31,9 +44,7 @@ void* TagOf(intptr_t operation) {
   return reinterpret_cast<void*>(operation + 1);
 }
 
-intptr_t OperationOf(void* tag) {
-  return reinterpret_cast<intptr_t>(tag) - 1;
-}
+intptr_t OperationOf(void* tag) { return reinterpret_cast<intptr_t>(tag) - 1; }
 
 gpr_timespec DeadlineAfter(absl::Duration timeout) {
   if (timeout == absl::InfiniteDuration()) {
@@ -45,18 +56,6 @@ gpr_timespec DeadlineAfter(absl::Duration timeout) {
 }
 
 }  // namespace
-
-absl::string_view SessionTransportName(SessionTransport transport) {
-  switch (transport) {
-    case SessionTransport::kAuto:
-      return "auto";
-    case SessionTransport::kSharedMemory:
-      return "shared_memory";
-    case SessionTransport::kNative:
-      return "native";
-  }
-  return "unknown";
-}
 
 SessionStream::SessionStream(
     absl::StatusOr<std::shared_ptr<grpc::Channel>> channel, std::string token,
@@ -111,16 +110,17 @@ absl::Status SessionStream::NegotiateSharedMemory() {
   if (!answer.ParseFromArray(bytes.data(), static_cast<int>(bytes.size()))) {
     Close();
     return absl::InternalError(
-        absl::StrCat(what_, " answered attach_shared_memory with bytes that "
-                            "are not a SessionResponse"));
+        absl::StrCat(what_,
+                     " answered attach_shared_memory with bytes that "
+                     "are not a SessionResponse"));
   }
   if (answer.has_error()) {
     if (mode_ == SessionTransport::kAuto) return absl::OkStatus();
     Close();
-    return absl::FailedPreconditionError(absl::StrCat(
-        "transport \"shared_memory\": ", what_, " refused shared memory (",
-        answer.error().message(),
-        "); transport \"auto\" goes on over the stream"));
+    return absl::FailedPreconditionError(
+        absl::StrCat("transport \"shared_memory\": ", what_,
+                     " refused shared memory (", answer.error().message(),
+                     "); transport \"auto\" goes on over the stream"));
   }
   status = MapRegion(answer.attach_shared_memory());
   if (status.ok()) return absl::OkStatus();
@@ -162,8 +162,8 @@ absl::Status SessionStream::MapRegion(
   void* region = mmap(nullptr, size, PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
   close(fd);
   if (region == MAP_FAILED) {
-    return absl::ResourceExhaustedError(absl::StrCat(
-        path, " cannot be mapped: ", std::strerror(errno)));
+    return absl::ResourceExhaustedError(
+        absl::StrCat(path, " cannot be mapped: ", std::strerror(errno)));
   }
   region_ = region;
   region_bytes_ = size;
@@ -258,8 +258,8 @@ std::optional<absl::Status> SessionStream::ReceiveBytes(
     return Fail(lost_status_);
   }
   if (sent_ == received_) {
-    return Fail(absl::FailedPreconditionError(
-        "receive without a request in flight"));
+    return Fail(
+        absl::FailedPreconditionError("receive without a request in flight"));
   }
   const gpr_timespec deadline = DeadlineAfter(timeout);
   if (attached_) return ReceiveFromRegion(response, deadline);
@@ -317,11 +317,11 @@ std::optional<absl::Status> SessionStream::ReceiveFromRegion(
   ++received_;
   const uint64_t size = header.response_size.load(std::memory_order_acquire);
   if (size > capacity_) {
-    return Fail(absl::InternalError(absl::StrCat(
-        what_, "'s answer overflows the shared-memory region")));
+    return Fail(absl::InternalError(
+        absl::StrCat(what_, "'s answer overflows the shared-memory region")));
   }
-  *response = absl::string_view(
-      shared_memory::ResponseArea(region_, capacity_), size);
+  *response =
+      absl::string_view(shared_memory::ResponseArea(region_, capacity_), size);
   return absl::OkStatus();
 }
 
@@ -357,9 +357,9 @@ absl::Status SessionStream::Receive(uint64_t sequence,
       }
       if (answer.sequence() == 0 || answer.sequence() > last_sequence_ ||
           early_answers_.contains(answer.sequence())) {
-        return absl::InternalError(
-            absl::StrCat(what_, " answered sequence ", answer.sequence(),
-                         " while ", sequence, " was awaited"));
+        return absl::InternalError(absl::StrCat(what_, " answered sequence ",
+                                                answer.sequence(), " while ",
+                                                sequence, " was awaited"));
       }
       early_answers_[answer.sequence()] = std::move(answer);
     }

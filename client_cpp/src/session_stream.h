@@ -157,10 +157,6 @@ class SessionStream {
   std::string last_message_;
 };
 
-// "shared_memory" while ... (see SessionStream::transport_name) and the
-// names of SessionTransport: "auto", "shared_memory", "native".
-absl::string_view SessionTransportName(SessionTransport transport);
-
 }  // namespace internal
 }  // namespace mll::client
 

@@ -108,21 +108,14 @@ template <typename T>
 absl::Status DecodeColumn(const v1::Array& array, absl::string_view field,
                           std::initializer_list<int> shape,
                           std::vector<T>* out) {
-  size_t count = 1;
-  for (int dimension : shape) count *= static_cast<size_t>(dimension);
-  const bool shape_ok = std::equal(shape.begin(), shape.end(),
-                                   array.shape().begin(), array.shape().end());
-  if (array.dtype() != DTypeOf<T>() || !shape_ok ||
-      array.data().size() != count * sizeof(T)) {
-    return absl::InternalError(absl::StrCat(
-        "server sent ", field, " with dtype ", v1::DType_Name(array.dtype()),
-        ", shape [", absl::StrJoin(array.shape(), ","), "] and ",
-        array.data().size(), " bytes; expected ", v1::DType_Name(DTypeOf<T>()),
-        " [", absl::StrJoin(shape, ","), "]"));
+  absl::Status status =
+      CheckColumn(array, field, DTypeOf<T>(), sizeof(T),
+                  absl::Span<const int>(shape.begin(), shape.size()));
+  if (!status.ok()) return status;
+  out->resize(array.data().size() / sizeof(T));
+  if (!out->empty()) {
+    std::memcpy(out->data(), array.data().data(), array.data().size());
   }
-  out->resize(count);
-  if (count > 0)
-    std::memcpy(out->data(), array.data().data(), count * sizeof(T));
   return absl::OkStatus();
 }
 
@@ -209,6 +202,24 @@ SpaceSpec DecodeSpace(const v1::Space& proto) {
 }
 
 }  // namespace
+
+absl::Status CheckColumn(const v1::Array& array, absl::string_view field,
+                         v1::DType dtype, size_t element_size,
+                         absl::Span<const int> shape) {
+  size_t count = 1;
+  for (int dimension : shape) count *= static_cast<size_t>(dimension);
+  const bool shape_ok = std::equal(shape.begin(), shape.end(),
+                                   array.shape().begin(), array.shape().end());
+  if (array.dtype() != dtype || !shape_ok ||
+      array.data().size() != count * element_size) {
+    return absl::InternalError(absl::StrCat(
+        "server sent ", field, " with dtype ", v1::DType_Name(array.dtype()),
+        ", shape [", absl::StrJoin(array.shape(), ","), "] and ",
+        array.data().size(), " bytes; expected ", v1::DType_Name(dtype), " [",
+        absl::StrJoin(shape, ","), "]"));
+  }
+  return absl::OkStatus();
+}
 
 void EncodeConfig(const RemoteEnvConfig& config, v1::EnvConfig* proto) {
   for (const ConfigField& field : ConfigFields()) {

@@ -13,6 +13,13 @@
 namespace mll::client {
 namespace internal {
 
+// OK when a column the server sent has `dtype` (elements of `element_size`
+// bytes) and `shape`; else INTERNAL naming `field` (a version mismatch, never
+// a user error).
+absl::Status CheckColumn(const v1::Array& array, absl::string_view field,
+                         v1::DType dtype, size_t element_size,
+                         absl::Span<const int> shape);
+
 // Only the fields that are set travel; the server fills the defaults.
 void EncodeConfig(const RemoteEnvConfig& config, v1::EnvConfig* proto);
 RemoteEnvConfig DecodeConfig(const v1::EnvConfig& proto);

@@ -1,0 +1,125 @@
+// Many environments stepped together, arrays in and out: the C++ counterpart
+// of the Python client's `vector_env`, with the same layout and the same
+// bits.
+//
+//   mll::client::ClientOptions options;  // session_transport: kAuto
+//   auto client = mll::client::Client::Create("127.0.0.1:50051", options);
+//   mll::client::RemoteEnvConfig config;
+//   config.n_landers = 3;
+//   auto envs = mll::client::VectorEnv::Create(*client, 64, config);
+//   envs->Reset(/*seed=*/0);
+//   std::vector<int32_t> actions(envs->num_envs() * envs->n_landers());
+//   envs->Step(actions);  // envs->observations(), rewards(), active(), ...
+//
+// Env i lives on server i mod S of the client's S servers for its whole life.
+// Each step sends one packed StepBatch to every server at once (pipelined on
+// each server's Session stream: shared memory for a server on this host, as
+// ClientOptions::session_transport chooses) and puts the results back in env
+// order. The envs are created on those streams with the server's auto_reset,
+// so they die with the VectorEnv (or its process).
+//
+// Episode ends (auto-reset): when an env's episode is over (no lander
+// active), its next step ignores the actions and starts a new episode,
+// continuing that env's generator stream (no reseed): its rows hold the new
+// episode's first observations, zero rewards, no terminations/truncations,
+// auto_reset()[i] is 1 and active() is 0 for its landers. Rows of landers that
+// are done (before the episode is over) are zero, and not active.
+//
+// Results are views of arrays the VectorEnv owns, env-major, valid until the
+// next Reset or Step. Errors: a step that fails for some envs on their server
+// (e.g. an env deleted behind the VectorEnv's back: NOT_FOUND) returns the
+// server's code and message for the first of them in env order, prefixed
+// "env {i} ({name}): "; the other envs did step. One thread at a time.
+#ifndef MLL_VECTOR_ENV_H_
+#define MLL_VECTOR_ENV_H_
+
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "absl/types/span.h"
+#include "mll/client.h"
+
+namespace mll::client {
+
+class VectorEnv {
+ public:
+  // `num_envs` (1..65536) new environments with `config` (auto_reset is
+  // forced on) on the servers of `client` (env i on server i mod S), over a
+  // session of its own (Client::OpenSession with the client's options).
+  static absl::StatusOr<VectorEnv> Create(const Client& client, int num_envs,
+                                          RemoteEnvConfig config = {});
+  // Existing environments, by name, which must share n_landers and the
+  // action type (INVALID_ARGUMENT naming the first that does not); they are
+  // not deleted by the VectorEnv. Without auto_reset, a step of an env whose
+  // episode is over fails FAILED_PRECONDITION.
+  static absl::StatusOr<VectorEnv> Attach(
+      const Client& client, const std::vector<std::string>& names);
+
+  VectorEnv(VectorEnv&&) noexcept;
+  VectorEnv& operator=(VectorEnv&&) noexcept;
+  ~VectorEnv();
+
+  int num_envs() const;
+  int n_landers() const;
+  bool continuous() const;
+  // `envs/{id}` of each env, in env order.
+  const std::vector<std::string>& names() const;
+  // The address of each env's server, in env order.
+  std::string address(int env) const;
+  // "shared_memory" when every server's stream passes its messages through
+  // shared memory, else "native" (opening the streams if none is open).
+  std::string transport();
+
+  // Starts an episode in every env: `seed` s gives env i the seed s + i;
+  // nothing continues each env's generator stream.
+  absl::Status Reset(std::optional<uint64_t> seed = std::nullopt);
+  // The same with one seed per env (seeds.size() == num_envs()).
+  absl::Status Reset(absl::Span<const uint64_t> seeds);
+
+  // One step of every env: discrete actions int32 [num_envs, n_landers] or
+  // continuous float32 [num_envs, n_landers, 2], row-major. Entries of done
+  // agents are ignored. INVALID_ARGUMENT for the wrong size or action type.
+  absl::Status Step(absl::Span<const int32_t> discrete_actions);
+  absl::Status Step(absl::Span<const float> continuous_actions);
+
+  // The results of the latest Reset or Step, env-major.
+  // float32 [num_envs, n_landers, 12].
+  absl::Span<const float> observations() const;
+  // [num_envs, n_landers].
+  absl::Span<const float> rewards() const;
+  absl::Span<const uint8_t> terminations() const;
+  absl::Span<const uint8_t> truncations() const;
+  // 1 where the row carries a transition: the lander was active at the start
+  // of the step and the step was not an auto-reset.
+  absl::Span<const uint8_t> active() const;
+  // LanderOutcome codes so far in the episode (final once done).
+  absl::Span<const uint8_t> outcomes() const;
+  absl::Span<const float> episode_returns() const;
+  absl::Span<const int32_t> episode_lengths() const;
+  // [num_envs].
+  absl::Span<const uint8_t> auto_reset() const;
+  absl::Span<const uint8_t> episode_over() const;
+
+  // Env `env`'s rows of the latest results as a StepData (a copy), e.g. for
+  // a pilot that acts on one env.
+  StepData EnvResult(int env) const;
+
+ private:
+  struct State;
+  explicit VectorEnv(std::unique_ptr<State> state);
+  static absl::StatusOr<VectorEnv> Assemble(Client session,
+                                            std::vector<EnvInfo> infos);
+  absl::Status StepWith(absl::string_view action_bytes, size_t count,
+                        bool continuous_actions);
+
+  std::unique_ptr<State> state_;
+};
+
+}  // namespace mll::client
+
+#endif  // MLL_VECTOR_ENV_H_
