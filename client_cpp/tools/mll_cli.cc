@@ -30,16 +30,19 @@
 //                          error), then MLL_TOKEN; none sends no token.
 // Exit codes: 0 done, 1 the server or the transport failed (its code and
 // message are printed), 2 bad command line.
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
 #include <cstdlib>
 #include <fstream>
+#include <future>
 #include <iostream>
 #include <iterator>
 #include <map>
 #include <memory>
 #include <optional>
+#include <random>
 #include <string>
 #include <vector>
 
@@ -55,6 +58,7 @@
 #include "core_bridge.h"
 #include "grpc/support/log.h"
 #include "mll/client.h"
+#include "mll/vector_env.h"
 #include "program_usage.h"
 #include "trained_pilot.h"
 
@@ -77,7 +81,16 @@ ABSL_FLAG(int, server, -1,
           "first).");
 ABSL_FLAG(int, envs, 0,
           "play: number of envs flown together, spread over the servers "
-          "(default: one per server).");
+          "(default: one per server). bench: envs per client (default 64).");
+ABSL_FLAG(std::string, transport, "auto",
+          "play, bench: how the batched steps travel: auto (shared memory "
+          "with a server on this host, else the gRPC stream), shared_memory "
+          "(or fail saying why not) or native (the gRPC stream).");
+ABSL_FLAG(double, seconds, 5.0,
+          "bench: how long to step, in seconds (0, 3600].");
+ABSL_FLAG(int, clients, 1,
+          "bench: independent clients (threads), each with its own --envs "
+          "envs and Session streams, 1..256.");
 ABSL_FLAG(int, timeout_ms, 30000, "Deadline of each call in ms; 0 for none.");
 ABSL_FLAG(std::string, name, "",
           "Environment name envs/ID (or give it as the argument after the "
@@ -246,6 +259,21 @@ absl::StatusOr<ClientOptions> OptionsFromFlags() {
   options.tls_target_name_override = absl::GetFlag(FLAGS_tls_server_name);
   options.use_tls = absl::GetFlag(FLAGS_tls) || !root_path.empty() ||
                     !options.tls_target_name_override.empty();
+  const std::string transport = absl::GetFlag(FLAGS_transport);
+  bool known = false;
+  for (SessionTransport choice :
+       {SessionTransport::kAuto, SessionTransport::kSharedMemory,
+        SessionTransport::kNative}) {
+    if (transport == SessionTransportName(choice)) {
+      options.session_transport = choice;
+      known = true;
+    }
+  }
+  if (!known) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("transport is \"", transport,
+                     "\"; allowed: \"auto\", \"shared_memory\", \"native\""));
+  }
   return options;
 }
 
@@ -473,63 +501,73 @@ absl::StatusOr<PlayFlags> ParsePlayFlags(const Client& client) {
       !name.empty() ? 1 : (envs_flag > 0 ? envs_flag : client.server_count())};
 }
 
-// The envs play flies: the one named, or n_envs new ones created round-robin
-// over the servers (deleted at exit).
-Result OpenPlayEnvs(const Client& client, const PlayFlags& flags,
-                    std::vector<RemoteEnv>* envs) {
-  if (!flags.name.empty()) {
-    absl::StatusOr<RemoteEnv> env = client.Attach(flags.name);
-    if (!env.ok()) return Server(env.status());
-    envs->push_back(*std::move(env));
-    return std::nullopt;
-  }
+// The envs play flies, as one VectorEnv: the one named, or n_envs new ones
+// over the servers (env j on server j mod S; they go with the VectorEnv).
+absl::StatusOr<VectorEnv> OpenPlayEnvs(const Client& client,
+                                       const PlayFlags& flags,
+                                       bool* usage_error) {
+  if (!flags.name.empty()) return VectorEnv::Attach(client, {flags.name});
   absl::StatusOr<core::EnvConfig> config = core::EnvConfigFromFlags();
-  if (!config.ok()) return Usage(config.status());
-  for (int j = 0; j < flags.n_envs; ++j) {
-    absl::StatusOr<RemoteEnv> env = client.CreateEnv(RemoteConfigFrom(*config));
-    if (!env.ok()) return Server(env.status());
-    envs->push_back(*std::move(env));
+  if (!config.ok()) {
+    *usage_error = true;
+    return config.status();
   }
-  return std::nullopt;
+  return VectorEnv::Create(client, flags.n_envs, RemoteConfigFrom(*config));
 }
 
 // One episode of every env: resets env j with seeds[j], then steps every env
-// still flying, one StepBatch call per server, until all are over (episodes
-// are bounded by max_cycles). Leaves each env's last result and step count.
-Result FlyEpisode(const Client& client, std::vector<RemoteEnv>& envs,
-                  std::vector<PlayPilot>& pilots,
-                  const std::vector<uint64_t>& seeds,
-                  std::vector<StepData>* last, std::vector<int>* steps) {
-  const int n_envs = static_cast<int>(envs.size());
+// (one packed StepBatch per server) until all episodes are over (they are
+// bounded by max_cycles). An env whose episode ended before the others' is
+// auto-reset by its next step and flies on with zero actions, outside the
+// report; its pilot is not asked. Leaves each env's last result of the
+// episode and its step count.
+Result FlyEpisode(VectorEnv& envs, std::vector<PlayPilot>& pilots,
+                  absl::Span<const uint64_t> seeds, std::vector<StepData>* last,
+                  std::vector<int>* steps) {
+  const int n_envs = envs.num_envs();
+  const int n = envs.n_landers();
+  const int per_env = envs.continuous() ? 2 * n : n;
+  if (absl::Status status = envs.Reset(seeds); !status.ok()) {
+    return Server(status);
+  }
   last->assign(n_envs, StepData());
   steps->assign(n_envs, 0);
-  std::vector<int> flying;
+  std::vector<bool> flying(n_envs);
+  int n_flying = 0;
   for (int j = 0; j < n_envs; ++j) {
-    absl::StatusOr<StepData> data = envs[j].Reset(seeds[j]);
-    if (!data.ok()) return Server(data.status());
-    (*last)[j] = *std::move(data);
-    if (!(*last)[j].episode_over) flying.push_back(j);
+    (*last)[j] = envs.EnvResult(j);
+    flying[j] = !(*last)[j].episode_over;
+    n_flying += flying[j];
   }
-  while (!flying.empty()) {
-    std::vector<BatchStep> batch;
-    for (int j : flying) batch.push_back({&envs[j], pilots[j].Act((*last)[j])});
-    absl::StatusOr<std::vector<absl::StatusOr<StepData>>> results =
-        client.StepBatch(batch);
-    if (!results.ok()) return Server(results.status());
-    std::vector<int> still_flying;
-    for (size_t k = 0; k < flying.size(); ++k) {
-      const int j = flying[k];
-      absl::StatusOr<StepData>& result = (*results)[k];
-      if (!result.ok()) {
-        return Server(absl::Status(
-            result.status().code(),
-            absl::StrCat(envs[j].name(), ": ", result.status().message())));
+  std::vector<int32_t> discrete(envs.continuous() ? 0 : n_envs * per_env);
+  std::vector<float> continuous(envs.continuous() ? n_envs * per_env : 0);
+  while (n_flying > 0) {
+    std::fill(discrete.begin(), discrete.end(), 0);
+    std::fill(continuous.begin(), continuous.end(), 0.0f);
+    for (int j = 0; j < n_envs; ++j) {
+      if (!flying[j]) continue;
+      const Actions actions = pilots[j].Act((*last)[j]);
+      if (envs.continuous()) {
+        std::copy(actions.continuous.begin(), actions.continuous.end(),
+                  continuous.begin() + j * per_env);
+      } else {
+        std::copy(actions.discrete.begin(), actions.discrete.end(),
+                  discrete.begin() + j * per_env);
       }
-      (*last)[j] = *std::move(result);
-      ++(*steps)[j];
-      if (!(*last)[j].episode_over) still_flying.push_back(j);
     }
-    flying = std::move(still_flying);
+    absl::Status status = envs.continuous()
+                              ? envs.Step(absl::MakeConstSpan(continuous))
+                              : envs.Step(absl::MakeConstSpan(discrete));
+    if (!status.ok()) return Server(status);
+    for (int j = 0; j < n_envs; ++j) {
+      if (!flying[j]) continue;
+      (*last)[j] = envs.EnvResult(j);
+      ++(*steps)[j];
+      if ((*last)[j].episode_over) {
+        flying[j] = false;
+        --n_flying;
+      }
+    }
   }
   return std::nullopt;
 }
@@ -542,8 +580,8 @@ class PlayReport {
 
   // One line for env j's finished episode. Outcomes, returns and lengths are
   // reported for every agent, done or not.
-  void Episode(const Client& client, const RemoteEnv& env, int episode,
-               uint64_t seed, int steps, const StepData& last) {
+  void Episode(const VectorEnv& envs, int env, int episode, uint64_t seed,
+               int steps, const StepData& last) {
     const std::vector<float>& returns = last.episode_returns;
     const std::vector<int32_t>& lengths = last.episode_lengths;
     const std::vector<LanderOutcome>& outcomes = last.outcomes;
@@ -565,12 +603,13 @@ class PlayReport {
                         [&](int a) {
                           return Quoted(LanderOutcomeName(outcomes[a]));
                         }),
-               ",\"env\":", Quoted(env.name()),
-               ",\"server\":", Quoted(client.address(env.server())), "}")
+               ",\"env\":", Quoted(envs.names()[env]),
+               ",\"server\":", Quoted(envs.address(env)), "}")
         << std::endl;
   }
 
-  void Summary(int episodes, int n_envs, double seconds) const {
+  void Summary(int episodes, int n_envs, double seconds,
+               absl::string_view transport) const {
     std::cout
         << absl::StrCat(
                "{\"summary\":true,\"episodes\":", episodes,
@@ -585,7 +624,8 @@ class PlayReport {
                JsonNumber(static_cast<double>(total_steps_) / env_episodes_),
                ",\"agent_steps\":", agent_steps_,
                ",\"agent_steps_per_second\":",
-               JsonNumber(seconds > 0 ? agent_steps_ / seconds : 0.0), "}")
+               JsonNumber(seconds > 0 ? agent_steps_ / seconds : 0.0),
+               ",\"transport\":", Quoted(transport), "}")
         << std::endl;
   }
 
@@ -605,22 +645,25 @@ class PlayReport {
 Result Play(const Client& client, const std::vector<std::string>&) {
   absl::StatusOr<PlayFlags> flags = ParsePlayFlags(client);
   if (!flags.ok()) return Usage(flags.status());
-  std::vector<RemoteEnv> envs;
-  if (Result failed = OpenPlayEnvs(client, *flags, &envs)) return failed;
-  const int n_envs = flags->n_envs;
-  const int n = envs[0].n_landers();
+  bool usage_error = false;
+  absl::StatusOr<VectorEnv> envs = OpenPlayEnvs(client, *flags, &usage_error);
+  if (!envs.ok()) {
+    return usage_error ? Usage(envs.status()) : Server(envs.status());
+  }
+  const int n_envs = envs->num_envs();
+  const int n = envs->n_landers();
+  if (flags->trained && envs->continuous()) {
+    return Usage(absl::InvalidArgumentError(
+        absl::StrCat("policy is \"trained\", which flies discrete actions; ",
+                     envs->names()[0], " is continuous")));
+  }
   std::vector<PlayPilot> pilots;
   for (int j = 0; j < n_envs; ++j) {
-    if (flags->trained && envs[j].continuous()) {
-      return Usage(absl::InvalidArgumentError(
-          absl::StrCat("policy is \"trained\", which flies discrete actions; ",
-                       envs[j].name(), " is continuous")));
-    }
     if (flags->trained) {
       pilots.emplace_back(flags->trained, n);
     } else {
       pilots.emplace_back(
-          RemotePilot(flags->policy, n, envs[j].continuous(),
+          RemotePilot(flags->policy, n, envs->continuous(),
                       flags->base_seed + static_cast<uint64_t>(j)));
     }
   }
@@ -634,18 +677,140 @@ Result Play(const Client& client, const std::vector<std::string>&) {
     }
     std::vector<StepData> last;
     std::vector<int> steps;
-    if (Result failed =
-            FlyEpisode(client, envs, pilots, seeds, &last, &steps)) {
+    if (Result failed = FlyEpisode(*envs, pilots, seeds, &last, &steps)) {
       return failed;
     }
     for (int j = 0; j < n_envs; ++j) {
-      report.Episode(client, envs[j], episode, seeds[j], steps[j], last[j]);
+      report.Episode(*envs, j, episode, seeds[j], steps[j], last[j]);
     }
   }
   report.Summary(
       flags->episodes, n_envs,
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
-          .count());
+          .count(),
+      envs->transport());
+  return std::nullopt;
+}
+
+// What one bench client stepped.
+struct BenchCount {
+  int64_t env_steps = 0;
+  int64_t agent_steps = 0;
+  std::string transport;
+  absl::Status status;
+};
+
+// One bench client: its own Client (and so its own channels and Session
+// streams) and VectorEnv of `n_envs`, stepped with uniform random actions
+// (seeded by `seed`) until `until`.
+BenchCount RunBenchClient(const std::vector<std::string>& addresses,
+                          const ClientOptions& options,
+                          const RemoteEnvConfig& config, int n_envs,
+                          uint64_t seed,
+                          std::chrono::steady_clock::time_point start,
+                          std::chrono::steady_clock::time_point until) {
+  BenchCount count;
+  absl::StatusOr<Client> client = Client::Create(addresses, options);
+  absl::StatusOr<VectorEnv> envs =
+      client.ok() ? VectorEnv::Create(*client, n_envs, config)
+                  : absl::StatusOr<VectorEnv>(client.status());
+  if (!envs.ok()) {
+    count.status = envs.status();
+    return count;
+  }
+  count.transport = envs->transport();
+  count.status = envs->Reset(seed);
+  std::mt19937_64 rng(seed);
+  const size_t values = static_cast<size_t>(n_envs) * envs->n_landers() *
+                        (envs->continuous() ? 2 : 1);
+  std::vector<int32_t> discrete(envs->continuous() ? 0 : values);
+  std::vector<float> continuous(envs->continuous() ? values : 0);
+  std::uniform_int_distribution<int32_t> engine(0, 3);
+  std::uniform_real_distribution<float> throttle(-1.0f, 1.0f);
+  // Steps until `start` are warm-up, not counted.
+  while (count.status.ok() && std::chrono::steady_clock::now() < until) {
+    for (int32_t& action : discrete) action = engine(rng);
+    for (float& action : continuous) action = throttle(rng);
+    count.status = envs->continuous()
+                       ? envs->Step(absl::MakeConstSpan(continuous))
+                       : envs->Step(absl::MakeConstSpan(discrete));
+    if (std::chrono::steady_clock::now() < start) continue;
+    count.env_steps += n_envs;
+    for (uint8_t active : envs->active()) count.agent_steps += active;
+  }
+  return count;
+}
+
+// The load generator: --clients independent clients, each stepping --envs
+// auto-resetting envs with random actions for --seconds (after a warm-up of
+// a tenth of that), every call carrying every env; prints one JSON line.
+Result Bench(const Client& client, const std::vector<std::string>&) {
+  const int clients = absl::GetFlag(FLAGS_clients);
+  const int envs_flag = absl::GetFlag(FLAGS_envs);
+  const int n_envs = envs_flag > 0 ? envs_flag : 64;
+  const double seconds = absl::GetFlag(FLAGS_seconds);
+  if (clients < 1 || clients > 256) {
+    return Usage(absl::InvalidArgumentError(
+        absl::StrCat("clients is ", clients, "; allowed: 1..256")));
+  }
+  if (envs_flag < 0 || n_envs > 65536) {
+    return Usage(absl::InvalidArgumentError(
+        absl::StrCat("envs is ", envs_flag, "; allowed: 0 (64) or 1..65536")));
+  }
+  if (!(seconds > 0 && seconds <= 3600)) {
+    return Usage(absl::InvalidArgumentError(
+        absl::StrCat("seconds is ", seconds, "; allowed: (0, 3600]")));
+  }
+  absl::StatusOr<core::EnvConfig> config = core::EnvConfigFromFlags();
+  if (!config.ok()) return Usage(config.status());
+  absl::StatusOr<ClientOptions> options = OptionsFromFlags();
+  if (!options.ok()) return Usage(options.status());
+  std::vector<std::string> addresses;
+  for (int server = 0; server < client.server_count(); ++server) {
+    addresses.push_back(client.address(server));
+  }
+  const auto warm_up = std::chrono::duration<double>(seconds / 10);
+  const auto start =
+      std::chrono::steady_clock::now() +
+      std::chrono::duration_cast<std::chrono::nanoseconds>(warm_up);
+  const auto until =
+      start + std::chrono::duration_cast<std::chrono::nanoseconds>(
+                  std::chrono::duration<double>(seconds));
+  std::vector<std::future<BenchCount>> runs;
+  for (int c = 0; c < clients; ++c) {
+    runs.push_back(std::async(std::launch::async, RunBenchClient, addresses,
+                              *options, RemoteConfigFrom(*config), n_envs,
+                              static_cast<uint64_t>(c) << 32, start, until));
+  }
+  BenchCount total;
+  std::vector<std::string> transports;
+  for (std::future<BenchCount>& run : runs) {
+    BenchCount count = run.get();
+    if (!count.status.ok() && total.status.ok()) total.status = count.status;
+    total.env_steps += count.env_steps;
+    total.agent_steps += count.agent_steps;
+    transports.push_back(count.transport);
+  }
+  if (!total.status.ok()) return Server(total.status);
+  const double elapsed =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start)
+          .count();
+  // "shared_memory" only when every client's streams use it.
+  const bool all_shared = std::all_of(
+      transports.begin(), transports.end(),
+      [](const std::string& name) { return name == "shared_memory"; });
+  std::cout << absl::StrCat(
+                   "{\"clients\":", clients, ",\"envs\":", n_envs,
+                   ",\"n_landers\":", config->n_landers,
+                   ",\"seconds\":", JsonNumber(elapsed),
+                   ",\"env_steps\":", total.env_steps,
+                   ",\"agent_steps\":", total.agent_steps,
+                   ",\"env_steps_per_second\":",
+                   JsonNumber(total.env_steps / elapsed),
+                   ",\"agent_steps_per_second\":",
+                   JsonNumber(total.agent_steps / elapsed), ",\"transport\":",
+                   Quoted(all_shared ? "shared_memory" : "native"), "}")
+            << std::endl;
   return std::nullopt;
 }
 
@@ -713,7 +878,15 @@ const std::map<std::string, CommandSpec>& Commands() {
         "",
         "flies landers with a pilot and prints one JSON line per "
         "episode",
-        {"policy", "weights", "episodes", "seed", "envs", "name"},
+        {"policy", "weights", "episodes", "seed", "envs", "name", "transport"},
+        true}},
+      {"bench",
+       {Bench,
+        0,
+        "",
+        "steps --clients x --envs auto-resetting envs with random actions for "
+        "--seconds and prints the throughput (one JSON line)",
+        {"envs", "clients", "seconds", "transport"},
         true}},
   };
   return *kCommands;

@@ -67,6 +67,9 @@ enum class SessionTransport {
   kNative,
 };
 
+// "auto", "shared_memory" or "native".
+absl::string_view SessionTransportName(SessionTransport transport);
+
 // How the client reaches the server.
 struct ClientOptions {
   // TLS instead of a plaintext channel.
@@ -469,6 +472,7 @@ class Client {
 
  private:
   friend class RemoteEnv;
+  friend class VectorEnv;
   explicit Client(std::vector<std::shared_ptr<internal::Transport>> transports);
   absl::StatusOr<RemoteEnv> CreateEnvAt(size_t server,
                                         const RemoteEnvConfig& config,
