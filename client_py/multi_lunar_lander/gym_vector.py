@@ -27,6 +27,11 @@ infos (Gymnasium's vector convention: a value array and a "_key" bool mask, num_
   "episode_return", "episode_length", "outcome" (codes indexing OUTCOMES): set on the step a
     lander's episode ends, masked by "_episode_return" etc.
   "idle": True where the row's action was ignored (idle landers and the env's reset step).
+
+Needs gymnasium >= 1.0 (the VectorEnv API of 1.0: step() returns the whole batch, autoreset on
+the next step); with gymnasium 0.29 this module imports (the rest of the package works) and
+creating a GymVectorEnv raises ImportError saying what to install. metadata["autoreset_mode"]
+is set from gymnasium 1.1 on, which added the key; 1.0 knows NEXT_STEP only.
 """
 
 from __future__ import annotations
@@ -35,8 +40,12 @@ from typing import Any, NamedTuple, Sequence
 
 import gymnasium
 import numpy as np
-from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
+
+try:  # gymnasium >= 1.1
+    from gymnasium.vector import AutoresetMode
+except ImportError:  # gymnasium 1.0 (NEXT_STEP is its only mode) or 0.29 (see _require_vector_api)
+    AutoresetMode = None
 
 from ._errors import invalid_argument
 from ._remote import rebuild
@@ -81,6 +90,20 @@ def lander_step(result, n: int) -> LanderStep:
     )
 
 
+# gymnasium 0.29's VectorEnv is the older API (step_async/step_wait, reset_wait, a constructor
+# taking the spaces), which 1.0 removed; this class is written for 1.0's.
+_VECTOR_API_1 = not hasattr(gymnasium.vector.VectorEnv, "step_wait")
+
+
+def _require_vector_api() -> None:
+    if not _VECTOR_API_1:
+        raise ImportError(
+            f"gym_vector_env / GymVectorEnv needs gymnasium >= 1.0 (its VectorEnv API); this "
+            f"environment has gymnasium {gymnasium.__version__}: pip install 'gymnasium>=1.0'. "
+            "env, parallel_env and vector_env work with gymnasium 0.29 too."
+        )
+
+
 class GymVectorEnv(gymnasium.vector.VectorEnv):
     """`num_envs` Multi Lunar Lander environments as a gymnasium.vector.VectorEnv of
     num_envs x n_landers sub-environments, one per lander (see the module docstring for the
@@ -94,9 +117,12 @@ class GymVectorEnv(gymnasium.vector.VectorEnv):
     Pickles as its arguments (a new set of environments on the same servers).
     """
 
-    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": []}
+    metadata = {"render_modes": []}
+    if AutoresetMode is not None:
+        metadata["autoreset_mode"] = AutoresetMode.NEXT_STEP
 
     def __init__(self, num_envs: int, address: str | Sequence[str] | None = None, **kwargs: Any):
+        _require_vector_api()
         self.vector = VectorEnv(num_envs, address=address, **kwargs)
         self.n_landers = self.vector.n_landers
         self.continuous = self.vector.continuous
