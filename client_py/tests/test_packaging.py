@@ -91,6 +91,8 @@ def test_pip_install_dot_brings_the_server_and_the_cli(fresh_clone, tmp_path):
     package = pathlib.Path(_run([python, "-c", "import multi_lunar_lander as m; print(m.__file__)"],
                                 cwd=elsewhere, env=_isolated_env()).strip()).parent
     assert f"native {package / 'libmll_native_stream.so'}" in out
+    # The stubs of the grpcio-tools the build pins for Python 3.11 (client_py/tests/test_dependency_ranges.py).
+    assert "# Protobuf Python Version: 4.25.1" in (package / "_proto" / "multi_lunar_lander_pb2.py").read_text()
 
 
 def test_pip_install_client_py_is_the_pure_python_client(fresh_clone, tmp_path):
