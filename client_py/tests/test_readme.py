@@ -433,3 +433,43 @@ def test_extras_the_documents_install_exist():
                 assert extra in extras, f"{document}: pip install '{match.group(1)}[{extra}]': no such extra"
                 checked += 1
     assert checked
+
+
+# --- Links between the documents. ---
+
+_LINK = re.compile(r"\]\(([^)\s]+)\)")
+
+
+def _anchors(path: pathlib.Path) -> set[str]:
+    """GitHub's anchors of the headings of `path`: lower case, punctuation but - and _ dropped,
+    spaces as -, repeats numbered."""
+    text = re.sub(r"^```.*?^```", "", path.read_text(encoding="utf-8"), flags=re.MULTILINE | re.DOTALL)
+    anchors: dict[str, int] = {}
+    found = set()
+    for heading in re.findall(r"^#+ (.*?)[ \t]*$", text, re.MULTILINE):
+        slug = re.sub(r"[^\w\- ]", "", heading.lower()).replace(" ", "-")
+        count = anchors.get(slug, 0)
+        anchors[slug] = count + 1
+        found.add(slug if count == 0 else f"{slug}-{count}")
+    return found
+
+
+def test_links_between_documents_resolve():
+    """Every relative link of the documents names a file of the repository and, with #anchor,
+    a heading of it."""
+    bad = []
+    for document in _DOCUMENTS:
+        path = _REPO / document
+        if not path.exists():
+            continue
+        text = re.sub(r"^```.*?^```", "", path.read_text(encoding="utf-8"), flags=re.MULTILINE | re.DOTALL)
+        for target in _LINK.findall(text):
+            if re.match(r"[a-z]+:", target):
+                continue  # http:, https:, mailto:
+            file, _, anchor = target.partition("#")
+            linked = (path.parent / file).resolve() if file else path
+            if not linked.exists():
+                bad.append(f"{document}: {target} (no such file)")
+            elif anchor and linked.suffix == ".md" and anchor not in _anchors(linked):
+                bad.append(f"{document}: {target} (no such heading)")
+    assert not bad, "broken links: " + "; ".join(bad)
