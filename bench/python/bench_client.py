@@ -295,10 +295,29 @@ class HalvesRunner:
         self.halves.close()
 
 
+def bench_cli(binary: str, address: str, server_pid: int, envs: int, n_landers: int, seconds: float,
+              transport: str, clients: int = 1) -> dict:
+    """`mll_cli bench` (the C++ VectorEnv, random discrete actions, auto-reset) against the server at
+    `address`: its JSON line, plus the CPU seconds of mll_cli (`client_cpu_s`) and of the server
+    (`server_cpu_s`) over the whole run, warm-up included."""
+    client_before, server_before = _children_cpu_s(), _process_cpu_s(server_pid)
+    output = subprocess.run(
+        [binary, "bench", f"--address={address}", f"--envs={envs}", f"--n_landers={n_landers}",
+         f"--seconds={seconds}", f"--transport={transport}", f"--clients={clients}"],
+        check=True, capture_output=True, text=True, timeout=seconds * 3 + 60,
+    ).stdout
+    result = json.loads(output.strip().splitlines()[-1])
+    result["client_cpu_s"] = _children_cpu_s() - client_before
+    result["server_cpu_s"] = _process_cpu_s(server_pid) - server_before
+    return result
+
+
 def add_binary_arguments(parser: argparse.ArgumentParser) -> None:
-    """--server (mll_server) and --core_timing (the in-process floor), built by scripts/build.sh."""
+    """--server (mll_server), --core_timing (the in-process floor) and --cli (mll_cli), built by
+    scripts/build.sh."""
     parser.add_argument("--server", default=os.environ.get("MLL_SERVER_BIN", str(REPO / "build/server/service/mll_server")))
     parser.add_argument("--core_timing", default=str(REPO / "build/bench/python/mll_core_batch_timing"))
+    parser.add_argument("--cli", default=str(REPO / "build/client_cpp/mll_cli"))
 
 
 def main() -> int:

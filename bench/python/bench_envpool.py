@@ -13,6 +13,11 @@
    and over TCP (default transport) as two vector envs of
    half the size stepped alternately with step_async/step_wait (each call sends one half's
    actions and returns the other half's results: EnvPool's async pattern with the same batch).
+   The C++ client's batched API (mll::client::VectorEnv, as `mll_cli bench --envs=--envs
+   --n_landers=1`: random discrete actions, auto-reset, no Python on our side) against the TCP
+   side's server, over shared memory and over the native gRPC stream, once per round for
+   `--cli_seconds` (after its own warm-up of a tenth of that); its CPU is mll_cli's plus the
+   server's over the run, warm-up included.
    For reference (not a floor of this comparison): our core stepping the same 64 one-lander envs
    in-process on the same threads (mll_core_batch_timing, as in bench_client.py; it counts the
    env-steps that stepped a lander, i.e. without the auto-reset steps, about 1 in 100), which
@@ -39,7 +44,7 @@ import os
 
 import numpy as np
 
-from bench_client import Halves, add_binary_arguments, bench_core
+from bench_client import Halves, add_binary_arguments, bench_cli, bench_core
 from bench_trainer_envs import alternate
 
 ENVPOOL_TASK = "LunarLander-v3"
@@ -68,6 +73,7 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--steps", type=int, default=1000, help="calls per round and side")
     parser.add_argument("--seconds", type=float, default=10.0, help="time bound per round and side")
+    parser.add_argument("--cli_seconds", type=float, default=1.0, help="mll_cli bench's run per round and transport")
     args = parser.parse_args()
     if args.envs % 2 or args.envs // 2 != args.async_batch:
         parser.error("--async_batch must be half of --envs (the halves side steps the same batches)")
@@ -111,12 +117,21 @@ def main() -> int:
             "gym_vector_env_x3": (gym_env.step, gym_table, args.envs, other.pid),
         }
         alternate(sides, 1, 50, args.seconds)  # Warm-up.
-        rates = {name: [] for name in (*sides, "core_in_process")}
+        cpp_sides = {f"cpp_vector_env_tcp_{transport}": transport for transport in ("shared_memory", "native")}
+        rates = {name: [] for name in (*sides, *cpp_sides, "core_in_process")}
         cpu_us = {name: [] for name in rates}
         for _ in range(args.rounds):
             core = bench_core(args.core_timing, args.envs, 1, args.threads, args.steps, args.seconds)
             rates["core_in_process"].append(core["agent_steps_per_s"])
             cpu_us["core_in_process"].append(core["cpu_s"] * 1e6 / core["agent_steps"])
+            for name, transport in cpp_sides.items():
+                cpp = bench_cli(args.cli, tcp.address, tcp.pid, args.envs, 1, args.cli_seconds, transport)
+                assert cpp["transport"] == transport, cpp
+                rates[name].append(cpp["env_steps_per_second"])
+                # Its CPU over the whole run, warm-up included, per env-step of the measured part
+                # scaled to the whole run.
+                run_steps = cpp["env_steps"] * (1 + 0.1 * args.cli_seconds / cpp["seconds"])
+                cpu_us[name].append((cpp["client_cpu_s"] + cpp["server_cpu_s"]) * 1e6 / run_steps)
             one_round = alternate(sides, 1, args.steps, args.seconds)
             for name in sides:
                 rates[name] += one_round[0][name]
@@ -141,7 +156,7 @@ def main() -> int:
               f"({', '.join(f'{value:.2f}' for value in ratios)}) | {np.median(cpu_us[name]):.1f} "
               f"| {np.median(cpu_ratios):.2f} |")
 
-    for name in ("envpool_sync", "envpool_async", "vector_env_tcp_shared_memory", "vector_env_tcp_native",
+    for name in ("envpool_sync", "envpool_async", *cpp_sides, "vector_env_tcp_shared_memory", "vector_env_tcp_native",
                  "vector_env_tcp_grpc",
                  "vector_env_unix_native", "vector_env_unix_grpc", "vector_env_tcp_halves", "core_in_process"):
         row(name, floor, floor_cpu)
