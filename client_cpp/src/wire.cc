@@ -5,7 +5,6 @@
 #include <cstring>
 #include <string>
 #include <type_traits>
-#include <variant>
 #include <vector>
 
 #include "absl/base/config.h"
@@ -24,71 +23,6 @@ namespace {
 #ifndef ABSL_IS_LITTLE_ENDIAN
 #error "The client copies little-endian wire arrays verbatim."
 #endif
-
-// The optional members of RemoteEnvConfig, each named as its field of
-// mll.v1.EnvConfig; encoding and decoding both walk this one list, through
-// protobuf reflection by name.
-using ConfigMember = std::variant<std::optional<int> RemoteEnvConfig::*,
-                                  std::optional<bool> RemoteEnvConfig::*,
-                                  std::optional<double> RemoteEnvConfig::*>;
-struct ConfigField {
-  const char* name;
-  ConfigMember member;
-};
-const std::array<ConfigField, 13>& ConfigFields() {
-  static const std::array<ConfigField, 13> kFields = {{
-      {"n_landers", &RemoteEnvConfig::n_landers},
-      {"continuous", &RemoteEnvConfig::continuous},
-      {"max_cycles", &RemoteEnvConfig::max_cycles},
-      {"gravity", &RemoteEnvConfig::gravity},
-      {"enable_wind", &RemoteEnvConfig::enable_wind},
-      {"wind_power", &RemoteEnvConfig::wind_power},
-      {"turbulence_power", &RemoteEnvConfig::turbulence_power},
-      {"remove_on_damage", &RemoteEnvConfig::remove_on_damage},
-      {"terminate_on_damage", &RemoteEnvConfig::terminate_on_damage},
-      {"shared_reward", &RemoteEnvConfig::shared_reward},
-      {"damage_reward", &RemoteEnvConfig::damage_reward},
-      {"successful_reward", &RemoteEnvConfig::successful_reward},
-      {"terminate_reward", &RemoteEnvConfig::terminate_reward},
-  }};
-  return kFields;
-}
-
-const google::protobuf::FieldDescriptor& ConfigFieldDescriptor(
-    const char* name) {
-  const google::protobuf::FieldDescriptor* field =
-      v1::EnvConfig::descriptor()->FindFieldByName(name);
-  // The list above and the proto are compiled together; a missing name is a
-  // programming error caught by every test that creates an env.
-  if (field == nullptr) std::abort();
-  return *field;
-}
-
-void SetField(const google::protobuf::FieldDescriptor& field, int value,
-              v1::EnvConfig* proto) {
-  proto->GetReflection()->SetInt32(proto, &field, value);
-}
-void SetField(const google::protobuf::FieldDescriptor& field, bool value,
-              v1::EnvConfig* proto) {
-  proto->GetReflection()->SetBool(proto, &field, value);
-}
-void SetField(const google::protobuf::FieldDescriptor& field, double value,
-              v1::EnvConfig* proto) {
-  proto->GetReflection()->SetDouble(proto, &field, value);
-}
-
-template <typename T>
-T GetField(const google::protobuf::FieldDescriptor& field,
-           const v1::EnvConfig& proto) {
-  const google::protobuf::Reflection& reflection = *proto.GetReflection();
-  if constexpr (std::is_same_v<T, int>) {
-    return reflection.GetInt32(proto, &field);
-  } else if constexpr (std::is_same_v<T, bool>) {
-    return reflection.GetBool(proto, &field);
-  } else {
-    return reflection.GetDouble(proto, &field);
-  }
-}
 
 template <typename T>
 constexpr v1::DType DTypeOf() {
@@ -221,17 +155,13 @@ absl::Status CheckColumn(const v1::Array& array, absl::string_view field,
   return absl::OkStatus();
 }
 
+// Every option travels in the proto's field of the same name (an optional
+// field: unset means the server's default).
 void EncodeConfig(const RemoteEnvConfig& config, v1::EnvConfig* proto) {
-  for (const ConfigField& field : ConfigFields()) {
-    std::visit(
-        [&](auto member) {
-          const auto& value = config.*member;
-          if (value.has_value()) {
-            SetField(ConfigFieldDescriptor(field.name), *value, proto);
-          }
-        },
-        field.member);
-  }
+#define MLL_ENCODE_OPTION(type, name, default_value, range, help) \
+  if (config.name.has_value()) proto->set_##name(*config.name);
+  MLL_ENV_OPTIONS(MLL_ENCODE_OPTION)
+#undef MLL_ENCODE_OPTION
   proto->set_render_mode(config.render_rgb_array ? v1::RENDER_MODE_RGB_ARRAY
                                                  : v1::RENDER_MODE_NONE);
   proto->set_auto_reset(config.auto_reset);
@@ -239,18 +169,10 @@ void EncodeConfig(const RemoteEnvConfig& config, v1::EnvConfig* proto) {
 
 RemoteEnvConfig DecodeConfig(const v1::EnvConfig& proto) {
   RemoteEnvConfig config;
-  for (const ConfigField& field : ConfigFields()) {
-    std::visit(
-        [&](auto member) {
-          const google::protobuf::FieldDescriptor& descriptor =
-              ConfigFieldDescriptor(field.name);
-          if (!proto.GetReflection()->HasField(proto, &descriptor)) return;
-          using Value =
-              typename std::decay_t<decltype(config.*member)>::value_type;
-          config.*member = GetField<Value>(descriptor, proto);
-        },
-        field.member);
-  }
+#define MLL_DECODE_OPTION(type, name, default_value, range, help) \
+  if (proto.has_##name()) config.name = proto.name();
+  MLL_ENV_OPTIONS(MLL_DECODE_OPTION)
+#undef MLL_DECODE_OPTION
   config.render_rgb_array = proto.render_mode() == v1::RENDER_MODE_RGB_ARRAY;
   config.auto_reset = proto.auto_reset();
   return config;

@@ -46,6 +46,7 @@
 #include "absl/status/statusor.h"
 #include "absl/strings/string_view.h"
 #include "absl/types/span.h"
+#include "mll/core/env_config.h"
 
 namespace mll::client {
 
@@ -125,23 +126,17 @@ struct SpaceSpec {
   int64_t n = 0;
 };
 
-// Options of a new environment (docs/environment.md). An unset field takes the
-// server's default; the server validates every value (INVALID_ARGUMENT naming
-// the field, the value and the range).
+// Options of a new environment (docs/environment.md). One optional member
+// per option of MLL_ENV_OPTIONS (mll/core/env_config.h, the one definition
+// of every option's type, name, default, range and help), e.g. n_landers
+// (1..32, default 3), continuous, max_cycles, gravity, ... An unset member
+// takes the server's default; the server validates every value
+// (INVALID_ARGUMENT naming the field, the value and the range).
 struct RemoteEnvConfig {
-  std::optional<int> n_landers;             // 1..32, default 3.
-  std::optional<bool> continuous;           // Default false (Discrete(4)).
-  std::optional<int> max_cycles;            // >= 1, default 500.
-  std::optional<double> gravity;            // (-12, 0), default -10.
-  std::optional<bool> enable_wind;          // Default false.
-  std::optional<double> wind_power;         // [0, 20], default 15.
-  std::optional<double> turbulence_power;   // [0, 2], default 1.5.
-  std::optional<bool> remove_on_damage;     // Default true.
-  std::optional<bool> terminate_on_damage;  // Default true.
-  std::optional<bool> shared_reward;        // Default true.
-  std::optional<double> damage_reward;      // Finite, default -100.
-  std::optional<double> successful_reward;  // Finite, default +100.
-  std::optional<double> terminate_reward;   // Finite, default -100.
+#define MLL_REMOTE_ENV_OPTION(type, name, default_value, range, help) \
+  std::optional<type> name;
+  MLL_ENV_OPTIONS(MLL_REMOTE_ENV_OPTION)
+#undef MLL_REMOTE_ENV_OPTION
   // render_mode rgb_array (frames through Render) instead of none.
   bool render_rgb_array = false;
   // The step after an episode ends starts a new one instead of failing.
