@@ -34,6 +34,12 @@ $MLL_TOKEN when set and non-empty, token="" sends none. A missing or wrong token
 MLLError with code UNAUTHENTICATED; another token's envs are NOT_FOUND. The embedded server
 (address=None) is plaintext and needs no token.
 
+Versions: `server_info(address)` (and `env.server_info` of every environment) is the server's
+release, wire protocol version, capabilities and limits (GetServerInfo). Each connection asks
+once and refuses, with FAILED_PRECONDITION naming both versions and what to upgrade, a server of
+another protocol major or one lacking a capability the environment needs (docs/server.md,
+"Versions and compatibility").
+
 Errors reported by the server raise MLLError (attributes `code`, a grpc.StatusCode, and
 `message`, the server's message).
 """
@@ -44,6 +50,7 @@ from ._channel import TOKEN_ENV
 from ._errors import MLLError
 from ._remote import CONFIG_OPTIONS, OUTCOMES
 from ._server import ServerProcess, embedded_server, find_server_binary
+from ._server_info import PROTOCOL, ServerInfo, ServerLimits
 from .aec import MultiLunarLanderEnv
 from .gym_vector import GymVectorEnv
 from .heuristic import heuristic
@@ -57,7 +64,10 @@ __all__ = [
     "MultiLunarLanderEnv",
     "MultiLunarLanderParallelEnv",
     "OUTCOMES",
+    "PROTOCOL",
     "TOKEN_ENV",
+    "ServerInfo",
+    "ServerLimits",
     "ServerProcess",
     "VectorEnv",
     "embedded_server",
@@ -68,6 +78,7 @@ __all__ = [
     "parallel_env",
     "raw_env",
     "sb3_vec_env",
+    "server_info",
     "vector_env",
 ]
 
@@ -110,3 +121,25 @@ def sb3_vec_env(num_envs: int, address=None, **options):
             "`pip install 'multi_lunar_lander[sb3]'`"
         ) from error
     return SB3VecEnv(num_envs, address=address, **options)
+
+
+def server_info(address=None, *, tls_root_cert=None, tls_server_name=None, token=None) -> ServerInfo:
+    """The release, wire protocol version, capabilities and limits of the server at `address`
+    ("host:port"; None: this process's embedded server), with the TLS and token options of
+    parallel_env. Works with any server, compatible or not (a server from before GetServerInfo
+    shows as protocol (1, 0)); raises MLLError when the server cannot be reached or refuses the
+    token."""
+    from ._channel import Security, parse_addresses
+    from ._errors import invalid_argument
+    from ._remote import Connection
+
+    addresses = parse_addresses(address)
+    if len(addresses) > 1:
+        raise invalid_argument(
+            f"address is {address!r}, {len(addresses)} servers; server_info takes one (ask each in turn)"
+        )
+    connection = Connection(addresses[0] if addresses else None, Security.from_options(tls_root_cert, tls_server_name, token))
+    try:
+        return connection.server_info
+    finally:
+        connection.close()

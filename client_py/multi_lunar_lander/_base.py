@@ -13,6 +13,7 @@ from . import _arrays, _lease
 from ._errors import MLLError
 from ._channel import Security, parse_addresses
 from ._remote import Connection, config_dict, connect_single, make_config, rebuild, space_from_proto
+from ._server_info import ServerInfo
 from ._stubs import pb
 from ._viewer import Viewer
 
@@ -68,6 +69,7 @@ class RemoteEnvBase:
             **security.as_options(),
         )
         try:
+            connection.check_server()  # GetServerInfo, once per connection.
             env = connection.call("CreateEnv", pb.CreateEnvRequest(config=config))
         except BaseException:
             connection.close()
@@ -111,6 +113,12 @@ class RemoteEnvBase:
     def name(self) -> str:
         """The server-side resource name, `envs/{id}`."""
         return self._name
+
+    @property
+    def server_info(self) -> ServerInfo:
+        """The release, wire protocol version, capabilities and limits of this environment's server
+        (GetServerInfo, asked when the environment was created)."""
+        return self._connection.server_info
 
     def observation_space(self, agent: str) -> gymnasium.spaces.Space:
         return self.observation_spaces[agent]

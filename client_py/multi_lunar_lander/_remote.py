@@ -15,7 +15,7 @@ import grpc
 import numpy as np
 from gymnasium import spaces
 
-from . import _arrays
+from . import _arrays, _server_info
 from ._actions import check_actions
 from ._channel import Security, open_channel, parse_addresses
 from ._errors import MLLError, from_item_error, from_rpc_error, invalid_argument
@@ -230,6 +230,8 @@ class Connection:
         self.stub = pb_grpc.MultiLunarLanderStub(self.channel)
         self._metadata = security.metadata
         self._pid = os.getpid()
+        self._server_info: _server_info.ServerInfo | None = None
+        self._server_info_lock = threading.Lock()
         # Closing on garbage collection too, without referencing self.
         self._finalizer = weakref.finalize(self, Connection._close, self.channel, self._lease, self._pid)
 
@@ -243,6 +245,20 @@ class Connection:
                 f"not this one ({os.getpid()}); a forked process must make its own environments "
                 "(pickle the environment object, as SuperSuit and multiprocessing do, or create a new one)",
             )
+
+    @property
+    def server_info(self) -> _server_info.ServerInfo:
+        """The server's GetServerInfo answer, asked on first use and kept for the connection's
+        life (protocol v1.0 for a server from before GetServerInfo)."""
+        with self._server_info_lock:
+            if self._server_info is None:
+                self._server_info = _server_info.fetch(self)
+            return self._server_info
+
+    def check_server(self, needs: Sequence[str] = (), feature: str = "") -> None:
+        """Raises FAILED_PRECONDITION (naming both versions and what to upgrade) unless this client
+        speaks the server's protocol and the server offers `needs`, which `feature` needs."""
+        _server_info.check_compatible(self.server_info, self.address, needs, feature)
 
     def call(self, method: str, request, timeout: float | None = None):
         """Calls a unary method; a failure raises MLLError with the server's code and message."""

@@ -40,7 +40,12 @@ from ._remote import (
     seed_value,
     space_from_proto,
 )
+from ._server_info import ServerInfo
 from ._stubs import pb
+
+# What a vector env needs of each server (GetServerInfo's capabilities): its steps are packed
+# StepBatches, its envs reset themselves.
+_NEEDS = ("packed_step_batch", "auto_reset")
 
 # Result columns: (field of StepData / PackedStepData, wire dtype, numpy dtype of the result,
 # trailing shape per env given n_landers). The per-agent ones are Arrays in both messages.
@@ -149,6 +154,8 @@ class VectorEnv:
         try:
             for server in servers[: self.num_envs]:
                 self._connections.append(Connection(server, security, addresses))
+            for connection in self._connections:  # GetServerInfo, once per connection.
+                connection.check_server(_NEEDS, "vector_env")
             waits = [
                 self._connection_of(index).future("CreateEnv", pb.CreateEnvRequest(config=config))
                 for index in range(self.num_envs)
@@ -181,7 +188,10 @@ class VectorEnv:
             shared_memory = {"auto": "try", "shared_memory": "require"}.get(transport, "off")
 
             def stream_type(connection):
-                return _native.NativeSessionStream(connection, shared_memory)
+                mode = shared_memory
+                if mode == "try" and connection.server_info.lacks("shared_memory_sessions"):
+                    mode = "off"  # The server says it grants none ("auto"): not asked.
+                return _native.NativeSessionStream(connection, mode)
         else:
             stream_type = SessionStream
         self._servers = []
@@ -240,6 +250,18 @@ class VectorEnv:
     def addresses(self) -> list[str]:
         """The address of each server that holds environments, in server order."""
         return [connection.address for connection in self._connections]
+
+    @property
+    def server_info(self) -> ServerInfo:
+        """GetServerInfo's answer of the (first) server: release, wire protocol version,
+        capabilities and limits; `server_infos` has every server's."""
+        return self._connections[0].server_info
+
+    @property
+    def server_infos(self) -> list[ServerInfo]:
+        """GetServerInfo's answer of each server that holds environments, in `addresses` order:
+        release, wire protocol version, capabilities and limits."""
+        return [connection.server_info for connection in self._connections]
 
     @property
     def names(self) -> list[str]:
