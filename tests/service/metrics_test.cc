@@ -3,12 +3,15 @@
 // loopback HTTP, moves as the traffic sent to it says it must.
 #include "mll/service/metrics.h"
 
+#include <sys/resource.h>
+
 #include <chrono>
 #include <map>
 #include <regex>
 #include <set>
 #include <sstream>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "gmock/gmock.h"
@@ -121,6 +124,39 @@ TEST(MetricsTest, RecordsLandInTheirSeries) {
   EXPECT_DOUBLE_EQ(s["mll_rpc_duration_seconds_sum{" + get + "}"], 2.00004);
   EXPECT_EQ(s["mll_rpc_errors_total{" + get + ",code=\"NOT_FOUND\"}"], 2);
   EXPECT_GT(s["process_resident_memory_bytes"], 1 << 20);
+}
+
+// process_cpu_seconds_total is the process's CPU (every thread's), so that an
+// operator can divide its rate by mll_agent_steps_total's: it grows by the
+// CPU burnt between two renders, and agrees with getrusage.
+TEST(MetricsTest, ProcessCpuSecondsFollowGetrusage) {
+  const auto cpu_now = [] {
+    rusage usage = {};
+    getrusage(RUSAGE_SELF, &usage);
+    return usage.ru_utime.tv_sec + usage.ru_stime.tv_sec +
+           (usage.ru_utime.tv_usec + usage.ru_stime.tv_usec) * 1e-6;
+  };
+  Metrics metrics;
+  const double before_rusage = cpu_now();
+  std::map<std::string, double> before = Parse(metrics.Render(0));
+  // Burns about 50 ms of CPU on a second thread.
+  std::thread([&cpu_now, start = cpu_now()] {
+    volatile uint64_t sink = 0;
+    while (cpu_now() - start < 0.05) {
+      for (int i = 0; i < 100000; ++i) sink = sink + i;
+    }
+  }).join();
+  std::map<std::string, double> after = Parse(metrics.Render(0));
+  const double after_rusage = cpu_now();
+  EXPECT_GE(before["process_cpu_seconds_total"], before_rusage - 1e-6);
+  EXPECT_LE(after["process_cpu_seconds_total"], after_rusage + 1e-6);
+  EXPECT_GE(
+      after["process_cpu_seconds_total"] - before["process_cpu_seconds_total"],
+      0.05);
+  EXPECT_GT(after["mll_process_context_switches_total{kind=\"voluntary\"}"], 0);
+  EXPECT_EQ(
+      after.count("mll_process_context_switches_total{kind=\"involuntary\"}"),
+      1);
 }
 
 // A packed StepBatch counts each env row as a StepData would, except rows of
@@ -272,6 +308,7 @@ TEST_F(MetricsServerTest, ScrapeFollowsTheTraffic) {
                         "code=\"NOT_FOUND\"}"),
             0);
   EXPECT_GT(after["process_resident_memory_bytes"], 1 << 20);
+  EXPECT_GT(after["process_cpu_seconds_total"], 0);
 
   grpc::ClientContext context;
   v1::DeleteEnvRequest remove;

@@ -1,5 +1,6 @@
 #include "mll/service/metrics.h"
 
+#include <sys/resource.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -41,6 +42,19 @@ int64_t ResidentBytes() {
   std::fclose(statm);
   if (read != 2) return 0;
   return static_cast<int64_t>(resident_pages) * sysconf(_SC_PAGESIZE);
+}
+
+// user + system CPU time as seconds with microseconds, in full: StrCat's
+// six significant digits would round a long-running server's to seconds.
+std::string CpuSeconds(const rusage& usage) {
+  const int64_t us =
+      (int64_t{usage.ru_utime.tv_sec} + usage.ru_stime.tv_sec) * 1'000'000 +
+      usage.ru_utime.tv_usec + usage.ru_stime.tv_usec;
+  char text[32];
+  std::snprintf(text, sizeof(text), "%lld.%06lld",
+                static_cast<long long>(us / 1'000'000),
+                static_cast<long long>(us % 1'000'000));
+  return text;
 }
 
 }  // namespace
@@ -185,6 +199,24 @@ std::string Metrics::Render(
          "Resident memory of the server process in bytes.", &out);
   absl::StrAppend(&out, "process_resident_memory_bytes ", ResidentBytes(),
                   "\n");
+  // Every thread's: gRPC's, the workers', the shared-memory sessions'. Its
+  // rate over mll_agent_steps_total's is the server's CPU per agent-step.
+  rusage usage = {};
+  getrusage(RUSAGE_SELF, &usage);
+  Family("process_cpu_seconds_total", "counter",
+         "User and system CPU time of the server process in seconds.", &out);
+  absl::StrAppend(&out, "process_cpu_seconds_total ", CpuSeconds(usage), "\n");
+  Family("mll_process_context_switches_total", "counter",
+         "Context switches of the server's threads: voluntary (a thread "
+         "blocked, e.g. to wait for work or a message: each is a later "
+         "wake-up) and involuntary (preempted).",
+         &out);
+  absl::StrAppend(&out,
+                  "mll_process_context_switches_total{kind=\"voluntary\"} ",
+                  usage.ru_nvcsw, "\n");
+  absl::StrAppend(&out,
+                  "mll_process_context_switches_total{kind=\"involuntary\"} ",
+                  usage.ru_nivcsw, "\n");
   return out;
 }
 

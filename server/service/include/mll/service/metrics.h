@@ -68,8 +68,8 @@ class Metrics {
 
   // The exposition text, with `live_envs` as the environments gauge,
   // `live_by_tenant` (owner, envs; auth.h's owners, never a token) as the
-  // per-tenant gauge and the process's resident memory read from
-  // /proc/self/statm.
+  // per-tenant gauge, the process's resident memory read from
+  // /proc/self/statm, and its CPU seconds and context switches (getrusage).
   std::string Render(int live_envs,
                      const std::vector<std::pair<std::string, int>>&
                          live_by_tenant = {}) const;
