@@ -1,0 +1,265 @@
+#!/usr/bin/env python3
+"""The server's CPU per agent-step under concurrent full-batch clients, against the core's.
+
+For each --threads T and --n_landers L: starts `mll_server --threads=T` on loopback (with
+--metrics_address), runs `mll_cli bench --clients=C --envs=E` against it (C concurrent clients,
+each stepping E auto-resetting envs with random actions, so every call carries all E envs), and
+reads the server's CPU over a steady-state window inside the run (the first and last second
+left out: env creation, resets and teardown are not steps) from two sources that must agree:
+its /metrics `process_cpu_seconds_total` and /proc/<pid>/stat. The agent-steps of the same
+window come from /metrics `mll_agent_steps_total`. The floor is `mll_core_batch_timing` (the
+core alone, C x E envs on T threads, no gRPC): its CPU per agent-step. The ratio of the two is
+what the server adds per agent-step (gRPC, protobuf, the worker pool, the registry); with more
+threads it must not grow.
+
+`mll_cli bench` is the load generator, so an operator can take the same figure against a
+deployment: scrape process_cpu_seconds_total and mll_agent_steps_total while it runs.
+
+--pin (for a host with more than T cores): the server and the floor on cores 0..T-1, the
+clients on the others.
+
+Loopback only; every run is bounded by --seconds. Prints a Markdown table and one JSON line.
+
+    .venv/bin/python bench/service/bench_server_cpu.py --seconds 8
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import re
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+
+REPO = pathlib.Path(__file__).resolve().parents[2]
+
+
+def _process_cpu_s(pid: int) -> float:
+    """user + system CPU seconds of a process so far, all its threads (/proc/<pid>/stat)."""
+    fields = pathlib.Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _children_cpu_s() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def _pin(pid: int, cores: list[int]) -> None:
+    """Pins every thread of `pid` (threads started later inherit their creator's mask)."""
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            os.sched_setaffinity(int(tid), cores)
+        except ProcessLookupError:  # The thread ended meanwhile.
+            pass
+
+
+def _taskset(cores: list[int] | None) -> list[str]:
+    return ["taskset", "-c", ",".join(map(str, cores))] if cores else []
+
+
+class Server:
+    """mll_server --threads=T on a free loopback port with /metrics on another."""
+
+    def __init__(self, binary: str, threads: int, cores: list[int] | None, startup_s: float = 30.0):
+        self._dir = tempfile.TemporaryDirectory(prefix="mll_bench_cpu_")
+        port_file = os.path.join(self._dir.name, "port")
+        self._log = open(os.path.join(self._dir.name, "log"), "w+b")  # noqa: SIM115 - closed in close().
+        self.process = subprocess.Popen(
+            _taskset(cores) + [binary, "--address=127.0.0.1:0", f"--port_file={port_file}",
+                               "--metrics_address=127.0.0.1:0", f"--threads={threads}", "--max_envs=100000"],
+            stdout=self._log, stderr=subprocess.STDOUT,
+        )
+        deadline = time.monotonic() + startup_s
+        self.metrics_url = None
+        while time.monotonic() < deadline and self.process.poll() is None:
+            self._log.seek(0)
+            found = re.search(rb"metrics on (http://\S+/metrics)", self._log.read())
+            if found and os.path.exists(port_file) and os.path.getsize(port_file) > 0:
+                self.metrics_url = found.group(1).decode()
+                self.address = f"127.0.0.1:{pathlib.Path(port_file).read_text().strip()}"
+                return
+            time.sleep(0.05)
+        self.close()
+        raise RuntimeError(f"mll_server did not start in {startup_s} s")
+
+    @property
+    def pid(self) -> int:
+        return self.process.pid
+
+    def scrape(self) -> dict:
+        """process_cpu_seconds_total, the agent-steps of every method, the context switches, and
+        /proc's CPU seconds read right after."""
+        with urllib.request.urlopen(self.metrics_url, timeout=10) as response:
+            text = response.read().decode()
+        proc_cpu_s = _process_cpu_s(self.pid)
+        sample = {"cpu_s": 0.0, "agent_steps": 0, "voluntary": 0, "involuntary": 0, "proc_cpu_s": proc_cpu_s}
+        for line in text.splitlines():
+            if line.startswith("#"):
+                continue
+            series, _, value = line.rpartition(" ")
+            if series == "process_cpu_seconds_total":
+                sample["cpu_s"] = float(value)
+            elif series.startswith("mll_agent_steps_total{"):
+                sample["agent_steps"] += int(float(value))
+            elif series.startswith("mll_process_context_switches_total{"):
+                sample["voluntary" if '"voluntary"' in series else "involuntary"] = int(float(value))
+        return sample
+
+    def close(self) -> None:
+        if self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        self._log.close()
+        self._dir.cleanup()
+
+
+def measure_server(args, threads: int, n_landers: int, server_cores, client_cores) -> dict:
+    server = Server(args.server, threads, server_cores)
+    try:
+        if server_cores:
+            _pin(server.pid, server_cores)
+        command = _taskset(client_cores) + [
+            args.cli, "bench", f"--address={server.address}", f"--envs={args.envs}", f"--n_landers={n_landers}",
+            f"--seconds={args.seconds}", f"--clients={args.clients}", f"--transport={args.transport}"]
+        client_before = _children_cpu_s()
+        run_before = _process_cpu_s(server.pid)
+        cli = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            # The window opens once stepping has begun, plus a second; it closes a second before
+            # the clients stop.
+            opened = time.monotonic()
+            deadline = opened + args.seconds + 60
+            while server.scrape()["agent_steps"] == 0 and time.monotonic() < deadline and cli.poll() is None:
+                time.sleep(0.05)
+            stepping = time.monotonic()
+            time.sleep(1.0)
+            first = server.scrape()
+            window_start = time.monotonic()
+            time.sleep(max(1.0, args.seconds - (window_start - stepping) - 1.0))
+            last = server.scrape()
+            window_s = time.monotonic() - window_start
+            out, err = cli.communicate(timeout=args.seconds * 3 + 120)
+        finally:
+            if cli.poll() is None:
+                cli.kill()
+                cli.wait()
+        if cli.returncode != 0:
+            raise RuntimeError(f"mll_cli bench failed ({cli.returncode}): {err.strip()}")
+        result = json.loads(out.strip().splitlines()[-1])
+        agent_steps = last["agent_steps"] - first["agent_steps"]
+        cpu_s = last["cpu_s"] - first["cpu_s"]
+        proc_cpu_s = last["proc_cpu_s"] - first["proc_cpu_s"]
+        return {
+            "agent_steps_per_s": agent_steps / window_s,
+            "window_s": window_s,
+            "window_agent_steps": agent_steps,
+            "server_cpu_s": cpu_s,
+            "server_proc_cpu_s": proc_cpu_s,
+            "server_cpu_us_per_agent_step": cpu_s / agent_steps * 1e6,
+            "server_proc_cpu_us_per_agent_step": proc_cpu_s / agent_steps * 1e6,
+            "voluntary_switches_per_call": (last["voluntary"] - first["voluntary"])
+            / max(1, agent_steps / (args.envs * n_landers)),
+            "involuntary_switches_per_s": (last["involuntary"] - first["involuntary"]) / window_s,
+            # The whole run (warm-up, env creation, teardown included), from mll_cli's own count.
+            "run_agent_steps": result["agent_steps"],
+            "run_server_cpu_us_per_agent_step": (_process_cpu_s(server.pid) - run_before)
+            / max(1, result["agent_steps"]) * 1e6,
+            "client_cpu_s": _children_cpu_s() - client_before,
+            "cli": result,
+        }
+    finally:
+        server.close()
+
+
+def measure_core(args, threads: int, n_landers: int, cores) -> dict:
+    envs = args.clients * args.envs
+    cpu_before = _children_cpu_s()
+    output = subprocess.run(
+        _taskset(cores) + [args.core_timing, f"--envs={envs}", f"--n_landers={n_landers}", f"--threads={threads}",
+                           "--steps=1000000", f"--seconds={args.seconds}"],
+        check=True, capture_output=True, text=True, timeout=args.seconds + 120,
+    ).stdout
+    result = json.loads(output.strip().splitlines()[-1])
+    result["cpu_s"] = _children_cpu_s() - cpu_before
+    result["cpu_us_per_agent_step"] = result["cpu_s"] / result["agent_steps"] * 1e6
+    return result
+
+
+def _ints(text: str) -> list[int]:
+    return [int(item) for item in text.split(",") if item]
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--server", default=os.environ.get("MLL_SERVER_BIN", str(REPO / "build/server/service/mll_server")))
+    parser.add_argument("--cli", default=str(REPO / "build/client_cpp/mll_cli"))
+    parser.add_argument("--core_timing", default=str(REPO / "build/bench/python/mll_core_batch_timing"))
+    parser.add_argument("--threads", type=_ints, default=[1, 2, 4, 8], help="server threads, comma-separated")
+    parser.add_argument("--n_landers", type=_ints, default=[1, 3], help="landers per env, comma-separated")
+    parser.add_argument("--clients", type=int, default=8, help="concurrent clients (mll_cli bench --clients)")
+    parser.add_argument("--envs", type=int, default=64, help="envs per client")
+    parser.add_argument("--seconds", type=float, default=8.0, help="each run's length (server and floor), >= 4")
+    parser.add_argument("--transport", default="native", choices=["native", "shared_memory"])
+    parser.add_argument("--pin", action="store_true",
+                        help="server and floor on cores 0..T-1, clients on the other cores")
+    parser.add_argument("--max_ratio", type=float, default=0.0,
+                        help="exit 1 if a ratio exceeds this (0: report only)")
+    args = parser.parse_args()
+    if args.seconds < 4:
+        parser.error("--seconds: at least 4 (a second either side of the window is left out)")
+    cores = sorted(os.sched_getaffinity(0))
+
+    rows = []
+    load_before = os.getloadavg()
+    for threads in args.threads:
+        server_cores = client_cores = None
+        if args.pin:
+            if len(cores) <= threads:
+                print(f"--pin: T={threads} leaves no core for the clients of {len(cores)}; skipped", file=sys.stderr)
+                continue
+            server_cores, client_cores = cores[:threads], cores[threads:]
+        for n_landers in args.n_landers:
+            server = measure_server(args, threads, n_landers, server_cores, client_cores)
+            core = measure_core(args, threads, n_landers, server_cores)
+            rows.append({"threads": threads, "n_landers": n_landers, "server": server, "core": core,
+                         "ratio": server["server_cpu_us_per_agent_step"] / core["cpu_us_per_agent_step"],
+                         "throughput_vs_core": server["agent_steps_per_s"] / core["agent_steps_per_s"]})
+            disagreement = abs(server["server_cpu_s"] - server["server_proc_cpu_s"])
+            if disagreement > max(0.05, 0.03 * server["server_proc_cpu_s"]):
+                print(f"warning: /metrics CPU {server['server_cpu_s']:.3f} s vs /proc {server['server_proc_cpu_s']:.3f} s",
+                      file=sys.stderr)
+    load_after = os.getloadavg()
+
+    print(f"{args.clients} clients x {args.envs} envs (mll_cli bench, {args.transport}), {args.seconds:g} s runs, "
+          f"{len(cores)} cores{' pinned' if args.pin else ''}; load average {load_before[0]:.2f} before, "
+          f"{load_after[0]:.2f} after\n")
+    print("| T | landers | agent-steps/s | vs core | server CPU us/agent-step | core CPU us/agent-step | ratio "
+          "| wake-ups/call |")
+    print("|---|---|---|---|---|---|---|---|")
+    for row in rows:
+        server, core = row["server"], row["core"]
+        print(f"| {row['threads']} | {row['n_landers']} | {server['agent_steps_per_s']:,.0f} "
+              f"| {row['throughput_vs_core']:.2f} | {server['server_cpu_us_per_agent_step']:.2f} "
+              f"| {core['cpu_us_per_agent_step']:.2f} | {row['ratio']:.2f}x "
+              f"| {server['voluntary_switches_per_call']:.1f} |")
+    print(json.dumps({"benchmark": "server_cpu", "clients": args.clients, "envs": args.envs,
+                      "transport": args.transport, "seconds": args.seconds, "pin": args.pin, "cores": len(cores),
+                      "load_before": load_before, "load_after": load_after, "rows": rows}))
+    if args.max_ratio and any(row["ratio"] > args.max_ratio for row in rows):
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
