@@ -194,12 +194,12 @@ class NativeSessionStream(SessionStream):
         self._finalizer = weakref.finalize(self, _close_handle, self._lib, self._handle, os.getpid())
 
     def _write(self, request: "pb.SessionRequest") -> None:
-        self._sequence += 1
-        request.sequence = self._sequence
+        self._number(request)
         data = request.SerializeToString()
         code = self._lib.mll_native_stream_write(self._handle, data, len(data))
         if code:
             raise self._failure(code)
+        self._awaited.append(request.sequence)
 
     def _read(self) -> "pb.SessionResponse":
         """The answer to the last write (its sequence not yet checked); the stream's failure raised. The
@@ -233,14 +233,22 @@ class NativeSessionStream(SessionStream):
         if self._send_failure is not None:
             failure, self._send_failure = self._send_failure, None
             raise failure
-        return self._answer(self._read())
+        try:
+            response = self._read()
+        except MLLError:  # The stream broke: this request's answer is lost with it.
+            if self._awaited:
+                self._awaited.popleft()
+            raise
+        return self._answer(response)
 
     def _failure(self, code: int) -> MLLError:
         message = self._lib.mll_native_stream_message(self._handle).decode(errors="replace")
         return from_call_status(code, message, self._connection._what)
 
     def close(self) -> None:
-        """Cancels the stream (idempotent); the next send() opens a new one."""
+        """Cancels the stream (idempotent); the next send() opens a new one. What was in flight is
+        lost."""
+        self._awaited.clear()
         if self._handle is not None:
             self._finalizer()
             self._handle = self._finalizer = None

@@ -4,6 +4,7 @@ encoding and the per-agent info dicts."""
 
 from __future__ import annotations
 
+import collections
 import numbers
 import os
 import queue
@@ -302,8 +303,9 @@ _END_OF_REQUESTS = object()
 
 
 class SessionStream:
-    """One `Session` stream to a connection's server, carrying one operation at a time: send()
-    puts a SessionRequest on the stream, receive() waits for its answer. An operation on an open
+    """One `Session` stream to a connection's server: send() puts a SessionRequest on the stream,
+    receive() waits for the answer to the oldest request not yet received (several may be in
+    flight: the server answers a stream's requests in order). An operation on an open
     stream skips a unary call's set-up on both sides (no new call, HTTP/2 stream, headers or
     trailers): a 64-env packed StepBatch round trip takes about 80-100 us less. Opened by the first send(); a stream that breaks raises MLLError from receive()
     and is opened anew by the next send(). Envs are not created on it, so its end deletes none."""
@@ -313,7 +315,18 @@ class SessionStream:
         self._requests: queue.SimpleQueue | None = None
         self._responses = None
         self._sequence = 0
+        self._awaited: collections.deque[int] = collections.deque()  # Sequences sent, not received.
         self._finalizer = None
+
+    def _number(self, request: "pb.SessionRequest") -> None:
+        """Gives `request` the next sequence number."""
+        self._sequence += 1
+        request.sequence = self._sequence
+
+    @property
+    def in_flight(self) -> int:
+        """Requests sent and not yet received."""
+        return len(self._awaited)
 
     def send(self, request: "pb.SessionRequest") -> None:
         """Puts `request` (its sequence number set here) on the stream; the caller must not change
@@ -326,12 +339,13 @@ class SessionStream:
             )
             # Ends gRPC's request-reading thread even if close() is never called.
             self._finalizer = weakref.finalize(self, self._requests.put, _END_OF_REQUESTS)
-        self._sequence += 1
-        request.sequence = self._sequence
+        self._number(request)
         self._requests.put(request)
+        self._awaited.append(request.sequence)
 
     def receive(self) -> "pb.SessionResponse":
-        """The answer to the last send(); the operation's error, or the stream's, as MLLError."""
+        """The answer to the oldest send() not yet received; the operation's error, or the
+        stream's, as MLLError."""
         try:
             response = next(self._responses)
         except grpc.RpcError as error:
@@ -348,25 +362,29 @@ class SessionStream:
         return self._answer(response)
 
     def _answer(self, response: "pb.SessionResponse") -> "pb.SessionResponse":
-        """`response` if it answers the last send(); its operation's error as MLLError; INTERNAL
-        (and the stream closed) if it answers another request."""
+        """`response` if it answers the oldest send() not yet received; its operation's error as
+        MLLError; INTERNAL (and the stream closed) if it answers another request."""
         self._check_sequence(response)
         if response.HasField("error"):
             raise from_item_error(response.error.code, response.error.message)
         return response
 
     def _check_sequence(self, response: "pb.SessionResponse") -> None:
-        """INTERNAL (and the stream closed) unless `response` answers the last send()."""
-        if response.sequence != self._sequence:
+        """INTERNAL (and the stream closed) unless `response` answers the oldest send() not yet
+        received."""
+        expected = self._awaited.popleft() if self._awaited else None
+        if response.sequence != expected:
             self.close()
             raise MLLError(
                 grpc.StatusCode.INTERNAL,
                 f"{self._connection.address} answered Session request {response.sequence}; "
-                f"expected the answer to {self._sequence}",
+                f"expected the answer to {expected}",
             )
 
     def close(self) -> None:
-        """Half-closes and cancels the stream (idempotent); the next send() opens a new one."""
+        """Half-closes and cancels the stream (idempotent); the next send() opens a new one. What
+        was in flight is lost."""
+        self._awaited.clear()
         if self._responses is not None:
             self._finalizer()
             self._responses.cancel()

@@ -22,6 +22,7 @@ their `active` entries are False.
 
 from __future__ import annotations
 
+import collections
 from typing import Any, NamedTuple, Sequence
 
 import grpc
@@ -30,7 +31,7 @@ import numpy as np
 from . import _arrays, _lease, _native
 from ._channel import Security, parse_addresses
 from ._errors import MLLError, from_item_error, invalid_argument
-from ._actions import check_actions
+from ._actions import _short, check_actions
 from ._remote import (
     Connection,
     SessionStream,
@@ -78,6 +79,7 @@ class _Server(NamedTuple):
     actions: "pb.Array"
     columns: tuple  # _arrays.Column of every result column, shaped for this server's envs.
     stream: SessionStream
+    in_flight: collections.deque  # Env indices of each async request in flight, oldest first.
 
 
 class VectorEnv:
@@ -110,6 +112,13 @@ class VectorEnv:
     step_async(actions), then step_wait() -> step()'s results: the same step split in two, so
       the caller can work (or step another vector env) while the servers step; one step at a
       time: step, reset or step_async while one is in flight raise FAILED_PRECONDITION.
+    EnvPool's async API (batch_size=K, 1..num_envs; K = num_envs is the synchronous API above):
+      async_reset(seed=None) resets every env and makes its first observations due; send(actions,
+      env_id) sends one step of the envs env_id (each with no step in flight) and returns at once,
+      one packed StepBatch per server pipelined on its stream; recv() returns the results of the
+      first K envs whose steps are done, as step() returns them, with infos["env_id"] naming
+      them; step(actions, env_id) is send then recv. K need not divide num_envs. Each env's
+      results are the same bits as with the synchronous API for the same actions.
     infos: "auto_reset" bool (num_envs,), "episode_over" bool (num_envs,), "outcome" uint8
       (num_envs, n_landers) with codes indexing OUTCOMES, "episode_return" float32 and
       "episode_length" int32 (num_envs, n_landers) (so far in the episode, final once done).
@@ -128,12 +137,17 @@ class VectorEnv:
         tls_server_name: str | None = None,
         token: str | None = None,
         transport: str = "auto",
+        batch_size: int | None = None,
         **options: Any,
     ):
         native = _native.uses_native(transport)
         if int(num_envs) != num_envs or num_envs < 1:
             raise invalid_argument(f"num_envs is {num_envs!r}; expected an integer >= 1")
         self.num_envs = int(num_envs)
+        batch_size = self.num_envs if batch_size is None else batch_size
+        if isinstance(batch_size, bool) or int(batch_size) != batch_size or not 1 <= batch_size <= self.num_envs:
+            raise invalid_argument(f"batch_size is {batch_size!r}; allowed: an integer in 1..num_envs = 1..{self.num_envs}")
+        self.batch_size = int(batch_size)
         config = make_config(None, True, options)
         security = Security.from_options(tls_root_cert, tls_server_name, token)
         addresses = parse_addresses(address)
@@ -143,12 +157,20 @@ class VectorEnv:
             num_envs=self.num_envs,
             address=list(addresses) or None,
             transport=transport,
+            batch_size=self.batch_size,
             **security.as_options(),
         )
         self._transport = transport
         servers = addresses or (None,)  # None: the embedded server.
         self._names: list[str | None] = [None] * self.num_envs  # None: not created.
         self._step_in_flight = False  # From step_async until step_wait reads the answers.
+        # The async API (send/recv): envs whose step (or async_reset) was sent and whose result
+        # recv has not returned yet; the server of each request in flight, in send order, and
+        # per server the env indices of its requests in flight; results received and not yet
+        # returned by recv, as (env indices, columns) chunks in the order they came.
+        self._env_in_flight = np.zeros(self.num_envs, bool)
+        self._send_order: collections.deque[int] = collections.deque()
+        self._ready: collections.deque[tuple[np.ndarray, dict]] = collections.deque()
         # Env i lives on server i mod S; servers beyond num_envs get no connection.
         self._connections: list[Connection] = []
         try:
@@ -208,7 +230,10 @@ class VectorEnv:
                 for field, wire, result, shape in _AGENT_COLUMNS + _ENV_COLUMNS
             )
             self._servers.append(
-                _Server(connection, rows, len(names), message, actions, columns, stream_type(connection))
+                _Server(
+                    connection, rows, len(names), message, actions, columns, stream_type(connection),
+                    collections.deque(),
+                )
             )
         if transport == "shared_memory":
             # Asked for by name: a refusal raises here, not at the first step.
@@ -319,6 +344,150 @@ class VectorEnv:
                 grpc.StatusCode.FAILED_PRECONDITION,
                 "a step_async is in flight; call step_wait for its results first",
             )
+        if self._env_in_flight.any():
+            raise MLLError(
+                grpc.StatusCode.FAILED_PRECONDITION,
+                f"{int(self._env_in_flight.sum())} envs have a send (or async_reset) whose results recv "
+                "has not returned; recv them first",
+            )
+
+    # ----------------------------------------------------------------- EnvPool's async API
+
+    def async_reset(self, seed: int | None = None) -> None:
+        """Resets every env (seed s gives env i the seed s + i, as reset) and makes their first
+        observations the results of the next recv() calls, batch_size envs each."""
+        observations, infos = self.reset(seed)
+        columns = {
+            "observations": observations,
+            "rewards": np.zeros((self.num_envs, self.n_landers), np.float32),
+            "terminations": np.zeros((self.num_envs, self.n_landers), bool),
+            "truncations": np.zeros((self.num_envs, self.n_landers), bool),
+            "stepped": np.zeros((self.num_envs, self.n_landers), bool),  # Not transitions.
+            "outcomes": infos["outcome"],
+            "episode_returns": infos["episode_return"],
+            "episode_lengths": infos["episode_length"],
+            "episode_over": infos["episode_over"],
+            "auto_reset": infos["auto_reset"],
+        }
+        self._ready.append((np.arange(self.num_envs), columns))
+        self._env_in_flight[:] = True
+
+    def send(self, actions, env_id) -> None:
+        """Sends one step of the envs `env_id` (distinct indices in 0..num_envs-1, none with a
+        step in flight) with `actions` (int (len(env_id), n_landers) or, continuous, float
+        (len(env_id), n_landers, 2)) and returns at once: one packed StepBatch per server
+        concerned, pipelined on its Session stream behind the requests already in flight."""
+        if self._step_in_flight:
+            self._check_no_step_in_flight()
+        ids = np.asarray(env_id)
+        if ids.ndim != 1 or ids.size == 0 or not np.issubdtype(ids.dtype, np.integer):
+            raise invalid_argument(
+                f"env_id is {_short(env_id)}; expected a non-empty 1-D array of env indices in 0..{self.num_envs - 1}"
+            )
+        bad = ids[(ids < 0) | (ids >= self.num_envs)]
+        if bad.size:
+            raise invalid_argument(f"env_id holds {int(bad[0])}; allowed: 0..{self.num_envs - 1}")
+        if np.unique(ids).size != ids.size:
+            values, counts = np.unique(ids, return_counts=True)
+            raise invalid_argument(f"env_id holds {int(values[counts > 1][0])} more than once; each env at most once")
+        busy = ids[self._env_in_flight[ids]]
+        if busy.size:
+            raise MLLError(
+                grpc.StatusCode.FAILED_PRECONDITION,
+                f"env {int(busy[0])} has a step in flight (sent, or reset by async_reset); recv its result "
+                "before sending it another",
+            )
+        block = check_actions(actions, self.continuous, (ids.size, self.n_landers), "actions")
+        stride = len(self._servers)
+        for index, server in enumerate(self._servers):
+            mine = ids % stride == index
+            if not mine.any():
+                continue
+            envs = ids[mine]
+            message = pb.SessionRequest()
+            packed = message.step_batch.packed
+            packed.names.extend(self._names[env] for env in envs)
+            packed.actions.dtype = self._action_dtype
+            packed.actions.shape.extend(block[mine].shape)
+            packed.actions.data = _arrays.to_bytes(block[mine], self._action_dtype)
+            server.stream.send(message)
+            server.in_flight.append(envs)
+            self._send_order.append(index)
+        self._env_in_flight[ids] = True
+
+    def recv(self):
+        """The results of the first batch_size envs whose steps are done (in the order their
+        answers came), as step() returns them, with infos["env_id"] (int, (batch_size,)) naming
+        the envs of each row. Waits for answers as needed; FAILED_PRECONDITION when fewer than
+        batch_size envs have a step in flight."""
+        waiting = int(self._env_in_flight.sum())
+        if waiting < self.batch_size:
+            raise MLLError(
+                grpc.StatusCode.FAILED_PRECONDITION,
+                f"recv needs batch_size = {self.batch_size} envs with a step in flight; {waiting} have one "
+                "(send or async_reset first)",
+            )
+        while sum(chunk[0].size for chunk in self._ready) < self.batch_size:
+            self._receive_one()
+        taken, parts, left = [], [], self.batch_size
+        while left:
+            ids, columns = self._ready.popleft()
+            if ids.size > left:  # Split: the rest stays first in line.
+                self._ready.appendleft((ids[left:], {name: value[left:] for name, value in columns.items()}))
+                ids, columns = ids[:left], {name: value[:left] for name, value in columns.items()}
+            taken.append(ids)
+            parts.append(columns)
+            left -= ids.size
+        env_id = np.concatenate(taken)
+        self._env_in_flight[env_id] = False
+        merged = parts[0] if len(parts) == 1 else {
+            name: np.concatenate([part[name] for part in parts]) for name in parts[0]
+        }
+        result = self._result(dict(merged))
+        result[-1]["env_id"] = env_id
+        return result
+
+    def _receive_one(self) -> None:
+        """Receives the answer to the oldest request in flight (its server's oldest) into the
+        ready chunks; a failed env's error raised as step does (its request's envs are then no
+        longer in flight)."""
+        index = self._send_order.popleft()
+        server = self._servers[index]
+        envs = server.in_flight.popleft()
+        try:
+            pack = self._packed_reply(server, server.stream.receive().step_batch)
+        except MLLError:
+            self._env_in_flight[envs] = False
+            raise
+        if pack.errors:
+            self._env_in_flight[envs] = False
+            item = min(pack.errors, key=lambda item: envs[item.index] if 0 <= item.index < envs.size else -1)
+            if not 0 <= item.index < envs.size:
+                raise MLLError(
+                    grpc.StatusCode.INTERNAL,
+                    f"{server.connection.address} reported an error for row {item.index} of a packed "
+                    f"StepBatch of {envs.size} envs",
+                )
+            env = int(envs[item.index])
+            raise from_item_error(item.error.code, item.error.message, f"env {env} ({self._names[env]}): ")
+        columns = {
+            field: _arrays.Column(field, wire, (envs.size,) + shape(self.n_landers), result).decode(
+                getattr(pack, field)
+            )
+            for field, wire, result, shape in _AGENT_COLUMNS + _ENV_COLUMNS
+        }
+        self._ready.append((envs, columns))
+
+    @staticmethod
+    def _packed_reply(server: "_Server", reply):
+        """The packed results of a StepBatch reply; UNIMPLEMENTED from a server that predates them."""
+        if not reply.HasField("packed"):
+            raise MLLError(
+                grpc.StatusCode.UNIMPLEMENTED,
+                f"{server.connection.address} answered a packed StepBatch without packed results; "
+                "its mll_server predates StepBatchRequest.packed: upgrade it",
+            )
+        return reply.packed
 
     def _set_actions(self, actions) -> None:
         """Checks `actions` and puts each server's rows into its reused StepBatch request."""
@@ -327,9 +496,15 @@ class VectorEnv:
         for server in self._servers:
             server.actions.data = _arrays.to_bytes(block[server.rows], self._action_dtype)
 
-    def step(self, actions):
-        self.step_async(actions)
-        return self.step_wait()
+    def step(self, actions, env_id=None):
+        """step(actions) steps every env (batch_size == num_envs: the synchronous API). With the
+        async API, step(actions, env_id) is send(actions, env_id) then recv(); env_id None means
+        every env."""
+        if env_id is None and self.batch_size == self.num_envs and not self._env_in_flight.any():
+            self.step_async(actions)
+            return self.step_wait()
+        self.send(actions, np.arange(self.num_envs) if env_id is None else env_id)
+        return self.recv()
 
     def step_async(self, actions) -> None:
         """Sends step(actions) and returns at once; step_wait() returns its results. Between the
@@ -361,13 +536,7 @@ class VectorEnv:
         packs = []
         failed = []  # (env index, ItemError) of every env whose step failed.
         for server, reply in zip(servers, replies):
-            if not reply.HasField("packed"):
-                raise MLLError(
-                    grpc.StatusCode.UNIMPLEMENTED,
-                    f"{server.connection.address} answered a packed StepBatch without packed results; "
-                    "its mll_server predates StepBatchRequest.packed: upgrade it",
-                )
-            pack = reply.packed
+            pack = self._packed_reply(server, reply)
             packs.append(pack)
             for item in pack.errors:
                 if not 0 <= item.index < server.count:
