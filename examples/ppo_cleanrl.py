@@ -23,53 +23,17 @@ import time
 import gymnasium
 import numpy as np
 import torch
-from torch import nn
 
 import multi_lunar_lander as mll
+import ppo_common
 import trainer_common
 
 
 def parse_args(argv=None):
-    parser = trainer_common.parser(__doc__.split("\n\n")[0], "CleanRL's num_steps")
-    parser.add_argument("--minibatches", type=int, default=4)
-    parser.add_argument("--gamma", type=float, default=0.99)
-    parser.add_argument("--gae-lambda", type=float, default=0.95)
-    parser.add_argument("--clip", type=float, default=0.2)
-    parser.add_argument("--ent-coef", type=float, default=0.01)
-    parser.add_argument("--vf-coef", type=float, default=0.5)
-    parser.add_argument("--max-grad-norm", type=float, default=0.5)
+    parser = ppo_common.add_arguments(trainer_common.parser(__doc__.split("\n\n")[0], "CleanRL's num_steps"))
     parser.add_argument("--paper", action="store_true", help="the paper's environment options (docs/dqn.md)")
     parser.add_argument("--episodes-csv", default=None, help="write one row per environment episode: its score")
     return parser.parse_args(argv)
-
-
-# CleanRL's orthogonal initialisation gain for hidden layers.
-HIDDEN_GAIN = float(np.sqrt(2))
-
-
-def layer(inputs, outputs, std=HIDDEN_GAIN):
-    linear = nn.Linear(inputs, outputs)
-    nn.init.orthogonal_(linear.weight, std)
-    nn.init.constant_(linear.bias, 0.0)
-    return linear
-
-
-class Agent(nn.Module):
-    def __init__(self, observations: int, actions: int):
-        super().__init__()
-        self.critic = nn.Sequential(layer(observations, 64), nn.Tanh(), layer(64, 64), nn.Tanh(), layer(64, 1, 1.0))
-        self.actor = nn.Sequential(
-            layer(observations, 64), nn.Tanh(), layer(64, 64), nn.Tanh(), layer(64, actions, 0.01)
-        )
-
-    def value(self, x):
-        return self.critic(x).squeeze(-1)
-
-    def act(self, x, action=None):
-        distribution = torch.distributions.Categorical(logits=self.actor(x))
-        if action is None:
-            action = distribution.sample()
-        return action, distribution.log_prob(action), distribution.entropy(), self.value(x)
 
 
 # The environment of the paper's DQN experiment (docs/dqn.md).
@@ -113,7 +77,7 @@ def train(args) -> tuple[list[tuple[int, int, float]], list[tuple[int, float, fl
     # the paper's setting); the scores come from the env's infos, unscaled.
     envs = gymnasium.wrappers.vector.NormalizeReward(base, gamma=args.gamma)
     n, steps = envs.num_envs, args.num_steps
-    agent = Agent(envs.single_observation_space.shape[0], envs.single_action_space.n)
+    agent = ppo_common.Agent(envs.single_observation_space.shape[0], envs.single_action_space.n)
     optimizer = torch.optim.Adam(agent.parameters(), lr=args.lr, eps=1e-5)
 
     shape = (steps, n)
@@ -150,36 +114,14 @@ def train(args) -> tuple[list[tuple[int, int, float]], list[tuple[int, float, fl
                 row = (index + 1, scores.scores[index], mean50, env_steps, time.perf_counter() - started)
                 episode_rows.append(row)
 
-        with torch.no_grad():  # GAE; a truncated episode bootstraps from its final observation.
-            next_values = agent.value(next_observations)
-            deltas = rewards + args.gamma * next_values * (1 - terminated) - values
-            advantages = torch.zeros_like(rewards)
-            running = torch.zeros(n)
-            for step in reversed(range(steps)):
-                running = deltas[step] + args.gamma * args.gae_lambda * (1 - done[step]) * running
-                advantages[step] = running
-            targets = advantages + values
-
+        advantages, targets = ppo_common.advantages(  # A truncated episode bootstraps from its final observation.
+            agent, next_observations, rewards, values, terminated, done, args.gamma, args.gae_lambda
+        )
         rows = valid.flatten().nonzero().squeeze(-1)  # Real transitions only.
-        b_obs, b_act, b_logp, b_adv, b_ret = (
+        batch = tuple(
             t.reshape((-1,) + t.shape[2:])[rows] for t in (observations, actions, logprobs, advantages, targets)
         )
-        size = max(1, len(rows) // args.minibatches)
-        for _ in range(args.epochs):
-            order = torch.randperm(len(rows))
-            for start in range(0, len(rows), size):
-                batch = order[start : start + size]
-                _, logprob, entropy, value = agent.act(b_obs[batch], b_act[batch])
-                ratio = (logprob - b_logp[batch]).exp()
-                adv = b_adv[batch]
-                adv = (adv - adv.mean()) / (adv.std() + 1e-8) if len(batch) > 1 else adv
-                policy_loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - args.clip, 1 + args.clip)).mean()
-                value_loss = 0.5 * ((value - b_ret[batch]) ** 2).mean()
-                loss = policy_loss - args.ent_coef * entropy.mean() + args.vf_coef * value_loss
-                optimizer.zero_grad()
-                loss.backward()
-                nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
-                optimizer.step()
+        ppo_common.update(agent, optimizer, batch, args)
 
         episodes += len(returns)
         mean = float(np.mean(returns)) if returns else float("nan")
