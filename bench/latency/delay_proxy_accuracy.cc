@@ -196,8 +196,10 @@ class ProxyProcess {
     port_file_ = absl::StrCat(directory, "/", name, ".port");
     out_file_ = absl::StrCat(directory, "/", name, ".out");
     err_file_ = absl::StrCat(directory, "/", name, ".err");
+    // --parent_pid: the proxy goes if this process dies without stopping it.
     std::vector<std::string> args = {absl::GetFlag(FLAGS_proxy),
-                                     "--port_file=" + port_file_};
+                                     "--port_file=" + port_file_,
+                                     absl::StrCat("--parent_pid=", getpid())};
     args.insert(args.end(), flags.begin(), flags.end());
     std::vector<char*> argv;
     for (std::string& arg : args) argv.push_back(arg.data());
