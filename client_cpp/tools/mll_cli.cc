@@ -88,6 +88,10 @@ ABSL_FLAG(std::string, transport, "auto",
           "(or fail saying why not) or native (the gRPC stream).");
 ABSL_FLAG(double, seconds, 5.0,
           "bench: how long to step, in seconds (0, 3600].");
+ABSL_FLAG(int, batch_size, 0,
+          "bench: 0 steps every env per call (Step); K in 1..--envs uses "
+          "EnvPool's async API instead: Recv the first K envs done, Send "
+          "their actions, with every other env's step in flight.");
 ABSL_FLAG(int, clients, 1,
           "bench: independent clients (threads), each with its own --envs "
           "envs and Session streams, 1..256.");
@@ -535,7 +539,7 @@ Result FlyEpisode(VectorEnv& envs, std::vector<PlayPilot>& pilots,
   std::vector<bool> flying(n_envs);
   int n_flying = 0;
   for (int j = 0; j < n_envs; ++j) {
-    (*last)[j] = envs.EnvResult(j);
+    (*last)[j] = envs.Result(j);
     flying[j] = !(*last)[j].episode_over;
     n_flying += flying[j];
   }
@@ -561,7 +565,7 @@ Result FlyEpisode(VectorEnv& envs, std::vector<PlayPilot>& pilots,
     if (!status.ok()) return Server(status);
     for (int j = 0; j < n_envs; ++j) {
       if (!flying[j]) continue;
-      (*last)[j] = envs.EnvResult(j);
+      (*last)[j] = envs.Result(j);
       ++(*steps)[j];
       if ((*last)[j].episode_over) {
         flying[j] = false;
@@ -706,22 +710,25 @@ struct BenchCount {
 BenchCount RunBenchClient(const std::vector<std::string>& addresses,
                           const ClientOptions& options,
                           const RemoteEnvConfig& config, int n_envs,
-                          uint64_t seed,
+                          int batch_size, uint64_t seed,
                           std::chrono::steady_clock::time_point start,
                           std::chrono::steady_clock::time_point until) {
   BenchCount count;
   absl::StatusOr<Client> client = Client::Create(addresses, options);
   absl::StatusOr<VectorEnv> envs =
-      client.ok() ? VectorEnv::Create(*client, n_envs, config)
+      client.ok() ? VectorEnv::Create(*client, n_envs, config, batch_size)
                   : absl::StatusOr<VectorEnv>(client.status());
   if (!envs.ok()) {
     count.status = envs.status();
     return count;
   }
   count.transport = envs->transport();
-  count.status = envs->Reset(seed);
+  const bool async = batch_size > 0 && batch_size < n_envs;
+  count.status = async ? envs->AsyncReset(seed) : envs->Reset(seed);
   std::mt19937_64 rng(seed);
-  const size_t values = static_cast<size_t>(n_envs) * envs->n_landers() *
+  // Async: each call carries the batch_size envs just received.
+  const int per_call = async ? batch_size : n_envs;
+  const size_t values = static_cast<size_t>(per_call) * envs->n_landers() *
                         (envs->continuous() ? 2 : 1);
   std::vector<int32_t> discrete(envs->continuous() ? 0 : values);
   std::vector<float> continuous(envs->continuous() ? values : 0);
@@ -731,11 +738,21 @@ BenchCount RunBenchClient(const std::vector<std::string>& addresses,
   while (count.status.ok() && std::chrono::steady_clock::now() < until) {
     for (int32_t& action : discrete) action = engine(rng);
     for (float& action : continuous) action = throttle(rng);
-    count.status = envs->continuous()
-                       ? envs->Step(absl::MakeConstSpan(continuous))
-                       : envs->Step(absl::MakeConstSpan(discrete));
+    if (async) {
+      count.status = envs->Recv();
+      if (!count.status.ok()) break;
+      const std::vector<int> ids(envs->env_ids().begin(),
+                                 envs->env_ids().end());
+      count.status = envs->continuous()
+                         ? envs->Send(absl::MakeConstSpan(continuous), ids)
+                         : envs->Send(absl::MakeConstSpan(discrete), ids);
+    } else {
+      count.status = envs->continuous()
+                         ? envs->Step(absl::MakeConstSpan(continuous))
+                         : envs->Step(absl::MakeConstSpan(discrete));
+    }
     if (std::chrono::steady_clock::now() < start) continue;
-    count.env_steps += n_envs;
+    count.env_steps += per_call;
     for (uint8_t active : envs->active()) count.agent_steps += active;
   }
   return count;
@@ -749,6 +766,12 @@ Result Bench(const Client& client, const std::vector<std::string>&) {
   const int envs_flag = absl::GetFlag(FLAGS_envs);
   const int n_envs = envs_flag > 0 ? envs_flag : 64;
   const double seconds = absl::GetFlag(FLAGS_seconds);
+  const int batch_size = absl::GetFlag(FLAGS_batch_size);
+  if (batch_size < 0 || batch_size > n_envs) {
+    return Usage(absl::InvalidArgumentError(
+        absl::StrCat("batch_size is ", batch_size, "; allowed: 0 (Step) or 1..",
+                     n_envs, " (--envs)")));
+  }
   if (clients < 1 || clients > 256) {
     return Usage(absl::InvalidArgumentError(
         absl::StrCat("clients is ", clients, "; allowed: 1..256")));
@@ -780,7 +803,8 @@ Result Bench(const Client& client, const std::vector<std::string>&) {
   for (int c = 0; c < clients; ++c) {
     runs.push_back(std::async(std::launch::async, RunBenchClient, addresses,
                               *options, RemoteConfigFrom(*config), n_envs,
-                              static_cast<uint64_t>(c) << 32, start, until));
+                              batch_size, static_cast<uint64_t>(c) << 32, start,
+                              until));
   }
   BenchCount total;
   std::vector<std::string> transports;
@@ -801,6 +825,7 @@ Result Bench(const Client& client, const std::vector<std::string>&) {
       [](const std::string& name) { return name == "shared_memory"; });
   std::cout << absl::StrCat(
                    "{\"clients\":", clients, ",\"envs\":", n_envs,
+                   ",\"batch_size\":", batch_size > 0 ? batch_size : n_envs,
                    ",\"n_landers\":", config->n_landers,
                    ",\"seconds\":", JsonNumber(elapsed),
                    ",\"env_steps\":", total.env_steps,
@@ -886,7 +911,7 @@ const std::map<std::string, CommandSpec>& Commands() {
         "",
         "steps --clients x --envs auto-resetting envs with random actions for "
         "--seconds and prints the throughput (one JSON line)",
-        {"envs", "clients", "seconds", "transport"},
+        {"envs", "batch_size", "clients", "seconds", "transport"},
         true}},
   };
   return *kCommands;

@@ -4,6 +4,7 @@
 // several requests in flight on one stream; and the errors.
 #include "mll/vector_env.h"
 
+#include <algorithm>
 #include <cstring>
 #include <memory>
 #include <random>
@@ -136,7 +137,7 @@ TEST_F(VectorEnvTest, EveryEnvFollowsTheCoreBitForBitOnEveryTransport) {
                                 : absl::Span<const float>();
           ASSERT_TRUE(cores[env]->Step({d, c}, &core_results[env]).ok());
         }
-        const StepData remote = envs->EnvResult(env);
+        const StepData remote = envs->Result(env);
         ASSERT_EQ(remote.auto_reset, was_over);
         ASSERT_TRUE(
             SameBits(absl::MakeConstSpan(core_results[env].observations),
@@ -199,6 +200,95 @@ TEST_F(VectorEnvTest, SeveralRequestsAreInFlightOnOneStream) {
   }
 }
 
+// EnvPool's async API: with batch_size 3 of 7 envs over two servers, every
+// env's results equal those of Step for the same actions, through auto-resets.
+TEST_F(VectorEnvTest, AsyncApiGivesEachEnvTheSynchronousTrajectory) {
+  constexpr int kEnvs = 7;
+  constexpr int kBatch = 3;
+  constexpr int kSteps = 150;
+  RemoteEnvConfig config;
+  config.n_landers = 2;
+  std::mt19937_64 rng(11);
+  std::vector<int32_t> table(3 * kSteps * kEnvs * 2);
+  for (int32_t& a : table) a = static_cast<int32_t>(rng() % 4);
+  const auto actions_of = [&](int step, int env) {
+    return absl::MakeConstSpan(table).subspan((step * kEnvs + env) * 2, 2);
+  };
+  for (SessionTransport transport :
+       {SessionTransport::kSharedMemory, SessionTransport::kNative}) {
+    SCOPED_TRACE(SessionTransportName(transport));
+    Client client = ClientOf(2, transport);
+    // The reference: Step, env by env rows of the table; envs the async
+    // API serves first may run ahead, so it goes 3x as far.
+    absl::StatusOr<VectorEnv> sync = VectorEnv::Create(client, kEnvs, config);
+    ASSERT_TRUE(sync.ok()) << sync.status();
+    ASSERT_TRUE(sync->Reset(uint64_t{5}).ok());
+    std::vector<std::vector<std::vector<float>>> expected(kEnvs);
+    for (int env = 0; env < kEnvs; ++env) {
+      expected[env].push_back(sync->Result(env).observations);
+    }
+    for (int step = 0; step < 3 * kSteps; ++step) {
+      ASSERT_TRUE(sync->Step(absl::MakeConstSpan(table).subspan(
+                                 step * kEnvs * 2, kEnvs * 2))
+                      .ok());
+      for (int env = 0; env < kEnvs; ++env) {
+        expected[env].push_back(sync->Result(env).observations);
+      }
+    }
+    absl::StatusOr<VectorEnv> envs =
+        VectorEnv::Create(client, kEnvs, config, kBatch);
+    ASSERT_TRUE(envs.ok()) << envs.status();
+    EXPECT_EQ(envs->batch_size(), kBatch);
+    ASSERT_TRUE(envs->AsyncReset(uint64_t{5}).ok());
+    std::vector<int> sent(kEnvs, 0);
+    std::vector<int> received(kEnvs, 0);
+    while (*std::min_element(sent.begin(), sent.end()) < kSteps) {
+      ASSERT_TRUE(envs->Recv().ok());
+      const std::vector<int> ids(envs->env_ids().begin(),
+                                 envs->env_ids().end());
+      ASSERT_EQ(ids.size(), static_cast<size_t>(kBatch));
+      std::vector<int32_t> actions;
+      for (int row = 0; row < kBatch; ++row) {
+        const int env = ids[row];
+        ASSERT_EQ(envs->Result(row).observations,
+                  expected[env][received[env]++])
+            << "env " << env << ", result " << received[env] - 1;
+        for (int32_t a : actions_of(sent[env]++, env)) actions.push_back(a);
+      }
+      ASSERT_TRUE(envs->Send(absl::MakeConstSpan(actions), ids).ok());
+    }
+  }
+}
+
+TEST_F(VectorEnvTest, AsyncApiMisuseGetsClearErrors) {
+  Client client = ClientOf(1, SessionTransport::kAuto);
+  RemoteEnvConfig config;
+  config.n_landers = 1;
+  EXPECT_EQ(VectorEnv::Create(client, 4, config, 5).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  absl::StatusOr<VectorEnv> envs = VectorEnv::Create(client, 4, config, 2);
+  ASSERT_TRUE(envs.ok()) << envs.status();
+  absl::Status status = envs->Recv();
+  EXPECT_EQ(status.code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(std::string(status.message()), HasSubstr("batch_size = 2"));
+  ASSERT_TRUE(envs->AsyncReset(uint64_t{0}).ok());
+  const std::vector<int32_t> two(2, 0);
+  status = envs->Send(absl::MakeConstSpan(two), {0, 1});
+  EXPECT_EQ(status.code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(std::string(status.message()), HasSubstr("env 0 has a step"));
+  ASSERT_TRUE(envs->Recv().ok());
+  EXPECT_EQ(envs->Send(absl::MakeConstSpan(two), {0, 4}).code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(envs->Send(absl::MakeConstSpan(two), {1, 1}).code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(envs->Step(absl::MakeConstSpan(std::vector<int32_t>(4, 0))).code(),
+            absl::StatusCode::kFailedPrecondition);
+  ASSERT_TRUE(envs->Send(absl::MakeConstSpan(two), {0, 1}).ok());
+  ASSERT_TRUE(envs->Recv().ok());
+  EXPECT_THAT(std::vector<int>(envs->env_ids().begin(), envs->env_ids().end()),
+              ::testing::ElementsAre(2, 3));
+}
+
 TEST_F(VectorEnvTest, BadActionsAreRefusedNamingTheSizeAndType) {
   Client client = ClientOf(1, SessionTransport::kAuto);
   RemoteEnvConfig config;
@@ -237,7 +327,7 @@ TEST_F(VectorEnvTest, AnEnvDeletedBehindItsBackFailsNamingItAndTheOthersStep) {
   EXPECT_EQ(status.code(), absl::StatusCode::kNotFound);
   EXPECT_THAT(std::string(status.message()),
               StartsWith("env 3 (" + deleted + "): "));
-  EXPECT_EQ(envs->EnvResult(0).episode_lengths[0], 1);
+  EXPECT_EQ(envs->Result(0).episode_lengths[0], 1);
 }
 
 TEST_F(VectorEnvTest, SharedMemoryAskedForByNameIsRefusedWithTheReason) {

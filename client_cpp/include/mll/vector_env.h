@@ -51,8 +51,11 @@ class VectorEnv {
   // `num_envs` (1..65536) new environments with `config` (auto_reset is
   // forced on) on the servers of `client` (env i on server i mod S), over a
   // session of its own (Client::OpenSession with the client's options).
+  // batch_size: how many envs Recv returns (EnvPool's async API, below);
+  // 0 means num_envs.
   static absl::StatusOr<VectorEnv> Create(const Client& client, int num_envs,
-                                          RemoteEnvConfig config = {});
+                                          RemoteEnvConfig config = {},
+                                          int batch_size = 0);
   // Existing environments, by name, which must share n_landers and the
   // action type (INVALID_ARGUMENT naming the first that does not); they are
   // not deleted by the VectorEnv. Without auto_reset, a step of an env whose
@@ -87,10 +90,34 @@ class VectorEnv {
   absl::Status Step(absl::Span<const int32_t> discrete_actions);
   absl::Status Step(absl::Span<const float> continuous_actions);
 
-  // The results of the latest Reset or Step, env-major.
-  // float32 [num_envs, n_landers, 12].
+  // EnvPool's async API: AsyncReset resets every env (seeds as Reset) and
+  // makes their first observations the results of the next Recv calls. Send
+  // sends one step of the envs `env_ids` (distinct, 0..num_envs-1, none with
+  // a step in flight) with their actions ([len(env_ids), n_landers] or
+  // [len(env_ids), n_landers, 2]) and returns at once: one packed StepBatch
+  // per server concerned, pipelined behind those in flight on its stream.
+  // Recv waits for the first batch_size envs whose steps are done and makes
+  // them the results below (batch_size rows, in the order they came; env_ids()
+  // names each row's env). Each env's results are the same bits as with
+  // Step for the same actions. Errors: INVALID_ARGUMENT for bad env_ids or
+  // actions; FAILED_PRECONDITION for a Send to an env in flight, a Recv with
+  // fewer than batch_size envs in flight, and Reset or Step while any is.
+  int batch_size() const;
+  absl::Status AsyncReset(std::optional<uint64_t> seed = std::nullopt);
+  absl::Status Send(absl::Span<const int32_t> discrete_actions,
+                    absl::Span<const int> env_ids);
+  absl::Status Send(absl::Span<const float> continuous_actions,
+                    absl::Span<const int> env_ids);
+  absl::Status Recv();
+  // The env of each row of the latest results (0..num_envs-1 after Reset and
+  // Step).
+  absl::Span<const int> env_ids() const;
+
+  // The results of the latest Reset, Step or Recv, row-major (num_envs rows
+  // after Reset and Step, env i in row i; batch_size rows after Recv).
+  // float32 [rows, n_landers, 12].
   absl::Span<const float> observations() const;
-  // [num_envs, n_landers].
+  // [rows, n_landers].
   absl::Span<const float> rewards() const;
   absl::Span<const uint8_t> terminations() const;
   absl::Span<const uint8_t> truncations() const;
@@ -101,21 +128,28 @@ class VectorEnv {
   absl::Span<const uint8_t> outcomes() const;
   absl::Span<const float> episode_returns() const;
   absl::Span<const int32_t> episode_lengths() const;
-  // [num_envs].
+  // [rows].
   absl::Span<const uint8_t> auto_reset() const;
   absl::Span<const uint8_t> episode_over() const;
 
-  // Env `env`'s rows of the latest results as a StepData (a copy), e.g. for
-  // a pilot that acts on one env.
-  StepData EnvResult(int env) const;
+  // Row `row` of the latest results as a StepData (a copy), e.g. for a
+  // pilot that acts on one env.
+  StepData Result(int row) const;
 
  private:
   struct State;
   explicit VectorEnv(std::unique_ptr<State> state);
   static absl::StatusOr<VectorEnv> Assemble(Client session,
-                                            std::vector<EnvInfo> infos);
+                                            std::vector<EnvInfo> infos,
+                                            int batch_size);
+  absl::Status CheckNothingInFlight() const;
+  absl::Status CheckActions(size_t count, bool continuous_actions,
+                            size_t envs) const;
   absl::Status StepWith(absl::string_view action_bytes, size_t count,
                         bool continuous_actions);
+  absl::Status SendWith(absl::string_view action_bytes, size_t count,
+                        bool continuous_actions, absl::Span<const int> env_ids);
+  absl::Status ReceiveOne();
 
   std::unique_ptr<State> state_;
 };
