@@ -10,6 +10,7 @@
 #include "grpcpp/create_channel.h"
 #include "grpcpp/security/credentials.h"
 #include "grpcpp/support/channel_arguments.h"
+#include "mll/http2_flow_control.h"
 
 namespace mll::client {
 namespace internal {
@@ -94,6 +95,9 @@ absl::StatusOr<std::shared_ptr<grpc::Channel>> OpenChannel(
     credentials = grpc::InsecureChannelCredentials();
   }
   arguments.SetMaxReceiveMessageSize(options.max_receive_message_bytes);
+  SetHttp2FlowControl([&arguments](const char* name, int value) {
+    arguments.SetInt(name, value);
+  });
   return grpc::CreateCustomChannel(std::string(address), credentials,
                                    arguments);
 }

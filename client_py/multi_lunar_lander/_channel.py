@@ -22,9 +22,14 @@ from ._errors import invalid_argument
 
 TOKEN_ENV = "MLL_TOKEN"
 
+# HTTP/2 flow control as the C++ client's and the server's (proto/include/mll/http2_flow_control.h):
+# BDP probing on (gRPC's default, on purpose) and an 8 MiB stream lookahead, so that many large
+# requests in flight over a link with latency do not wait for window updates.
 CHANNEL_OPTIONS = (
     ("grpc.max_receive_message_length", 64 * 1024 * 1024),
     ("grpc.max_send_message_length", 64 * 1024 * 1024),
+    ("grpc.http2.bdp_probe", 1),
+    ("grpc.http2.lookahead_bytes", 8 * 1024 * 1024),
 )
 
 

@@ -226,6 +226,28 @@ def test_vector_env_over_two_tls_token_servers_matches_one_plaintext_server(tls_
 
 @needs_tls
 @needs_auth
+def test_the_async_api_over_two_tls_token_servers_matches_one_plaintext_server(tls_auth_servers, certificate, address):
+    options = dict(n_landers=2, max_cycles=30)
+    with mll.vector_env(
+        4, address=list(tls_auth_servers), tls_root_cert=str(certificate[0]),
+        tls_server_name=SERVER_NAME, token=TOKEN_A, batch_size=2, **options,
+    ) as spread, mll.vector_env(4, address=address, **options) as single:
+        reference = [single.reset(seed=9)[0]]
+        actions = np.tile(np.array([[2, 0]], np.int32), (4, 1))
+        for _ in range(40):  # Past max_cycles: auto-resets included.
+            reference.append(single.step(actions)[0])
+        spread.async_reset(seed=9)
+        seen = np.zeros(4, int)
+        while seen.min() < 40:
+            observations, *_, infos = spread.recv()
+            for row, env in enumerate(infos["env_id"]):
+                np.testing.assert_array_equal(observations[row], reference[seen[env]][env])
+                seen[env] += 1
+            spread.send(actions[: len(infos["env_id"])], infos["env_id"])
+
+
+@needs_tls
+@needs_auth
 def test_a_pickled_env_keeps_tls_and_token_without_the_certificate_file(
     tls_auth_servers, certificate, tmp_path, monkeypatch
 ):

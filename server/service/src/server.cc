@@ -15,6 +15,7 @@
 #include "grpcpp/health_check_service_interface.h"
 #include "listen_address.h"
 #include "metrics_http.h"
+#include "mll/http2_flow_control.h"
 
 namespace mll::service {
 namespace {
@@ -153,6 +154,9 @@ absl::StatusOr<std::unique_ptr<Server>> Server::Start(
   // gRPC sets SO_REUSEPORT by default, with which a second server on a port
   // in use would share it (and its clients' envs) instead of failing.
   builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
+  SetHttp2FlowControl([&builder](const char* name, int value) {
+    builder.AddChannelArgument(name, value);
+  });
   ListenAddress asked;
   if (!options.address.empty()) {
     asked = *ParseListenAddress("--address", options.address, kExamplePort,
