@@ -17,6 +17,7 @@
 #include "grpcpp/generic/generic_stub.h"
 #include "grpcpp/support/async_unary_call.h"
 #include "grpcpp/support/byte_buffer.h"
+#include "mll/session_ops.h"
 
 namespace mll::client {
 namespace internal {
@@ -94,29 +95,12 @@ class UnaryTransport final : public Transport {
                     v1::SessionResponse* response) override {
     using Stub = v1::MultiLunarLander::Stub;
     switch (request.op_case()) {
-      case v1::SessionRequest::kCreateEnv:
-        return Unary(&Stub::CreateEnv, request.create_env(),
-                     response->mutable_env());
-      case v1::SessionRequest::kGetEnv:
-        return Unary(&Stub::GetEnv, request.get_env(), response->mutable_env());
-      case v1::SessionRequest::kDeleteEnv:
-        return Unary(&Stub::DeleteEnv, request.delete_env(),
-                     response->mutable_delete_env());
-      case v1::SessionRequest::kResetEnv:
-        return Unary(&Stub::ResetEnv, request.reset_env(),
-                     response->mutable_reset_env());
-      case v1::SessionRequest::kStepEnv:
-        return Unary(&Stub::StepEnv, request.step_env(),
-                     response->mutable_step_env());
-      case v1::SessionRequest::kStepAgent:
-        return Unary(&Stub::StepAgent, request.step_agent(),
-                     response->mutable_step_agent());
-      case v1::SessionRequest::kStepBatch:
-        return Unary(&Stub::StepBatch, request.step_batch(),
-                     response->mutable_step_batch());
-      case v1::SessionRequest::kRenderEnv:
-        return Unary(&Stub::RenderEnv, request.render_env(),
-                     response->mutable_frame());
+#define MLL_UNARY_CALL(op_case, request_member, rpc, response_member) \
+  case v1::SessionRequest::op_case:                                   \
+    return Unary(&Stub::rpc, request.request_member(),                \
+                 response->mutable_##response_member());
+      MLL_SESSION_OPS(MLL_UNARY_CALL)
+#undef MLL_UNARY_CALL
       case v1::SessionRequest::kAttachSharedMemory:  // A Session's own.
       case v1::SessionRequest::OP_NOT_SET:
         break;

@@ -13,11 +13,6 @@ namespace {
 
 constexpr std::memory_order kRelaxed = std::memory_order_relaxed;
 
-constexpr absl::string_view kMethodNames[kMethodCount] = {
-    "CreateEnv", "GetEnv",  "ListEnvs",  "DeleteEnv",
-    "ResetEnv",  "StepEnv", "StepAgent", "StepBatch",
-    "RenderEnv", "Session", "KeepAlive", "GetServerInfo"};
-
 // The methods that step environments, the only ones with step counters.
 constexpr Method kStepMethods[] = {Method::kStepEnv, Method::kStepAgent,
                                    Method::kStepBatch, Method::kSession};
@@ -59,8 +54,15 @@ std::string CpuSeconds(const rusage& usage) {
 
 }  // namespace
 
+const google::protobuf::ServiceDescriptor& ServiceDescriptor() {
+  static const google::protobuf::ServiceDescriptor* const kService =
+      v1::SessionRequest::descriptor()->file()->FindServiceByName(
+          "MultiLunarLander");
+  return *kService;
+}
+
 absl::string_view MethodName(Method method) {
-  return kMethodNames[static_cast<int>(method)];
+  return ServiceDescriptor().method(static_cast<int>(method))->name();
 }
 
 void Metrics::RecordCall(Method method, absl::StatusCode code,

@@ -13,9 +13,11 @@
 #include "absl/container/flat_hash_set.h"
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 #include "absl/synchronization/notification.h"
 #include "mll/service/convert.h"
 #include "mll/service/server_info.h"
+#include "mll/session_ops.h"
 #include "mll/shared_memory_pipe.h"
 #include "shared_memory_region.h"
 
@@ -58,15 +60,21 @@ class CallTimer {
 // Session stream: the operation itself (Operations), then, on success, its
 // step and episode metrics, filed under `via` (the unary method, or
 // kSession). Per-call latency and error counts are the caller's (CallTimer).
+// Each operation is a method named after its RPC, taking the RPC's request
+// and response messages, so that the Session expands mll/session_ops.h's
+// table into calls of them.
 class Dispatch {
  public:
   Dispatch(Operations* operations, Metrics* metrics, Method via,
            absl::string_view owner)
       : operations_(operations), metrics_(metrics), via_(via), owner_(owner) {}
 
+  // An env created on a Session is bound to it unless detached.
   absl::Status CreateEnv(const v1::CreateEnvRequest& request,
-                         bool session_bound, v1::Env* out) const {
-    return operations_->CreateEnv(request, session_bound, out, owner_);
+                         v1::Env* out) const {
+    return operations_->CreateEnv(
+        request, /*session_bound=*/in_session() && !request.detached(), out,
+        owner_);
   }
   absl::Status GetEnv(const v1::GetEnvRequest& request, v1::Env* out) const {
     return operations_->GetEnv(request, out, owner_);
@@ -75,7 +83,8 @@ class Dispatch {
                         v1::ListEnvsResponse* out) const {
     return operations_->ListEnvs(request, out, owner_);
   }
-  absl::Status DeleteEnv(const v1::DeleteEnvRequest& request) const {
+  absl::Status DeleteEnv(const v1::DeleteEnvRequest& request,
+                         v1::DeleteEnvResponse* /*out*/) const {
     return operations_->DeleteEnv(request, owner_);
   }
   absl::Status ResetEnv(const v1::ResetEnvRequest& request,
@@ -84,11 +93,13 @@ class Dispatch {
     if (status.ok()) metrics_->RecordReset();
     return status;
   }
-  // `field` prefixes the request's field names in errors.
+  // On a Session, errors name the request's fields under `step_env.`.
   absl::Status StepEnv(const v1::StepEnvRequest& request,
-                       absl::string_view field, v1::StepData* out) const {
-    absl::Status status = operations_->StepEnv(request, field, out, owner_);
-    if (status.ok()) metrics_->RecordStepData(via_, *out);
+                       v1::StepEnvResponse* out) const {
+    v1::StepData* data = out->mutable_data();
+    absl::Status status = operations_->StepEnv(
+        request, in_session() ? "step_env." : "", data, owner_);
+    if (status.ok()) metrics_->RecordStepData(via_, *data);
     return status;
   }
   absl::Status StepAgent(const v1::StepAgentRequest& request,
@@ -121,11 +132,28 @@ class Dispatch {
   }
 
  private:
+  bool in_session() const { return via_ == Method::kSession; }
+
   Operations* const operations_;
   Metrics* const metrics_;
   const Method via_;
   const absl::string_view owner_;
 };
+
+// The SessionRequest `op` oneof's members, in the proto's order, as the
+// error for a request without one lists them.
+const std::string& SessionOpNames() {
+  static const std::string* const kNames = [] {
+    const google::protobuf::OneofDescriptor* op =
+        v1::SessionRequest::descriptor()->FindOneofByName("op");
+    std::vector<std::string> names;
+    for (int i = 0; i < op->field_count(); ++i) {
+      names.push_back(op->field(i)->name());
+    }
+    return new std::string(absl::StrJoin(names, ", "));
+  }();
+  return *kNames;
+}
 
 // Runs a unary call that completes in the handler, admitted as `owner`: runs
 // op(dispatch) -> absl::Status, records and finishes.
@@ -261,47 +289,37 @@ class SessionReactor final
     done(Run(request, response));
   }
 
+  // Runs a request that completes in the call: its RPC's Dispatch method
+  // (mll/session_ops.h), then the session's record of its bound envs.
   absl::Status Run(const v1::SessionRequest& request,
                    v1::SessionResponse* response) {
     const Dispatch run = dispatch();
+    absl::Status status;
     switch (request.op_case()) {
-      case v1::SessionRequest::kCreateEnv: {
-        const bool bound = !request.create_env().detached();
-        absl::Status status =
-            run.CreateEnv(request.create_env(), bound, response->mutable_env());
-        if (status.ok() && bound) bound_envs_.insert(response->env().name());
-        return status;
-      }
-      case v1::SessionRequest::kGetEnv:
-        return run.GetEnv(request.get_env(), response->mutable_env());
-      case v1::SessionRequest::kResetEnv:
-        return run.ResetEnv(request.reset_env(), response->mutable_reset_env());
-      case v1::SessionRequest::kStepEnv:
-        return run.StepEnv(request.step_env(), "step_env.",
-                           response->mutable_step_env()->mutable_data());
-      case v1::SessionRequest::kStepAgent:
-        return run.StepAgent(request.step_agent(),
-                             response->mutable_step_agent());
-      case v1::SessionRequest::kRenderEnv:
-        return run.RenderEnv(request.render_env(), response->mutable_frame());
-      case v1::SessionRequest::kDeleteEnv: {
-        response->mutable_delete_env();
-        absl::Status status = run.DeleteEnv(request.delete_env());
-        // Forgotten at once: a long session creating and deleting envs
-        // must not grow (found by bench/load soak, +39 MB per 1M cycles).
-        if (status.ok()) bound_envs_.erase(request.delete_env().name());
-        return status;
-      }
+#define MLL_SESSION_RUN(op_case, request_member, rpc, response_member) \
+  case v1::SessionRequest::op_case:                                    \
+    status = run.rpc(request.request_member(),                         \
+                     response->mutable_##response_member());           \
+    break;
+      MLL_SESSION_SYNC_OPS(MLL_SESSION_RUN)
+#undef MLL_SESSION_RUN
       case v1::SessionRequest::kAttachSharedMemory:
         return absl::FailedPreconditionError(
             "attach_shared_memory: the session is attached already");
       default:
-        return absl::InvalidArgumentError(absl::StrCat(
-            "op: not set (sequence ", request.sequence(),
-            "); allowed: create_env, reset_env, step_env, step_agent, "
-            "step_batch, render_env, delete_env, get_env, "
-            "attach_shared_memory"));
+        return absl::InvalidArgumentError(
+            absl::StrCat("op: not set (sequence ", request.sequence(),
+                         "); allowed: ", SessionOpNames()));
     }
+    if (!status.ok()) return status;
+    if (request.has_create_env() && !request.create_env().detached()) {
+      bound_envs_.insert(response->env().name());
+    } else if (request.has_delete_env()) {
+      // Forgotten at once: a long session creating and deleting envs must
+      // not grow (found by bench/load soak, +39 MB per 1M cycles).
+      bound_envs_.erase(request.delete_env().name());
+    }
+    return status;
   }
 
   void Respond(const absl::Status& status) {
@@ -517,11 +535,9 @@ absl::StatusOr<absl::string_view> MultiLunarLanderService::Admit(
 grpc::ServerUnaryReactor* MultiLunarLanderService::CreateEnv(
     grpc::CallbackServerContext* context, const v1::CreateEnvRequest* request,
     v1::Env* response) {
-  return RunUnary(context, Admit(*context), &operations_, &metrics_,
-                  Method::kCreateEnv, [&](const Dispatch& run) {
-                    return run.CreateEnv(*request, /*session_bound=*/false,
-                                         response);
-                  });
+  return RunUnary(
+      context, Admit(*context), &operations_, &metrics_, Method::kCreateEnv,
+      [&](const Dispatch& run) { return run.CreateEnv(*request, response); });
 }
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::GetEnv(
@@ -542,10 +558,10 @@ grpc::ServerUnaryReactor* MultiLunarLanderService::ListEnvs(
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::DeleteEnv(
     grpc::CallbackServerContext* context, const v1::DeleteEnvRequest* request,
-    v1::DeleteEnvResponse* /*response*/) {
-  return RunUnary(context, Admit(*context), &operations_, &metrics_,
-                  Method::kDeleteEnv,
-                  [&](const Dispatch& run) { return run.DeleteEnv(*request); });
+    v1::DeleteEnvResponse* response) {
+  return RunUnary(
+      context, Admit(*context), &operations_, &metrics_, Method::kDeleteEnv,
+      [&](const Dispatch& run) { return run.DeleteEnv(*request, response); });
 }
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::ResetEnv(
@@ -559,11 +575,9 @@ grpc::ServerUnaryReactor* MultiLunarLanderService::ResetEnv(
 grpc::ServerUnaryReactor* MultiLunarLanderService::StepEnv(
     grpc::CallbackServerContext* context, const v1::StepEnvRequest* request,
     v1::StepEnvResponse* response) {
-  return RunUnary(context, Admit(*context), &operations_, &metrics_,
-                  Method::kStepEnv, [&](const Dispatch& run) {
-                    return run.StepEnv(*request, /*field=*/"",
-                                       response->mutable_data());
-                  });
+  return RunUnary(
+      context, Admit(*context), &operations_, &metrics_, Method::kStepEnv,
+      [&](const Dispatch& run) { return run.StepEnv(*request, response); });
 }
 
 grpc::ServerUnaryReactor* MultiLunarLanderService::StepAgent(

@@ -14,11 +14,14 @@
 
 #include "absl/status/status.h"
 #include "absl/strings/string_view.h"
+#include "google/protobuf/descriptor.h"
 #include "mll/v1/multi_lunar_lander.pb.h"
 
 namespace mll::service {
 
-// The RPC methods of mll.v1.MultiLunarLander, as metric labels.
+// The RPC methods of mll.v1.MultiLunarLander, as metric labels: enumerator i
+// is the service descriptor's method i (same order as the proto), whose name
+// is the label. metrics_test checks the count against the descriptor.
 enum class Method {
   kCreateEnv,
   kGetEnv,
@@ -35,6 +38,11 @@ enum class Method {
 };
 inline constexpr int kMethodCount = 12;
 
+// The proto's service (mll.v1.MultiLunarLander), from the generated
+// descriptors.
+const google::protobuf::ServiceDescriptor& ServiceDescriptor();
+
+// The method's name in the proto (its metric label).
 absl::string_view MethodName(Method method);
 
 class Metrics {
