@@ -8,9 +8,9 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "absl/synchronization/mutex.h"
-#include "google/protobuf/util/json_util.h"
 #include "mll/client.h"
 #include "transport.h"
+#include "wire.h"
 
 #ifndef MLL_PROJECT_VERSION
 #error "MLL_PROJECT_VERSION must be defined (client_cpp/CMakeLists.txt)"
@@ -98,12 +98,7 @@ absl::StatusOr<ServerInfo> Client::GetServerInfo(int server) const {
   info.max_landers = limits.max_landers();
   info.threads = limits.threads();
   info.shared_memory_sessions = limits.shared_memory_sessions();
-  google::protobuf::util::JsonPrintOptions options;
-  options.preserve_proto_field_names = true;
-  options.always_print_primitive_fields = true;
-  // Printing a well-formed message cannot fail.
-  (void)google::protobuf::util::MessageToJsonString(*proto, &info.json,
-                                                    options);
+  info.json = internal::JsonOf(*proto);
   return info;
 }
 

@@ -193,13 +193,19 @@ EnvInfo DecodeEnv(const v1::Env& proto) {
   info.episodes = proto.episodes();
   info.session_bound = proto.session_bound();
   info.idle_timeout_s = proto.idle_timeout_s();
+  info.json = JsonOf(proto);
+  return info;
+}
+
+std::string JsonOf(const google::protobuf::Message& message) {
   google::protobuf::util::JsonPrintOptions options;
   options.preserve_proto_field_names = true;
   options.always_print_primitive_fields = true;
+  std::string json;
   // Printing a well-formed message cannot fail; an empty string would only
   // make the JSON field empty.
-  (void)google::protobuf::util::MessageToJsonString(proto, &info.json, options);
-  return info;
+  (void)google::protobuf::util::MessageToJsonString(message, &json, options);
+  return json;
 }
 
 absl::Status EncodeActions(const Actions& actions, v1::Array* proto) {

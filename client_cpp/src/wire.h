@@ -26,6 +26,10 @@ RemoteEnvConfig DecodeConfig(const v1::EnvConfig& proto);
 
 EnvInfo DecodeEnv(const v1::Env& proto);
 
+// A message in protobuf's JSON mapping with the proto's field names and
+// every field printed, for EnvInfo::json and ServerInfo::json.
+std::string JsonOf(const google::protobuf::Message& message);
+
 // INVALID_ARGUMENT unless exactly one of the members is set.
 absl::Status EncodeActions(const Actions& actions, v1::Array* proto);
 // One agent's continuous action, float32 [2].
