@@ -1,5 +1,5 @@
-"""docs/cpp.md's API reference covers the C++ client's public header, client_cpp/include/mll/
-client.h: every class, struct and enum of namespace mll::client has a heading `### \\`Name\\``
+"""docs/cpp.md's API references cover the C++ client's public headers, client_cpp/include/mll/
+client.h and vector_env.h: every class, struct and enum of namespace mll::client has a heading `### \\`Name\\``
 in the reference, every public method of a class or struct is named in its section (as `Method`
 or `Name::Method`), and every free function is named in the reference. A declaration added to
 the header without its documentation fails this test, which lists everything missing.
@@ -13,10 +13,16 @@ from __future__ import annotations
 import pathlib
 import re
 
+import pytest
+
 _REPO = pathlib.Path(__file__).resolve().parents[2]
-_HEADER = _REPO / "client_cpp" / "include" / "mll" / "client.h"
+_INCLUDE = _REPO / "client_cpp" / "include" / "mll"
 _DOC = _REPO / "docs" / "cpp.md"
-_REFERENCE_TITLE = "## API reference: `<mll/client.h>`"
+_HEADERS = ("client.h", "vector_env.h")
+
+
+def _reference_title(header: str) -> str:
+    return f"## API reference: `<mll/{header}>`"
 _NOT_METHODS = {"operator", "decltype", "sizeof", "static_assert", "alignof", "noexcept"}
 
 
@@ -54,7 +60,7 @@ def _flatten(text: str) -> str:
 
 def _namespace_body(text: str) -> str:
     match = re.search(r"namespace mll::client \{", text)
-    assert match, "client.h has no namespace mll::client"
+    assert match, "the header has no namespace mll::client"
     body = text[match.end() - 1:_block_end(text, match.end() - 1)][1:-1]
     # Drop namespace internal { ... }.
     while (inner := re.search(r"namespace \w+ \{", body)) is not None:
@@ -63,9 +69,9 @@ def _namespace_body(text: str) -> str:
     return body
 
 
-def public_api() -> tuple[dict[str, list[str]], list[str]]:
-    """({type name: its public methods}, free functions) declared in client.h."""
-    body = _namespace_body(_strip_comments(_HEADER.read_text()))
+def public_api(header: str = "client.h") -> tuple[dict[str, list[str]], list[str]]:
+    """({type name: its public methods}, free functions) declared in the header."""
+    body = _namespace_body(_strip_comments((_INCLUDE / header).read_text()))
     types: dict[str, list[str]] = {}
     for match in re.finditer(r"\b(class|struct|enum class|enum)\s+(\w+)\s*(?::[^{;]*)?\{", body):
         # Only declarations at namespace level: skip those inside an earlier type's block.
@@ -101,10 +107,11 @@ def public_api() -> tuple[dict[str, list[str]], list[str]]:
     return types, functions
 
 
-def _reference() -> str:
+def _reference(header: str) -> str:
     text = _DOC.read_text(encoding="utf-8")
-    assert _REFERENCE_TITLE in text, f"docs/cpp.md has no section '{_REFERENCE_TITLE}'"
-    rest = text[text.index(_REFERENCE_TITLE) + len(_REFERENCE_TITLE):]
+    title = _reference_title(header)
+    assert title in text, f"docs/cpp.md has no section '{title}'"
+    rest = text[text.index(title) + len(title):]
     end = re.search(r"^## ", rest, re.MULTILINE)
     return rest[: end.start()] if end else rest
 
@@ -124,11 +131,13 @@ def test_the_header_is_read():
     assert "CreateEnv" in types["Client"] and "Reset" in types["RemoteEnv"]
     assert "ServerOf" not in types["Client"]  # Private.
     assert "LanderOutcomeName" in functions
+    assert {"Create", "Step", "Recv", "env_ids"} <= set(public_api("vector_env.h")[0]["VectorEnv"])
 
 
-def test_the_reference_covers_every_public_declaration_of_client_h():
-    types, functions = public_api()
-    reference = _reference()
+@pytest.mark.parametrize("header", _HEADERS)
+def test_the_reference_covers_every_public_declaration_of_the_header(header):
+    types, functions = public_api(header)
+    reference = _reference(header)
     sections = _subsections(reference)
     missing = []
     for name, methods in types.items():
@@ -138,6 +147,6 @@ def test_the_reference_covers_every_public_declaration_of_client_h():
         missing.extend(f"{name}::{method}" for method in methods if not _named(method, sections[name]))
     missing.extend(f"{function}()" for function in functions if not _named(function, reference))
     assert not missing, (
-        f"docs/cpp.md's '{_REFERENCE_TITLE}' does not document these declarations of "
-        f"client_cpp/include/mll/client.h: {missing}"
+        f"docs/cpp.md's '{_reference_title(header)}' does not document these declarations of "
+        f"client_cpp/include/mll/{header}: {missing}"
     )
