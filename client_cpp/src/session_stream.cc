@@ -122,6 +122,12 @@ absl::Status SessionStream::NegotiateSharedMemory() {
                      " refused shared memory (", answer.error().message(),
                      "); transport \"auto\" goes on over the stream"));
   }
+  // The attach request's write is done before the region is used (its
+  // completion is not to be taken later for the session's end).
+  if (write_outstanding_) {
+    (void)Await(kWrite, gpr_inf_future(GPR_CLOCK_MONOTONIC));
+    write_outstanding_ = false;
+  }
   status = MapRegion(answer.attach_shared_memory());
   if (status.ok()) return absl::OkStatus();
   // The server serves a region this process cannot map (it runs on another
@@ -305,8 +311,12 @@ std::optional<absl::Status> SessionStream::ReceiveFromRegion(
     bool ok = false;
     if (queue_->AsyncNext(&tag, &ok, gpr_time_0(GPR_CLOCK_MONOTONIC)) ==
         grpc::CompletionQueue::GOT_EVENT) {
-      // Only the pending read can complete: the session ended.
-      done_[OperationOf(tag)] = true;
+      const intptr_t completed = OperationOf(tag);
+      done_[completed] = true;
+      ok_[completed] = ok;
+      // The pending read completes only when the session ends; anything
+      // else (the attach request's write) is recorded and waited past.
+      if (completed != kRead) continue;
       read_outstanding_ = false;
       lost_status_ = EndStream();
       --lost_;
