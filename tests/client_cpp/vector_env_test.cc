@@ -289,6 +289,24 @@ TEST_F(VectorEnvTest, AsyncApiMisuseGetsClearErrors) {
               ::testing::ElementsAre(2, 3));
 }
 
+// Opening a shared-memory session races the attach request's write
+// completion against the region's first use; many short sessions make a
+// mistake there show (as a hang, which ctest's timeout reports).
+TEST_F(VectorEnvTest, ManyShortSharedMemorySessionsEachStep) {
+  Client client = ClientOf(1, SessionTransport::kSharedMemory);
+  RemoteEnvConfig config;
+  config.n_landers = 1;
+  const std::vector<int32_t> actions(2, 2);
+  for (int session = 0; session < 60; ++session) {
+    absl::StatusOr<VectorEnv> envs = VectorEnv::Create(client, 2, config);
+    ASSERT_TRUE(envs.ok()) << envs.status();
+    ASSERT_TRUE(envs->Reset(uint64_t{1}).ok());
+    for (int step = 0; step < 3; ++step) {
+      ASSERT_TRUE(envs->Step(absl::MakeConstSpan(actions)).ok());
+    }
+  }
+}
+
 TEST_F(VectorEnvTest, BadActionsAreRefusedNamingTheSizeAndType) {
   Client client = ClientOf(1, SessionTransport::kAuto);
   RemoteEnvConfig config;
