@@ -1,6 +1,7 @@
 // WorkerPool::ParallelFor: every index runs exactly once, done() runs once
 // after all of them, the calling thread runs the first share, shares are
-// contiguous per runner, and concurrent batches do not mix.
+// contiguous per runner, a busy worker is not woken, and concurrent batches do
+// not mix.
 #include "mll/service/worker_pool.h"
 
 #include <atomic>
@@ -30,7 +31,7 @@ void RunAndWait(WorkerPool& pool, int count,
 
 TEST(WorkerPoolTest, EveryIndexRunsExactlyOnceBeforeDone) {
   for (int threads : {1, 2, 3, 5}) {
-    WorkerPool pool(threads);
+    WorkerPool pool(threads, /*cores=*/threads);
     for (int count : {0, 1, 2, 3, 7, 64, 1000}) {
       std::vector<std::atomic<int>> runs(count);
       RunAndWait(pool, count, [&](int i) { ++runs[i]; });
@@ -43,7 +44,7 @@ TEST(WorkerPoolTest, EveryIndexRunsExactlyOnceBeforeDone) {
 }
 
 TEST(WorkerPoolTest, TheCallingThreadRunsTheFirstShare) {
-  WorkerPool pool(2);
+  WorkerPool pool(2, /*cores=*/2);
   const std::thread::id caller = std::this_thread::get_id();
   std::vector<std::thread::id> ran_on(64);
   // The worker's share [32, 64) waits until the caller has run an index, so
@@ -64,7 +65,7 @@ TEST(WorkerPoolTest, TheCallingThreadRunsTheFirstShare) {
 }
 
 TEST(WorkerPoolTest, OneThreadRunsTheBatchOnTheCallerBeforeReturning) {
-  WorkerPool pool(1);
+  WorkerPool pool(1, /*cores=*/1);
   const std::thread::id caller = std::this_thread::get_id();
   std::vector<std::thread::id> ran_on(5);
   bool done = false;
@@ -76,7 +77,7 @@ TEST(WorkerPoolTest, OneThreadRunsTheBatchOnTheCallerBeforeReturning) {
 }
 
 TEST(WorkerPoolTest, AWorkerStartsOnItsOwnContiguousShare) {
-  WorkerPool pool(2);
+  WorkerPool pool(2, /*cores=*/2);
   // Every index of share 0 = [0, 32) waits until share 1 = [32, 64) has
   // begun. With contiguous shares the second worker begins at index 32 at
   // once; were both workers to start from the front, they would both wait
@@ -99,7 +100,7 @@ TEST(WorkerPoolTest, AWorkerStartsOnItsOwnContiguousShare) {
 }
 
 TEST(WorkerPoolTest, ASlowShareIsFinishedByTheOtherWorker) {
-  WorkerPool pool(2);
+  WorkerPool pool(2, /*cores=*/2);
   std::vector<std::atomic<int>> runs(64);
   std::atomic<int> others_done{0};
   std::atomic<bool> index_zero_saw_all_others{false};
@@ -122,8 +123,55 @@ TEST(WorkerPoolTest, ASlowShareIsFinishedByTheOtherWorker) {
   for (int i = 0; i < 64; ++i) EXPECT_EQ(runs[i].load(), 1) << i;
 }
 
+// A worker busy with another batch is not handed a share (it could start it
+// only after that batch, and would only be woken for nothing): the batch runs
+// on its caller and the idle workers.
+TEST(WorkerPoolTest, ABusyWorkerIsNotWoken) {
+  WorkerPool pool(2, /*cores=*/2);
+  std::atomic<bool> worker_busy{false};
+  absl::Notification release;
+  std::thread first([&] {
+    const std::thread::id caller = std::this_thread::get_id();
+    RunAndWait(pool, 2, [&](int i) {
+      const auto give_up =
+          std::chrono::steady_clock::now() + std::chrono::seconds(10);
+      if (std::this_thread::get_id() != caller) {
+        worker_busy = true;
+        release.WaitForNotificationWithTimeout(absl::Seconds(10));
+      } else if (i == 0) {
+        // Leaves index 1 to the worker.
+        while (!worker_busy && std::chrono::steady_clock::now() < give_up) {
+          std::this_thread::yield();
+        }
+      }
+    });
+  });
+  const auto give_up =
+      std::chrono::steady_clock::now() + std::chrono::seconds(10);
+  while (!worker_busy && std::chrono::steady_clock::now() < give_up) {
+    std::this_thread::yield();
+  }
+  ASSERT_TRUE(worker_busy);
+  const std::thread::id caller = std::this_thread::get_id();
+  std::vector<std::thread::id> ran_on(64);
+  RunAndWait(pool, 64, [&](int i) { ran_on[i] = std::this_thread::get_id(); });
+  for (int i = 0; i < 64; ++i) EXPECT_EQ(ran_on[i], caller) << i;
+  release.Notify();
+  first.join();
+}
+
+// More threads than cores: a batch is split over as many runners as there
+// are cores (here 1: the caller alone), not over every thread.
+TEST(WorkerPoolTest, ABatchTakesNoMoreRunnersThanCores) {
+  WorkerPool pool(8, /*cores=*/1);
+  const std::thread::id caller = std::this_thread::get_id();
+  std::vector<std::thread::id> ran_on(64);
+  RunAndWait(pool, 64, [&](int i) { ran_on[i] = std::this_thread::get_id(); });
+  for (int i = 0; i < 64; ++i) EXPECT_EQ(ran_on[i], caller) << i;
+}
+
 TEST(WorkerPoolTest, ConcurrentBatchesEachRunTheirOwnIndices) {
-  WorkerPool pool(2);
+  WorkerPool pool(2, /*cores=*/2);
   constexpr int kCallers = 4;
   constexpr int kCount = 100;
   std::vector<std::vector<std::atomic<int>>> runs(kCallers);
