@@ -168,6 +168,7 @@ def measure_server(args, threads: int, n_landers: int, server_cores, client_core
             "server_proc_cpu_s": proc_cpu_s,
             "server_cpu_us_per_agent_step": cpu_s / agent_steps * 1e6,
             "server_proc_cpu_us_per_agent_step": proc_cpu_s / agent_steps * 1e6,
+            # The server's threads blocking (each a later wake-up) per 64-env call (--envs per call).
             "voluntary_switches_per_call": (last["voluntary"] - first["voluntary"])
             / max(1, agent_steps / (args.envs * n_landers)),
             "involuntary_switches_per_s": (last["involuntary"] - first["involuntary"]) / window_s,
@@ -245,7 +246,7 @@ def main() -> int:
           f"{len(cores)} cores{' pinned' if args.pin else ''}; load average {load_before[0]:.2f} before, "
           f"{load_after[0]:.2f} after\n")
     print("| T | landers | agent-steps/s | vs core | server CPU us/agent-step | core CPU us/agent-step | ratio "
-          "| wake-ups/call |")
+          "| context switches/call |")
     print("|---|---|---|---|---|---|---|---|")
     for row in rows:
         server, core = row["server"], row["core"]
