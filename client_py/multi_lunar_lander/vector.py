@@ -23,12 +23,14 @@ their `active` entries are False.
 from __future__ import annotations
 
 import collections
+import logging
+import time
 from typing import Any, NamedTuple, Sequence
 
 import grpc
 import numpy as np
 
-from . import _arrays, _lease, _native
+from . import _arrays, _lease, _native, _record
 from ._channel import Security, parse_addresses
 from ._errors import MLLError, from_item_error, invalid_argument
 from ._actions import _short, check_actions
@@ -67,13 +69,18 @@ _ENV_COLUMNS = (
 )
 
 
+_LOG = logging.getLogger("multi_lunar_lander")
+
+
 class _Server(NamedTuple):
-    """One server's share of a vector env: env indices `rows` (a slice: env i is on server
-    i mod S), and its packed StepBatch request (inside a SessionRequest), built once, of which
-    each step replaces only the action bytes (`actions`), sent on the server's Session stream."""
+    """One server's share of a vector env: env indices `rows` (ascending int array: env i starts
+    on server i mod S, and moves on failover), and its packed StepBatch request (inside a
+    SessionRequest), built whenever the placement changes, of which each step replaces only the
+    action bytes (`actions`), sent on the server's Session stream."""
 
     connection: Connection
-    rows: slice
+    index: int  # Into VectorEnv._connections.
+    rows: np.ndarray
     count: int  # How many envs: rows of every array of the request and the response.
     message: "pb.SessionRequest"  # .step_batch is the packed StepBatchRequest.
     actions: "pb.Array"
@@ -138,6 +145,7 @@ class VectorEnv:
         token: str | None = None,
         transport: str = "auto",
         batch_size: int | None = None,
+        failover: bool | None = None,
         **options: Any,
     ):
         native = _native.uses_native(transport)
@@ -158,10 +166,16 @@ class VectorEnv:
             address=list(addresses) or None,
             transport=transport,
             batch_size=self.batch_size,
+            failover=failover,
             **security.as_options(),
         )
         self._transport = transport
         servers = addresses or (None,)  # None: the embedded server.
+        # Failover (see failover's docs): on by default with several servers or the embedded one.
+        self.failover = (len(servers) > 1 or not addresses) if failover is None else bool(failover)
+        self.failovers = 0  # Failover events so far.
+        self._embedded = not addresses
+        self._down: set[int] = set()  # Connections found unreachable (tried again when none is left).
         self._names: list[str | None] = [None] * self.num_envs  # None: not created.
         self._step_in_flight = False  # From step_async until step_wait reads the answers.
         # The async API (send/recv): envs whose step (or async_reset) was sent and whose result
@@ -171,8 +185,10 @@ class VectorEnv:
         self._env_in_flight = np.zeros(self.num_envs, bool)
         self._send_order: collections.deque[int] = collections.deque()
         self._ready: collections.deque[tuple[np.ndarray, dict]] = collections.deque()
-        # Env i lives on server i mod S; servers beyond num_envs get no connection.
+        # Env i starts on server i mod S (failover moves it); servers beyond num_envs get no connection.
         self._connections: list[Connection] = []
+        self._security, self._peers = security, addresses
+        self._placement = np.arange(self.num_envs) % min(len(servers), self.num_envs)
         try:
             for server in servers[: self.num_envs]:
                 self._connections.append(Connection(server, security, addresses))
@@ -197,6 +213,8 @@ class VectorEnv:
             self.close()
             raise
         spec = envs[0]
+        self._idle_timeout_s = spec.idle_timeout_s
+        self._spec_config = spec.config  # Filled in by the server: what failover recreates.
         self.config = config_dict(spec.config)
         self.continuous = bool(spec.config.continuous)
         self.n_landers = int(spec.config.n_landers)
@@ -205,7 +223,17 @@ class VectorEnv:
         self.single_action_space = space_from_proto(spec.action_space)
         self._action_dtype = pb.DTYPE_FLOAT32 if self.continuous else pb.DTYPE_INT32
         action_shape = (self.n_landers, 2) if self.continuous else (self.n_landers,)
-        stride = len(self._connections)
+        self._action_shape = action_shape
+        self._row_bytes = 4 * int(np.prod(action_shape))
+        # Each env's record (see _record): the seed of its last seeded reset, a prefix restored by
+        # restore_env, and its operations in the shared log from row _start[i] on.
+        self._log = _record.GrowingLog(self.num_envs, self._row_bytes)
+        self._seeds: list[int | None] = [None] * self.num_envs
+        self._start = np.zeros(self.num_envs, np.int64)
+        self._prefix: list[_record.EnvRecord | None] = [None] * self.num_envs
+        self._unrecorded = False  # A send/recv step since the last seeded reset: not recorded.
+        self._last_observations = np.zeros((self.num_envs, self.n_landers, 12), np.float32)
+        self._pending = np.zeros((self.num_envs, self._row_bytes), np.uint8)  # The step's action bytes.
         if native:
             shared_memory = {"auto": "try", "shared_memory": "require"}.get(transport, "off")
 
@@ -216,25 +244,9 @@ class VectorEnv:
                 return _native.NativeSessionStream(connection, mode)
         else:
             stream_type = SessionStream
-        self._servers = []
-        for first, connection in enumerate(self._connections):
-            rows = slice(first, self.num_envs, stride)
-            names = self._names[rows]
-            message = pb.SessionRequest()
-            message.step_batch.packed.names.extend(names)
-            actions = message.step_batch.packed.actions
-            actions.dtype = self._action_dtype
-            actions.shape.extend((len(names),) + action_shape)
-            columns = tuple(
-                _arrays.Column(field, wire, (len(names),) + shape(self.n_landers), result)
-                for field, wire, result, shape in _AGENT_COLUMNS + _ENV_COLUMNS
-            )
-            self._servers.append(
-                _Server(
-                    connection, rows, len(names), message, actions, columns, stream_type(connection),
-                    collections.deque(),
-                )
-            )
+        self._stream_type = stream_type
+        self._streams = [stream_type(connection) for connection in self._connections]
+        self._build_servers()
         if transport == "shared_memory":
             # Asked for by name: a refusal raises here, not at the first step.
             try:
@@ -243,6 +255,30 @@ class VectorEnv:
             except BaseException:
                 self.close()
                 raise
+
+    def _build_servers(self) -> None:
+        """self._servers from the placement: one per connection that holds envs."""
+        self._servers = []
+        for index, connection in enumerate(self._connections):
+            rows = np.flatnonzero(self._placement == index)
+            if rows.size == 0:
+                continue
+            names = [self._names[row] for row in rows]
+            message = pb.SessionRequest()
+            message.step_batch.packed.names.extend(names)
+            actions = message.step_batch.packed.actions
+            actions.dtype = self._action_dtype
+            actions.shape.extend((len(names),) + self._action_shape)
+            columns = tuple(
+                _arrays.Column(field, wire, (len(names),) + shape(self.n_landers), result)
+                for field, wire, result, shape in _AGENT_COLUMNS + _ENV_COLUMNS
+            )
+            self._servers.append(
+                _Server(
+                    connection, index, rows, len(names), message, actions, columns, self._streams[index],
+                    collections.deque(),
+                )
+            )
 
     @property
     def transport(self) -> str:
@@ -264,7 +300,7 @@ class VectorEnv:
         return rebuild, (type(self), self._init_kwargs)
 
     def _connection_of(self, index: int) -> Connection:
-        return self._connections[index % len(self._connections)]
+        return self._connections[self._placement[index]]
 
     @property
     def address(self) -> str:
@@ -295,7 +331,8 @@ class VectorEnv:
 
     @property
     def env_addresses(self) -> list[str]:
-        """The address of the server of each environment, in env order (env i: server i mod S)."""
+        """The address of the server of each environment, in env order (env i: server i mod S
+        until a failover moves it)."""
         return [self._connection_of(index).address for index in range(self.num_envs)]
 
     def _result(self, columns: dict):
@@ -321,22 +358,79 @@ class VectorEnv:
     def reset(self, seed: int | None = None, options: dict | None = None):
         self._check_no_step_in_flight()
         seed = seed_value(seed)
-        waits = []
-        for index, name in enumerate(self._names):
-            request = pb.ResetEnvRequest(name=name)
-            if seed is not None:
-                request.seed = (seed + index) % 2**64
-            waits.append(self._connection_of(index).future("ResetEnv", request))
-        datas = [wait().data for wait in waits]
+        responses: list = [None] * self.num_envs
+        todo = list(range(self.num_envs))
+        for _attempt in range(len(self._connections) + 2):  # Each try after a failover.
+            waits = []
+            for index in todo:
+                request = pb.ResetEnvRequest(name=self._names[index])
+                if seed is not None:
+                    request.seed = (seed + index) % 2**64
+                waits.append((index, self._connection_of(index).future("ResetEnv", request)))
+            lost, failure = self._gather(waits, responses)
+            if failure is not None:
+                raise failure
+            if not lost:
+                break
+            self._fail_over(lost)
+            todo = sorted(lost)
+        else:
+            raise MLLError(grpc.StatusCode.UNAVAILABLE, f"failover gave up after {len(self._connections) + 2} tries")
+        datas = [response.data for response in responses]
+        columns = self._columns_of(datas)
+        self._record_reset(responses, columns["observations"])
+        return columns["observations"], self._result(columns)[-1]
+
+    def _gather(self, waits, results: list):
+        """Waits for every (env index, wait) into results[index]; returns (envs to fail over: an
+        unreachable server's, or NOT_FOUND, when failover is on; the first other error)."""
+        lost, failure = {}, None
+        for index, wait in waits:
+            try:
+                results[index] = wait()
+            except MLLError as error:
+                if self._lost(error, index):
+                    lost[index] = error
+                else:
+                    failure = failure or error
+        return lost, failure
+
+    def _lost(self, error: MLLError, index: int) -> bool:
+        """Whether env `index`'s `error` is one failover handles."""
+        return self.failover and (
+            error.code == grpc.StatusCode.UNAVAILABLE
+            or (error.code == grpc.StatusCode.NOT_FOUND and self._names[index] in error.message)
+        )
+
+    def _columns_of(self, datas) -> dict:
+        """Result columns (num_envs leading) from one StepData per env."""
         columns = {
             field: _arrays.stack_bytes(
-                [getattr(data, field).data for data in datas], wire, (self.num_envs,) + shape(self.n_landers), result
+                [getattr(data, field).data for data in datas], wire, (len(datas),) + shape(self.n_landers), result
             )
             for field, wire, result, shape in _AGENT_COLUMNS
         }
         for field, _, result, _ in _ENV_COLUMNS:
-            columns[field] = np.fromiter((getattr(data, field) for data in datas), dtype=result, count=self.num_envs)
-        return columns["observations"], self._result(columns)[-1]
+            columns[field] = np.fromiter((getattr(data, field) for data in datas), dtype=result, count=len(datas))
+        return columns
+
+    def _record_reset(self, responses, observations) -> None:
+        """Every env's record after a reset: a new one where the server reseeded, else an
+        unseeded reset operation."""
+        reseeded = np.array([response.HasField("seed") for response in responses])
+        if reseeded.all():
+            self._log.clear()
+            self._start[:] = 0
+            self._unrecorded = False
+        for index in np.flatnonzero(reseeded):
+            self._seeds[index] = int(responses[index].seed)
+            self._prefix[index] = None
+            self._start[index] = self._log.length
+        if not reseeded.all():
+            kinds = np.where(reseeded, 0, _record.RESET).astype(np.uint8)
+            self._log.append(kinds, np.zeros((self.num_envs, self._row_bytes), np.uint8))
+            self._start[reseeded] = self._log.length
+        np.copyto(self._last_observations, observations)
 
     def _check_no_step_in_flight(self) -> None:
         if self._step_in_flight:
@@ -398,9 +492,9 @@ class VectorEnv:
                 "before sending it another",
             )
         block = check_actions(actions, self.continuous, (ids.size, self.n_landers), "actions")
-        stride = len(self._servers)
+        self._unrecorded = True  # send/recv steps are not recorded (failover covers step()).
         for index, server in enumerate(self._servers):
-            mine = ids % stride == index
+            mine = self._placement[ids] == server.index
             if not mine.any():
                 continue
             envs = ids[mine]
@@ -456,8 +550,14 @@ class VectorEnv:
         envs = server.in_flight.popleft()
         try:
             pack = self._packed_reply(server, server.stream.receive().step_batch)
-        except MLLError:
+        except MLLError as error:
             self._env_in_flight[envs] = False
+            if self.failover and error.code == grpc.StatusCode.UNAVAILABLE:
+                raise MLLError(
+                    error.code,
+                    f"{error.message} (failover covers step(), step_async/step_wait and reset(), "
+                    "not EnvPool's send/recv: this vector env cannot go on; close it)",
+                ) from None
             raise
         if pack.errors:
             self._env_in_flight[envs] = False
@@ -493,8 +593,14 @@ class VectorEnv:
         """Checks `actions` and puts each server's rows into its reused StepBatch request."""
         self._check_no_step_in_flight()
         block = check_actions(actions, self.continuous, (self.num_envs, self.n_landers), "actions")
+        self._pending = np.frombuffer(_arrays.to_bytes(block, self._action_dtype), np.uint8).reshape(
+            self.num_envs, self._row_bytes
+        )
+        if len(self._servers) == 1:
+            self._servers[0].actions.data = self._pending.tobytes()
+            return
         for server in self._servers:
-            server.actions.data = _arrays.to_bytes(block[server.rows], self._action_dtype)
+            server.actions.data = self._pending[server.rows].tobytes()
 
     def step(self, actions, env_id=None):
         """step(actions) steps every env (batch_size == num_envs: the synchronous API). With the
@@ -520,22 +626,36 @@ class VectorEnv:
         if not self._step_in_flight:
             raise MLLError(grpc.StatusCode.FAILED_PRECONDITION, "step_wait without a step_async in flight")
         self._step_in_flight = False
-        replies, failure = [], None
+        replies, failure, lost = [], None, {}
         for server in self._servers:  # Every answer is read, so each stream is ready for the next step.
             try:
                 replies.append(server.stream.receive().step_batch)
             except MLLError as error:
-                failure = failure or error
+                replies.append(None)
+                if self._lost(error, int(server.rows[0])):
+                    lost.update((int(row), error) for row in server.rows)
+                else:
+                    failure = failure or error
         if failure is not None:
             raise failure
-        return self._collect(replies)
+        columns = self._collect(replies, lost)
+        if lost:
+            self._retry_step(lost, columns)
+        kinds = np.where(columns["auto_reset"], _record.AUTO_RESET, _record.STEP).astype(np.uint8)
+        self._log.append(kinds, self._pending)
+        np.copyto(self._last_observations, columns["observations"])
+        return self._result(columns)
 
-    def _collect(self, replies):
-        """step()'s return value from each server's StepBatch reply."""
+    def _collect(self, replies, lost: dict) -> dict:
+        """The result columns from each server's StepBatch reply (None: the server was lost);
+        envs to fail over (failover on: NOT_FOUND rows) are added to `lost`, their rows unset."""
         servers = self._servers
         packs = []
         failed = []  # (env index, ItemError) of every env whose step failed.
         for server, reply in zip(servers, replies):
+            if reply is None:
+                packs.append(None)
+                continue
             pack = self._packed_reply(server, reply)
             packs.append(pack)
             for item in pack.errors:
@@ -545,28 +665,204 @@ class VectorEnv:
                         f"{server.connection.address} reported an error for row {item.index} of a packed "
                         f"StepBatch of {server.count} envs",
                     )
-                failed.append((server.rows.start + server.rows.step * item.index, item.error))
+                env = int(server.rows[item.index])
+                error = from_item_error(item.error.code, item.error.message, f"env {env} ({self._names[env]}): ")
+                if self._lost(error, env):
+                    lost[env] = error
+                else:
+                    failed.append((env, error))
         if failed:  # The first failed env in env order, as on one server.
-            index, error = min(failed, key=lambda pair: pair[0])
-            raise from_item_error(error.code, error.message, f"env {index} ({self._names[index]}): ")
-        if len(servers) == 1:
+            raise min(failed, key=lambda pair: pair[0])[1]
+        if len(servers) == 1 and packs[0] is not None:
             columns = servers[0].columns
-            return self._result({column.name: column.decode(getattr(packs[0], column.name)) for column in columns})
+            return {column.name: column.decode(getattr(packs[0], column.name)) for column in columns}
         columns = {  # Each server's rows scattered back to env order.
-            column.name: np.empty((self.num_envs,) + column.shape[1:], dtype=column.as_dtype)
+            column.name: np.zeros((self.num_envs,) + column.shape[1:], dtype=column.as_dtype)
             for column in servers[0].columns
         }
         for server, pack in zip(servers, packs):
-            for column in server.columns:
-                columns[column.name][server.rows] = column.decode(getattr(pack, column.name))
-        return self._result(columns)
+            if pack is not None:
+                for column in server.columns:
+                    columns[column.name][server.rows] = column.decode(getattr(pack, column.name))
+        return columns
+
+    def _retry_step(self, lost: dict, columns: dict) -> None:
+        """Fails the `lost` envs over, then steps them again with the step's actions (the step
+        their server did not take) into `columns`."""
+        datas: list = [None] * self.num_envs
+        for _attempt in range(len(self._connections) + 2):
+            self._fail_over(lost)
+            waits = []
+            for index in sorted(lost):
+                request = pb.StepEnvRequest(name=self._names[index])
+                request.actions.dtype = self._action_dtype
+                request.actions.shape.extend(self._action_shape)
+                request.actions.data = self._pending[index].tobytes()
+                waits.append((index, self._connection_of(index).future("StepEnv", request)))
+            done = sorted(lost)
+            lost, failure = self._gather(waits, datas)
+            if failure is not None:
+                raise failure
+            if not lost:
+                break
+        else:
+            raise MLLError(grpc.StatusCode.UNAVAILABLE, f"failover gave up after {len(self._connections) + 2} tries")
+        rows = np.array(done)
+        retried = self._columns_of([datas[index].data for index in done])
+        for name, values in retried.items():
+            columns[name][rows] = values
+
+    def _env_record(self, index: int) -> _record.EnvRecord:
+        """Env `index`'s record; FAILED_PRECONDITION when it cannot recreate the env."""
+        why = None
+        if self._seeds[index] is None:
+            why = "it was never reset (no known seed)"
+        elif self._unrecorded:
+            why = "it was stepped with send/recv since its last seeded reset, which are not recorded"
+        elif self._log.full:
+            why = f"its record passed {_record.MAX_RECORD_STEPS} operations since its last seeded reset"
+        if why:
+            raise MLLError(
+                grpc.StatusCode.FAILED_PRECONDITION,
+                f"env {index} ({self._names[index]}) cannot be recreated: {why}; reset(seed=...) starts a new record",
+            )
+        kinds, actions = self._log.of_env(index, int(self._start[index]))
+        prefix = self._prefix[index]
+        if prefix is not None:
+            kinds = np.concatenate([prefix.kinds, kinds])
+            actions = np.concatenate([prefix.actions, actions])
+        return _record.EnvRecord(self._seeds[index], kinds, actions, self._last_observations[index].tobytes())
+
+    def _usable_connections(self) -> list[int]:
+        """Connections not found unreachable; when none is left, those that answer again (the
+        embedded server restarted if it died)."""
+        alive = [index for index in range(len(self._connections)) if index not in self._down]
+        if alive:
+            return alive
+        if self._embedded:
+            old = self._connections[0]
+            self._connections[0] = Connection(None, self._security)  # Restarts it if it died.
+            old.close()
+            self._streams[0].close()
+            self._streams[0] = self._stream_type(self._connections[0])
+            self._down.clear()
+            return [0]
+        for index, connection in enumerate(self._connections):
+            try:
+                connection.call("GetServerInfo", pb.GetServerInfoRequest(), timeout=2.0)
+            except MLLError:
+                continue
+            self._down.discard(index)
+        return [index for index in range(len(self._connections)) if index not in self._down]
+
+    def _fail_over(self, lost: dict) -> None:
+        """Recreates the `lost` envs (env index -> the error that lost it) on reachable servers
+        and replays their records to the bits the client last saw; one failover event."""
+        began = time.monotonic()
+        moving = sorted(lost)
+        unreachable = sorted({int(self._placement[i]) for i in moving if lost[i].code == grpc.StatusCode.UNAVAILABLE})
+        for index in unreachable:
+            self._down.add(index)
+            self._streams[index].close()
+        records = [self._env_record(index) for index in moving]
+        targets = self._usable_connections()
+        if not targets:
+            first = lost[moving[0]]
+            raise MLLError(
+                grpc.StatusCode.UNAVAILABLE,
+                f"failover of {len(moving)} envs found no reachable server of {', '.join(self.addresses)}: "
+                f"{first.message}",
+            )
+        placement, spread = {}, 0
+        for index in moving:
+            if lost[index].code == grpc.StatusCode.UNAVAILABLE or int(self._placement[index]) in self._down:
+                placement[index] = targets[spread % len(targets)]  # Round robin over the usable ones.
+                spread += 1
+            else:
+                placement[index] = int(self._placement[index])  # NOT_FOUND: its server answers.
+        for target in sorted(set(placement.values())):
+            envs = [index for index in moving if placement[index] == target]
+            connection = self._connections[target]
+            created, _ = _record.replay(
+                connection,
+                self._spec_config,
+                [records[moving.index(index)] for index in envs],
+                [f"env {index} ({self._names[index]})" for index in envs],
+                self._action_dtype,
+                self._action_shape,
+            )
+            for index, env in zip(envs, created):
+                self._names[index] = env.name
+                self._placement[index] = target
+                _lease.hold(connection, env.name, env.idle_timeout_s)
+        self._build_servers()
+        self.failovers += 1
+        first = lost[moving[0]]
+        _LOG.warning(
+            "vector_env failover: %d env(s) lost (%s: %s); recreated on %s and replayed (%d steps) in %.3f s",
+            len(moving),
+            first.code.name,
+            first.message,
+            ", ".join(sorted({self._connections[placement[i]].address for i in moving})),
+            sum(record.kinds.size for record in records),
+            time.monotonic() - began,
+        )
+
+    # ----------------------------------------------------------------- env state
+
+    def env_state(self, index: int) -> bytes:
+        """Env `index`'s state: bytes that recreate it at this point to the same bits on any
+        server of the same release (restore_env, parallel_env's restore). FAILED_PRECONDITION
+        when its record cannot (see docs/python.md, "Failover and env state")."""
+        self._check_no_step_in_flight()
+        index = self._env_index(index)
+        info = self._connection_of(index).server_info
+        return _record.encode_state(
+            self._spec_config, info.protocol, info.server_version, self._env_record(index),
+            self._action_dtype, self._row_bytes,
+        )
+
+    def restore_env(self, index: int, state: bytes) -> np.ndarray:
+        """Puts env `index` at the point `state` (env_state, parallel_env's state) describes: a new
+        env on the same server replays it, checked to the bits, then replaces the old one.
+        Returns its observations (n_landers, 12). INVALID_ARGUMENT for a damaged state or one of an
+        env with other options; the env is untouched on any error."""
+        self._check_no_step_in_flight()
+        index = self._env_index(index)
+        decoded = _record.decode_state(state)
+        _record.check_config(decoded.config, self._spec_config, decoded.row_bytes, decoded.dtype)
+        connection = self._connection_of(index)
+        (env,), _ = _record.replay(
+            connection, self._spec_config, [decoded.record], [f"env {index} (restored)"],
+            self._action_dtype, self._action_shape,
+        )
+        try:
+            connection.call("DeleteEnv", pb.DeleteEnvRequest(name=self._names[index]), timeout=2.0)
+        except MLLError:
+            pass
+        self._names[index] = env.name
+        _lease.hold(connection, env.name, env.idle_timeout_s)
+        self._build_servers()
+        self._seeds[index] = decoded.record.seed
+        self._prefix[index] = decoded.record
+        self._start[index] = self._log.length
+        observations = np.frombuffer(decoded.record.last_observations, "<f4").reshape(self.n_landers, 12)
+        self._last_observations[index] = observations
+        return observations.astype(np.float32)
+
+    def _env_index(self, index) -> int:
+        if isinstance(index, (bool, np.bool_)) or not isinstance(index, (int, np.integer)) or not (
+            0 <= index < self.num_envs
+        ):
+            raise invalid_argument(f"env index is {index!r}; allowed: 0..{self.num_envs - 1}")
+        return int(index)
 
     def close(self) -> None:
         """Deletes the environments on their servers and closes the connections. Idempotent."""
         if all(connection.closed for connection in self._connections):
             return
-        for server in getattr(self, "_servers", ()):
-            server.stream.close()
+        for stream in getattr(self, "_streams", ()):
+            stream.close()
         try:
             waits = [
                 self._connection_of(index).future("DeleteEnv", pb.DeleteEnvRequest(name=name))

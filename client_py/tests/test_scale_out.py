@@ -117,7 +117,7 @@ def test_more_servers_than_envs_uses_the_first_ones(two_servers, address):
 
 
 def test_an_item_error_names_the_env_in_env_order(two_servers):
-    vector = mll.vector_env(4, address=list(two_servers), n_landers=1)
+    vector = mll.vector_env(4, address=list(two_servers), n_landers=1, failover=False)  # Else recreated.
     vector.reset(seed=0)
     # Behind the client's back: env 2 (first server) and env 1 (second server) go away.
     for index in (2, 1):

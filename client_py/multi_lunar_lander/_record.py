@@ -1,0 +1,264 @@
+"""An environment's record: what recreates it to the same bits on any server of the same release.
+
+An env is deterministic to the bit: it is fully described by its config, the seed of its last
+seeded reset and every operation since (steps with their actions, auto-reset steps, unseeded
+resets, which continue the generator's stream). The clients keep this record to fail over (an
+env lost with its server is recreated elsewhere and replayed) and to give `state()` / restore.
+
+Operations (one byte each) and their action row (the wire bytes of the step's actions: int32
+[n_landers] or float32 [n_landers, 2]; zeros where ignored):
+  STEP: a step with these actions; AUTO_RESET: a step that started a new episode (actions
+  ignored; replayed as a step on an auto-reset env, as an unseeded ResetEnv on another);
+  RESET: an unseeded ResetEnv (the generator's stream continues).
+
+A record holds at most MAX_RECORD_STEPS operations since its seeded reset; past it the env
+cannot be recreated (failover raises FAILED_PRECONDITION naming the env) until its next seeded
+reset starts a new record.
+
+State format (env.state(), all integers little-endian): b"MLLS", u16 format version, u16 and
+u16 the wire protocol (major, minor) of the server that ran the env, u16 length + the server's
+release string, u32 length + the EnvConfig message (the server's filled-in config), u64 seed,
+u8 action wire dtype, u32 action row bytes, u32 operation count n, n operation bytes, n action
+rows, u32 length + the last observations (float32 [n_landers, 12]), u32 CRC-32 of all before.
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from typing import Sequence
+
+import grpc
+import numpy as np
+
+from . import _arrays
+from ._errors import MLLError, invalid_argument
+from ._stubs import pb
+
+STEP, AUTO_RESET, RESET = 1, 2, 3
+
+# Operations kept per env since its seeded reset (see the module docstring).
+MAX_RECORD_STEPS = 100_000
+
+MAGIC = b"MLLS"
+FORMAT_VERSION = 1
+
+
+class EnvRecord:
+    """One env's record: seed (None: never seeded, so not recoverable), operations and their
+    action rows, and the observations the client last saw (bytes)."""
+
+    __slots__ = ("seed", "kinds", "actions", "last_observations")
+
+    def __init__(self, seed: int | None, kinds: np.ndarray, actions: np.ndarray, last_observations: bytes):
+        self.seed, self.kinds, self.actions, self.last_observations = seed, kinds, actions, last_observations
+
+
+class GrowingLog:
+    """Operations of one or more envs that act together (a vector env's rows, a single env's
+    steps): row r holds each env's operation kind (0: none) and action bytes. Grows by doubling;
+    past MAX_RECORD_STEPS rows it stops growing and is `full` (the records are incomplete)."""
+
+    def __init__(self, num_envs: int, row_bytes: int):
+        self.num_envs, self.row_bytes = num_envs, row_bytes
+        self.kinds = np.zeros((64, num_envs), np.uint8)
+        self.actions = np.zeros((64, num_envs, row_bytes), np.uint8)
+        self.length = 0
+        self.full = False
+
+    def clear(self) -> None:
+        self.length = 0
+        self.full = False
+
+    def append(self, kinds, actions) -> None:
+        """One row: kinds (num_envs,) uint8, actions (num_envs, row_bytes) uint8 or bytes."""
+        if self.length >= MAX_RECORD_STEPS:
+            self.full = True
+            return
+        if self.length == self.kinds.shape[0]:
+            capacity = min(2 * self.length, MAX_RECORD_STEPS)
+            self.kinds = np.resize(self.kinds, (capacity, self.num_envs))
+            self.actions = np.resize(self.actions, (capacity, self.num_envs, self.row_bytes))
+        self.kinds[self.length] = kinds
+        if isinstance(actions, (bytes, bytearray, memoryview)):
+            actions = np.frombuffer(actions, np.uint8).reshape(self.num_envs, self.row_bytes)
+        self.actions[self.length] = actions
+        self.length += 1
+
+    def of_env(self, env: int, start: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """Env `env`'s operations from row `start` on: (kinds, action rows)."""
+        kinds = self.kinds[start : self.length, env]
+        used = kinds != 0
+        return kinds[used].copy(), self.actions[start : self.length, env][used].copy()
+
+
+def encode_state(
+    config: "pb.EnvConfig", protocol: Sequence[int], release: str, record: EnvRecord, dtype: int, row_bytes: int
+) -> bytes:
+    config_bytes = config.SerializeToString(deterministic=True)
+    release_bytes = release.encode("utf-8")[:65535]
+    kinds = np.ascontiguousarray(record.kinds, np.uint8)
+    parts = [
+        MAGIC,
+        struct.pack("<HHHH", FORMAT_VERSION, int(protocol[0]), int(protocol[1]), len(release_bytes)),
+        release_bytes,
+        struct.pack("<I", len(config_bytes)),
+        config_bytes,
+        struct.pack("<QBII", record.seed, dtype, row_bytes, kinds.size),
+        kinds.tobytes(),
+        np.ascontiguousarray(record.actions, np.uint8).tobytes(),
+        struct.pack("<I", len(record.last_observations)),
+        record.last_observations,
+    ]
+    body = b"".join(parts)
+    return body + struct.pack("<I", zlib.crc32(body))
+
+
+class DecodedState:
+    __slots__ = ("protocol", "release", "config", "record", "dtype", "row_bytes")
+
+
+def decode_state(state) -> DecodedState:
+    """Parses and checks a state; INVALID_ARGUMENT naming what is wrong."""
+    if not isinstance(state, (bytes, bytearray, memoryview)):
+        raise invalid_argument(f"state is a {type(state).__name__}; expected the bytes of env.state()")
+    data = bytes(state)
+    if len(data) < 8 or data[:4] != MAGIC:
+        raise invalid_argument("state does not start with b'MLLS': not an env state (or truncated)")
+    body, (crc,) = data[:-4], struct.unpack("<I", data[-4:])
+    if zlib.crc32(body) != crc:
+        raise invalid_argument(f"state is damaged: its CRC-32 is {crc:#010x}, its contents' {zlib.crc32(body):#010x}")
+    offset = 4
+
+    def take(size: int, what: str) -> bytes:
+        nonlocal offset
+        if offset + size > len(body):
+            raise invalid_argument(f"state is truncated in its {what}")
+        chunk = body[offset : offset + size]
+        offset += size
+        return chunk
+
+    version, major, minor, release_len = struct.unpack("<HHHH", take(8, "header"))
+    if version != FORMAT_VERSION:
+        raise invalid_argument(
+            f"state has format version {version}; this client reads version {FORMAT_VERSION} (upgrade the client)"
+        )
+    decoded = DecodedState()
+    decoded.protocol = (major, minor)
+    decoded.release = take(release_len, "release").decode("utf-8", "replace")
+    (config_len,) = struct.unpack("<I", take(4, "config length"))
+    decoded.config = pb.EnvConfig()
+    try:
+        decoded.config.ParseFromString(take(config_len, "config"))
+    except Exception as error:  # google.protobuf.message.DecodeError
+        raise invalid_argument(f"state's config does not parse: {error}") from None
+    seed, dtype, row_bytes, count = struct.unpack("<QBII", take(17, "seed and sizes"))
+    if dtype not in (pb.DTYPE_INT32, pb.DTYPE_FLOAT32):
+        raise invalid_argument(f"state's action dtype is {dtype}; expected int32 or float32")
+    if count > MAX_RECORD_STEPS:
+        raise invalid_argument(f"state holds {count} operations; at most {MAX_RECORD_STEPS}")
+    kinds = np.frombuffer(take(count, "operations"), np.uint8)
+    if count and not np.isin(kinds, (STEP, AUTO_RESET, RESET)).all():
+        raise invalid_argument("state holds an unknown operation code")
+    actions = np.frombuffer(take(count * row_bytes, "actions"), np.uint8).reshape(count, row_bytes)
+    (obs_len,) = struct.unpack("<I", take(4, "observations length"))
+    last = take(obs_len, "observations")
+    if offset != len(body):
+        raise invalid_argument(f"state has {len(body) - offset} bytes after its end")
+    decoded.record = EnvRecord(seed, kinds, actions, last)
+    decoded.dtype, decoded.row_bytes = dtype, row_bytes
+    return decoded
+
+
+def check_config(state_config: "pb.EnvConfig", config: "pb.EnvConfig", row_bytes: int, dtype: int) -> None:
+    """INVALID_ARGUMENT unless the state's env has the options of `config` (render_mode and
+    auto_reset aside: they do not change the physics)."""
+    mine, theirs = pb.EnvConfig(), pb.EnvConfig()
+    mine.CopyFrom(config)
+    theirs.CopyFrom(state_config)
+    for message in (mine, theirs):
+        message.ClearField("render_mode")
+        message.ClearField("auto_reset")
+    if mine != theirs:
+        raise invalid_argument(
+            f"state is of an env with other options ({str(theirs).strip() or 'defaults'}) than this one's "
+            f"({str(mine).strip() or 'defaults'})".replace("\n", ", ")
+        )
+    n_landers = int(config.n_landers)
+    expected = n_landers * (8 if config.continuous else 4)
+    if row_bytes != expected or dtype != (pb.DTYPE_FLOAT32 if config.continuous else pb.DTYPE_INT32):
+        raise invalid_argument(f"state's actions are {row_bytes} bytes a step; this env's are {expected}")
+
+
+def replay(
+    connection,
+    config: "pb.EnvConfig",
+    records: Sequence[EnvRecord],
+    labels: Sequence[str],
+    dtype: int,
+    action_shape: tuple,
+) -> list:
+    """Creates one env per record on `connection`'s server (with `config`), replays each
+    record's operations (all envs a round at a time, concurrently) and checks each replayed
+    observation equals the record's last seen; returns the created Env messages and each env's
+    last StepData. On any error
+    the envs created here are deleted; DATA_LOSS names the env whose bits differ."""
+    for record, label in zip(records, labels):
+        if record.seed is None:
+            raise MLLError(
+                grpc.StatusCode.FAILED_PRECONDITION,
+                f"{label} cannot be recreated: it was never reset with a known seed, or its record passed "
+                f"{MAX_RECORD_STEPS} operations since its last seeded reset (reset it with a seed)",
+            )
+    waits = [connection.future("CreateEnv", pb.CreateEnvRequest(config=config)) for _ in records]
+    envs, failure = [], None
+    for wait in waits:
+        try:
+            envs.append(wait())
+        except MLLError as error:
+            failure = failure or error
+    try:
+        if failure is not None:
+            raise failure
+        auto_reset = bool(config.auto_reset)
+        datas = [
+            wait().data
+            for wait in [
+                connection.future("ResetEnv", pb.ResetEnvRequest(name=env.name, seed=record.seed))
+                for env, record in zip(envs, records)
+            ]
+        ]
+        rounds = max((record.kinds.size for record in records), default=0)
+        for t in range(rounds):
+            waits = []
+            for index, (env, record) in enumerate(zip(envs, records)):
+                if t >= record.kinds.size:
+                    continue
+                kind = record.kinds[t]
+                if kind == RESET or (kind == AUTO_RESET and not auto_reset):
+                    waits.append((index, connection.future("ResetEnv", pb.ResetEnvRequest(name=env.name))))
+                else:
+                    request = pb.StepEnvRequest(name=env.name)
+                    request.actions.dtype = dtype
+                    request.actions.shape.extend(action_shape)
+                    request.actions.data = record.actions[t].tobytes()
+                    waits.append((index, connection.future("StepEnv", request)))
+            for index, wait in waits:
+                datas[index] = wait().data
+        for record, label, data in zip(records, labels, datas):
+            got = _arrays.to_numpy(data.observations).astype("<f4").tobytes()
+            if got != record.last_observations:
+                raise MLLError(
+                    grpc.StatusCode.DATA_LOSS,
+                    f"{label}: replaying its {record.kinds.size} operations since seed {record.seed} on "
+                    f"{connection.address} gave other observations than the last ones seen; the server's "
+                    "release (physics) differs from the one that ran it, or the record is wrong",
+                )
+    except BaseException:
+        for env in envs:
+            try:
+                connection.call("DeleteEnv", pb.DeleteEnvRequest(name=env.name), timeout=2.0)
+            except MLLError:
+                pass
+        raise
+    return envs, datas

@@ -1,0 +1,85 @@
+"""Failover by deterministic replay (issue 29): a vector env over several servers loses none of
+its envs when one server dies; its results are the bits of a run without the fault."""
+
+import logging
+import os
+import signal
+
+import grpc
+import numpy as np
+import pytest
+
+import multi_lunar_lander as mll
+
+from mll_test_helpers import random_actions, same_bits
+
+STEPS, KILL_AT = 1000, 300
+
+
+def _run(addresses, kill=None, seed=5):
+    """Every array of a STEPS-step seeded random run of vector_env(24); kills `kill` (a
+    ServerProcess) before step KILL_AT."""
+    vector = mll.vector_env(24, address=addresses, n_landers=2)
+    rng = np.random.default_rng(seed)
+    observations, infos = vector.reset(seed=seed)
+    record = [observations, infos["episode_length"]]
+    for step in range(STEPS):
+        if kill is not None and step == KILL_AT:
+            os.kill(kill.pid, signal.SIGKILL)
+            kill._process.wait(timeout=10)
+        result = vector.step(random_actions(rng, (24, 2), False))
+        record.extend(result[:-1])
+        record.extend(result[-1][key] for key in sorted(result[-1]))
+    failovers = vector.failovers
+    env_addresses = vector.env_addresses
+    vector.close()
+    return record, failovers, env_addresses
+
+
+def test_kill_one_of_three_servers_mid_run(caplog):
+    with mll.ServerProcess(threads=1) as a, mll.ServerProcess(threads=1) as b, mll.ServerProcess(threads=1) as c:
+        addresses = [a.address, b.address, c.address]
+        expected, failovers, _ = _run(addresses)
+        assert failovers == 0
+        with caplog.at_level(logging.WARNING, logger="multi_lunar_lander"):
+            got, failovers, env_addresses = _run(addresses, kill=b)
+        assert failovers == 1
+        assert b.address not in env_addresses
+        assert sum(b.address in r.getMessage() or "UNAVAILABLE" in r.getMessage() for r in caplog.records) == 1
+        assert len(got) == len(expected)
+        for index, (x, y) in enumerate(zip(got, expected)):
+            assert same_bits(x, y), f"array {index} differs"
+        assert sum(int(np.sum(x)) for x in got[7 : 2 + 10 * KILL_AT : 10]) > 0  # Auto-resets were replayed.
+
+
+def test_failover_off_raises_unavailable():
+    with mll.ServerProcess(threads=1) as a, mll.ServerProcess(threads=1) as d:
+        vector = mll.vector_env(4, address=[a.address, d.address], n_landers=2, failover=False)
+        assert not vector.failover
+        vector.reset(seed=1)
+        vector.step(np.zeros((4, 2), np.int32))
+        os.kill(d.pid, signal.SIGKILL)
+        d._process.wait(timeout=10)
+        with pytest.raises(mll.MLLError) as raised:
+            vector.step(np.zeros((4, 2), np.int32))
+        assert raised.value.code == grpc.StatusCode.UNAVAILABLE
+        vector.close()
+
+
+def test_not_found_env_is_recreated_on_its_server(address, raw_stub):
+    from multi_lunar_lander._stubs import pb
+
+    vector = mll.vector_env(3, address=address, n_landers=2, failover=True)
+    reference = mll.vector_env(3, address=address, n_landers=2)
+    rng = np.random.default_rng(3)
+    vector.reset(seed=9)
+    reference.reset(seed=9)
+    for step in range(40):
+        if step == 20:
+            raw_stub.DeleteEnv(pb.DeleteEnvRequest(name=vector.names[1]))
+        actions = random_actions(rng, (3, 2), False)
+        got, want = vector.step(actions), reference.step(actions)
+        assert all(same_bits(x, y) for x, y in zip(got[:-1], want[:-1]))
+    assert vector.failovers == 1 and vector.env_addresses == [address] * 3
+    vector.close()
+    reference.close()
