@@ -80,6 +80,7 @@ class RemoteEnvBase:
         _lease.hold(connection, env.name, env.idle_timeout_s)
         self.render_mode = render_mode
         self.config = config_dict(env.config)
+        self._env_config = env.config  # Filled in by the server (what a state carries).
         self.continuous = bool(env.config.continuous)
         self.possible_agents = list(env.possible_agents)
         self._agent_index = {agent: index for index, agent in enumerate(self.possible_agents)}

@@ -83,3 +83,90 @@ def test_not_found_env_is_recreated_on_its_server(address, raw_stub):
     assert vector.failovers == 1 and vector.env_addresses == [address] * 3
     vector.close()
     reference.close()
+
+
+def _parallel_steps(env, rng, steps):
+    """Every array of `steps` random steps of a parallel env (reset at the episode's end)."""
+    out = []
+    for _ in range(steps):
+        if not env.agents:
+            observations, _ = env.reset()
+            out.extend(observations[a] for a in sorted(observations))
+            continue
+        actions = {a: int(rng.integers(0, 4)) for a in env.agents}
+        for part in env.step(actions)[:4]:
+            out.extend(np.asarray(part[a]) for a in sorted(part))
+    return out
+
+
+def test_parallel_state_restores_on_another_server_process(address):
+    with mll.ServerProcess(threads=1) as other:
+        env = mll.parallel_env(address=address, n_landers=2)
+        env.reset(seed=11)
+        _parallel_steps(env, np.random.default_rng(1), 150)  # Crosses episode ends (unseeded resets).
+        state = env.state()
+        assert state[:4] == b"MLLS"
+        elsewhere = mll.parallel_env(address=other.address, n_landers=2)
+        restored = elsewhere.restore(state)
+        assert sorted(restored) == sorted(env.agents) == sorted(elsewhere.agents)
+        twin = env.clone()
+        expected = _parallel_steps(env, np.random.default_rng(2), 60)
+        for copy in (elsewhere, twin):
+            got = _parallel_steps(copy, np.random.default_rng(2), 60)
+            assert len(got) == len(expected) and all(same_bits(x, y) for x, y in zip(got, expected))
+        for e in (env, elsewhere, twin):
+            e.close()
+
+
+def test_vector_env_state_moves_an_env_between_server_processes(address):
+    with mll.ServerProcess(threads=1) as other:
+        vector = mll.vector_env(3, address=address, n_landers=2, max_cycles=40)
+        target = mll.vector_env(3, address=other.address, n_landers=2, max_cycles=40)
+        rng = np.random.default_rng(4)
+        vector.reset(seed=21)
+        target.reset(seed=99)
+        for _ in range(70):  # Past max_cycles: auto-resets in the record.
+            vector.step(random_actions(rng, (3, 2), False))
+        observations = target.restore_env(2, vector.env_state(1))
+        assert same_bits(observations, vector._last_observations[1])
+        for _ in range(50):
+            actions = random_actions(rng, (3, 2), False)
+            want = vector.step(actions)
+            got = target.step(actions[[0, 2, 1]])
+            assert all(same_bits(g[2], w[1]) for g, w in zip(got[:5], want[:5]))
+        vector.close()
+        target.close()
+
+
+def test_a_damaged_state_is_refused_and_the_env_untouched(address):
+    env = mll.parallel_env(address=address, n_landers=2)
+    reference = mll.parallel_env(address=address, n_landers=2)
+    for e in (env, reference):
+        e.reset(seed=3)
+        _parallel_steps(e, np.random.default_rng(5), 10)
+    state = env.state()
+    name = env.name
+    flipped = bytearray(state)
+    flipped[len(state) // 2] ^= 0x10
+    other_options = mll.parallel_env(address=address, n_landers=3)
+    other_options.reset(seed=3)
+    cases = {
+        "damaged": bytes(flipped),
+        "damaged|truncated": state[:-9],
+        "MLLS": b"NOPE" + state[4:],
+        "other options": other_options.state(),
+        "bytes": "not bytes",
+    }
+    for match, bad in cases.items():
+        with pytest.raises(mll.MLLError, match=match) as raised:
+            env.restore(bad)
+        assert raised.value.code == grpc.StatusCode.INVALID_ARGUMENT
+    assert env.name == name
+    got = _parallel_steps(env, np.random.default_rng(6), 30)
+    want = _parallel_steps(reference, np.random.default_rng(6), 30)
+    assert all(same_bits(x, y) for x, y in zip(got, want))
+    with pytest.raises(mll.MLLError) as raised:
+        mll.parallel_env(address=address).state()
+    assert raised.value.code == grpc.StatusCode.FAILED_PRECONDITION
+    for e in (env, reference, other_options):
+        e.close()
