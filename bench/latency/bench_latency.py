@@ -20,10 +20,14 @@ memory would bypass the link):
   envpool     EnvPool 1.2.5's async API in this process (--envs envs, batch_size 64, --threads
               threads; no link at all), for reference, at RTT 0 only.
 
+The proxies run under SCHED_FIFO (delay_proxy --realtime) unless --no-proxy_realtime: on a machine
+whose cores the server and client keep busy, a proxy that waits for a CPU would add to the delay.
+
 Each measurement: a fresh env (created through the link), a warm-up of --warmup calls, then up to
 --steps calls or --seconds, whichever ends first; env-steps = calls x envs per call. --rounds rounds,
-each visiting every RTT and configuration in turn; figures are medians over rounds, and the ratio
-to RTT 0 is the median of each round's ratio to the same configuration's RTT-0 figure. CPU is this
+each running every configuration at every RTT in turn (one proxy per RTT for the whole run);
+figures are medians over rounds, and the ratio to RTT 0 is the median of each round's ratio to the
+same configuration's RTT-0 figure, measured seconds before. CPU is this
 process (or mll_cli) plus the server, per env-step; the proxy's own CPU is reported apart.
 Loopback only. Prints a Markdown table and a JSON line.
 
@@ -57,6 +61,27 @@ def process_cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def cpu_pressure() -> str:
+    """The share of time some runnable task waited for a CPU over the last 10 s and 60 s
+    (/proc/pressure/cpu; a better sign of a busy machine than the load average)."""
+    try:
+        fields = dict(item.split("=") for item in pathlib.Path("/proc/pressure/cpu").read_text().split()[1:3])
+        return f"{fields['avg10']}% / {fields['avg60']}%"
+    except (OSError, KeyError, ValueError):
+        return "unknown"
+
+
+def cpu_ticks() -> list[int]:
+    """The machine's CPU time by state (/proc/stat: user nice system idle iowait irq softirq steal)."""
+    return [int(value) for value in pathlib.Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:9]]
+
+
+def steal_share(before: list[int], after: list[int]) -> float:
+    """The share of CPU time the hypervisor took from this VM between two cpu_ticks()."""
+    delta = [b - a for a, b in zip(before, after)]
+    return delta[7] / max(sum(delta), 1)
+
+
 def children_cpu_s() -> float:
     usage = resource.getrusage(resource.RUSAGE_CHILDREN)
     return usage.ru_utime + usage.ru_stime
@@ -65,13 +90,13 @@ def children_cpu_s() -> float:
 class DelayProxy:
     """A delay_proxy child in front of `target` ("127.0.0.1:PORT") with a one-way delay."""
 
-    def __init__(self, binary: str, target: str, delay_us: int):
+    def __init__(self, binary: str, target: str, delay_us: int, realtime: bool = False):
         self._workdir = tempfile.mkdtemp(prefix="delay_proxy_")
         port_file = os.path.join(self._workdir, "port")
         self._out = open(os.path.join(self._workdir, "out"), "w+")
         self.process = subprocess.Popen(
             [binary, "--listen=127.0.0.1:0", f"--target={target}", f"--delay_us={delay_us}",
-             f"--port_file={port_file}", f"--parent_pid={os.getpid()}"],
+             f"--port_file={port_file}", f"--parent_pid={os.getpid()}", f"--realtime={str(realtime).lower()}"],
             stdin=subprocess.DEVNULL, stdout=self._out, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + 10
         while not os.path.exists(port_file):
@@ -211,17 +236,21 @@ def cli_supports_batch_size(cli: str) -> bool:
 
 def measure_cli(cli: str, address: str, server_pid: int, envs: int, seconds: float, batch: int | None) -> dict:
     """mll_cli bench (the C++ VectorEnv) against `address`: its throughput; CPU of mll_cli and the
-    server over the whole run (warm-up included) per env-step of the measured part."""
-    client_before, server_before = children_cpu_s(), process_cpu_s(server_pid)
+    server over the whole run (warm-up included) per env-step of the measured part. A run that
+    stepped nothing (its warm-up took all its time: a stalled machine) runs once more."""
     command = [cli, "bench", f"--address={address}", f"--envs={envs}", "--n_landers=1", f"--seconds={seconds}",
                f"--transport={TRANSPORT}"]
     if batch is not None:
         command.append(f"--batch_size={batch}")
-    output = subprocess.run(command, check=True, capture_output=True, text=True, timeout=seconds * 3 + 120).stdout
-    result = json.loads(output.strip().splitlines()[-1])
-    cpu = children_cpu_s() - client_before + process_cpu_s(server_pid) - server_before
-    return {"env_steps_per_s": result["env_steps_per_second"],
-            "cpu_us_per_env_step": cpu * 1e6 / max(result["env_steps"], 1)}
+    for _ in range(2):
+        client_before, server_before = children_cpu_s(), process_cpu_s(server_pid)
+        output = subprocess.run(command, check=True, capture_output=True, text=True, timeout=seconds * 3 + 120).stdout
+        result = json.loads(output.strip().splitlines()[-1])
+        cpu = children_cpu_s() - client_before + process_cpu_s(server_pid) - server_before
+        if result["env_steps"]:
+            return {"env_steps_per_s": result["env_steps_per_second"], "cpu_us_per_env_step": cpu * 1e6 / result["env_steps"]}
+        print(f"mll_cli bench stepped nothing in {seconds} s ({output.strip()}); once more", file=sys.stderr)
+    raise RuntimeError(f"mll_cli bench stepped nothing twice: {' '.join(command)}")
 
 
 def parse_async(text: str) -> list[tuple[int, int]]:
@@ -250,6 +279,9 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=3.0, help="time per measurement, at most")
     parser.add_argument("--warmup", type=int, default=20, help="calls before each measurement")
     parser.add_argument("--no_envpool", action="store_true", help="skip EnvPool's row")
+    parser.add_argument("--proxy_realtime", action=argparse.BooleanOptionalAction, default=True,
+                        help="run the proxies under SCHED_FIFO (delay_proxy --realtime; without CAP_SYS_NICE they "
+                        "warn and run normally): a link's delay should not grow with the endpoints' CPU load")
     args = parser.parse_args()
     rtts = [float(value) for value in args.rtts_ms.split(",")]
     if not rtts or rtts[0] != 0:
@@ -292,40 +324,44 @@ def main() -> int:
     names = [*sides, *cli_sides]
     results: dict[str, dict[float, list[dict]]] = {name: {rtt: [] for rtt in rtts} for name in names}
     envpool_results: list[dict] = []
-    proxy_stats: dict[float, list[dict]] = {rtt: [] for rtt in rtts}
-    load_before = os.getloadavg()
+    load_before, pressure_before, ticks_before = os.getloadavg(), cpu_pressure(), cpu_ticks()
+    proxies: dict[float, DelayProxy] = {}
     with mll.ServerProcess(args.server, threads=args.threads) as server:
-        for _ in range(args.rounds):
+        try:
             for rtt in rtts:
-                proxy = DelayProxy(args.proxy, server.address, round(rtt * 500))
-                proxy_cpu_before = process_cpu_s(proxy.process.pid)
-                try:
-                    for name, make in sides.items():
-                        side = make(proxy.address)
+                proxies[rtt] = DelayProxy(args.proxy, server.address, round(rtt * 500), args.proxy_realtime)
+            for _ in range(args.rounds):
+                # Each configuration at every RTT in turn: its ratios compare runs seconds apart.
+                for name, make in sides.items():
+                    for rtt in rtts:
+                        side = make(proxies[rtt].address)
                         try:
                             results[name][rtt].append(measure(side, server.pid, args.warmup, args.steps,
                                                               args.seconds))
                         finally:
                             side.close()
-                    for name, (envs, batch) in cli_sides.items():
-                        results[name][rtt].append(measure_cli(args.cli, proxy.address, server.pid, envs,
+                for name, (envs, batch) in cli_sides.items():
+                    for rtt in rtts:
+                        results[name][rtt].append(measure_cli(args.cli, proxies[rtt].address, server.pid, envs,
                                                               args.seconds, batch))
-                    proxy_cpu = process_cpu_s(proxy.process.pid) - proxy_cpu_before
-                finally:
-                    proxy.close()
-                proxy_stats[rtt].append({**proxy.stats, "cpu_s": proxy_cpu})
-            if envpool is not None:
-                side = EnvPoolAsync(envpool, args.envs, 64, args.threads, table)
-                try:
-                    envpool_results.append(measure(side, None, args.warmup, args.steps, args.seconds))
-                finally:
-                    side.close()
-    load_after = os.getloadavg()
+                if envpool is not None:
+                    side = EnvPoolAsync(envpool, args.envs, 64, args.threads, table)
+                    try:
+                        envpool_results.append(measure(side, None, args.warmup, args.steps, args.seconds))
+                    finally:
+                        side.close()
+            proxy_cpu = {rtt: process_cpu_s(proxy.process.pid) for rtt, proxy in proxies.items()}
+        finally:
+            for proxy in proxies.values():
+                proxy.close()
+    load_after, pressure_after, steal = os.getloadavg(), cpu_pressure(), steal_share(ticks_before, cpu_ticks())
 
     def median(values):
         return statistics.median(values) if values else float("nan")
 
-    print(f"load average {load_before[0]:.1f} at start, {load_after[0]:.1f} at the end (1-minute); "
+    print(f"load average {load_before[0]:.1f} at start, {load_after[0]:.1f} at the end (1-minute); CPU pressure "
+          f"(10 s / 60 s) {pressure_before} at start, {pressure_after} at the end; CPU time stolen by the "
+          f"hypervisor {steal:.1%}; "
           f"mll_server --threads={args.threads}, {args.rounds} rounds, transport={TRANSPORT}, 1 lander per env")
     header = " | ".join(f"RTT {rtt:g} ms" + (" (proxy)" if rtt == 0 else "") for rtt in rtts)
     print(f"| configuration | {header} | CPU us per env-step, RTT 0 |")
@@ -337,7 +373,7 @@ def main() -> int:
         for rtt in rtts:
             rates = [run["env_steps_per_s"] for run in results[name][rtt]]
             ratios = [run["env_steps_per_s"] / base["env_steps_per_s"]
-                      for run, base in zip(results[name][rtt], results[name][rtts[0]])]
+                      for run, base in zip(results[name][rtt], results[name][rtts[0]]) if base["env_steps_per_s"]]
             summary[name][rtt] = {"env_steps_per_s": median(rates), "ratio_to_rtt0": median(ratios)}
             cells.append(f"{median(rates):,.0f}" + ("" if rtt == rtts[0] else f" ({median(ratios):.2f})"))
         cpu = median([run["cpu_us_per_env_step"] for run in results[name][rtts[0]]])
@@ -350,23 +386,27 @@ def main() -> int:
               f"{rate:,.0f} |{' |' * (len(rtts) - 1)} {cpu:.1f} |")
     print()
     for rtt in rtts:
-        stats = proxy_stats[rtt]
-        print(f"proxy at RTT {rtt:g} ms: chunks written late by p50 {median([s.get('late_us_p50', 0) for s in stats]):g} "
-              f"us, p99 {median([s.get('late_us_p99', 0) for s in stats]):g} us (medians over rounds); "
-              f"CPU {sum(s['cpu_s'] for s in stats):.1f} s in all")
+        stats = proxies[rtt].stats
+        print(f"proxy at RTT {rtt:g} ms: {stats.get('chunks', 0):,} chunks written late by p50 "
+              f"{stats.get('late_us_p50')} us, p99 {stats.get('late_us_p99')} us, max {stats.get('late_us_max')} us; "
+              f"its CPU {proxy_cpu[rtt]:.1f} s in all")
     sync_name = f"sync {args.envs}"
     for envs, batch in args.async_configs if async_api else ():
         name = f"async {envs}x{batch}"
         if 2.0 in rtts:
             print(f"{name}: at RTT 2 ms, {summary[name][2.0]['ratio_to_rtt0']:.2f} of its RTT-0 throughput "
                   "(target >= 0.8)")
-        ratio = summary[name][0.0]["env_steps_per_s"] / summary[sync_name][0.0]["env_steps_per_s"]
-        print(f"{name}: at RTT 0, {ratio:.2f} x sync (target >= 1)")
+        ratio = median([run["env_steps_per_s"] / sync["env_steps_per_s"]
+                        for run, sync in zip(results[name][0.0], results[sync_name][0.0])])
+        summary[name]["ratio_to_sync_at_rtt0"] = ratio
+        print(f"{name}: at RTT 0, {ratio:.2f} x sync {args.envs} (median of the rounds' ratios; target >= 1)")
     print(json.dumps({"args": {**vars(args), "async_configs": [f"{n}x{k}" for n, k in args.async_configs]},
-                      "load_average": [load_before, load_after], "summary": {n: {str(r): v for r, v in s.items()}
+                      "load_average": [load_before, load_after],
+                      "cpu_pressure": [pressure_before, pressure_after], "steal": steal, "summary": {n: {str(r): v for r, v in s.items()}
                                                                              for n, s in summary.items()},
                       "runs": {n: {str(r): v for r, v in s.items()} for n, s in results.items()},
-                      "envpool_runs": envpool_results, "proxy": {str(r): v for r, v in proxy_stats.items()}}))
+                      "envpool_runs": envpool_results,
+                      "proxy": {str(r): {**p.stats, "cpu_s": proxy_cpu[r]} for r, p in proxies.items()}}))
     return 0
 
 

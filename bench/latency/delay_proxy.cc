@@ -16,6 +16,9 @@
 // until its queue drains. A peer's EOF is forwarded (shutdown) after the delay
 // too; a reset or error closes both sides at once.
 //
+// With --realtime it runs under SCHED_FIFO: on a busy machine a woken proxy
+// otherwise waits for a CPU, which the link's delay should not depend on.
+//
 // Loopback only: --listen and --target must be 127.0.0.0/8, ::1 or localhost.
 // On SIGTERM or SIGINT it prints one JSON line of statistics (chunks, bytes,
 // how late chunks were written against their deadline) and exits 0.
@@ -23,6 +26,7 @@
 #include <fcntl.h>
 #include <netinet/in.h>
 #include <netinet/tcp.h>
+#include <sched.h>
 #include <signal.h>
 #include <sys/epoll.h>
 #include <sys/prctl.h>
@@ -69,6 +73,10 @@ ABSL_FLAG(int64_t, spin_us, 100,
 ABSL_FLAG(int64_t, max_buffer_mib, 64,
           "bytes held per direction of a connection before the proxy stops "
           "reading from its source, in MiB, [1, 4096]");
+ABSL_FLAG(bool, realtime, false,
+          "run under SCHED_FIFO (priority 1) so that the machine's other work "
+          "does not delay a release (needs CAP_SYS_NICE; otherwise a warning "
+          "and the normal policy)");
 ABSL_FLAG(int64_t, parent_pid, 0,
           "exit (as on SIGTERM) when the process with this pid, which must be "
           "the one that started delay_proxy, exits (0: off)");
@@ -596,6 +604,16 @@ absl::Status Main() {
   }
   // Timers fire when asked, not up to 50 us later (the default slack).
   prctl(PR_SET_TIMERSLACK, 1UL);
+  if (absl::GetFlag(FLAGS_realtime)) {
+    sched_param param{};
+    param.sched_priority = 1;
+    if (sched_setscheduler(0, SCHED_FIFO, &param) != 0) {
+      std::fprintf(stderr,
+                   "delay_proxy: --realtime: SCHED_FIFO refused (%s); "
+                   "running under the normal policy\n",
+                   std::strerror(errno));
+    }
+  }
 
   Proxy proxy(*target, delay_us * kNsPerUs, spin_us * kNsPerUs,
               static_cast<size_t>(max_buffer_mib) << 20);

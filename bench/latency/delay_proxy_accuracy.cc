@@ -64,6 +64,7 @@ ABSL_FLAG(std::string, delays_us, "250,1000,5000",
           "one-way delays to measure, microseconds, comma-separated");
 ABSL_FLAG(int32_t, pings, 2000, "ping-pongs per path");
 ABSL_FLAG(int32_t, bytes, 64, "bytes per ping");
+ABSL_FLAG(bool, realtime, false, "start the proxies with --realtime");
 ABSL_FLAG(bool, check, false,
           "a bounded correctness test (ctest) instead of a measurement");
 ABSL_FLAG(int32_t, max_error_us, 300,
@@ -197,9 +198,10 @@ class ProxyProcess {
     out_file_ = absl::StrCat(directory, "/", name, ".out");
     err_file_ = absl::StrCat(directory, "/", name, ".err");
     // --parent_pid: the proxy goes if this process dies without stopping it.
-    std::vector<std::string> args = {absl::GetFlag(FLAGS_proxy),
-                                     "--port_file=" + port_file_,
-                                     absl::StrCat("--parent_pid=", getpid())};
+    std::vector<std::string> args = {
+        absl::GetFlag(FLAGS_proxy), "--port_file=" + port_file_,
+        absl::StrCat("--parent_pid=", getpid()),
+        absl::StrCat("--realtime=", absl::GetFlag(FLAGS_realtime))};
     args.insert(args.end(), flags.begin(), flags.end());
     std::vector<char*> argv;
     for (std::string& arg : args) argv.push_back(arg.data());
