@@ -9,12 +9,13 @@
 // both ways, each chunk written N microseconds after the read that returned
 // it (one-way delay: a round trip through the proxy gains 2N), in order, with
 // no bandwidth limit. One thread, epoll. The wait is a timerfd on the
-// monotonic clock armed --spin_us before the earliest deadline, then a spin
+// monotonic clock armed a margin before the earliest deadline, then a spin
 // that keeps polling the sockets (so reads are still stamped on time) until
 // the deadline itself: the wake-up latency of the timer does not add to the
-// delay. A direction buffers at most --max_buffer_mib and then stops reading
-// until its queue drains. A peer's EOF is forwarded (shutdown) after the delay
-// too; a reset or error closes both sides at once.
+// delay. The margin follows the timer's observed wake-up latency (plus 10 us),
+// at most --spin_us. A direction buffers at most --max_buffer_mib and then
+// stops reading until its queue drains. A peer's EOF is forwarded (shutdown)
+// after the delay too; a reset or error closes both sides at once.
 //
 // With --realtime it runs under SCHED_FIFO: on a busy machine a woken proxy
 // otherwise waits for a CPU, which the link's delay should not depend on.
@@ -68,8 +69,9 @@ ABSL_FLAG(std::string, port_file, "",
           "if set, the listening port is written here (atomically) once the "
           "proxy accepts connections");
 ABSL_FLAG(int64_t, spin_us, 100,
-          "the timer wakes this many microseconds before a deadline and the "
-          "proxy polls until the deadline, [0, 10000]");
+          "the most microseconds the timer wakes before a deadline, the proxy "
+          "polling until the deadline; below that it follows the timer's "
+          "observed lateness, [0, 10000]");
 ABSL_FLAG(int64_t, max_buffer_mib, 64,
           "bytes held per direction of a connection before the proxy stops "
           "reading from its source, in MiB, [1, 4096]");
@@ -308,7 +310,7 @@ class Proxy {
       const int64_t next = NextDeadline();
       int timeout_ms = -1;
       if (next != kNever) {
-        const int64_t wake = next - spin_ns_;
+        const int64_t wake = next - margin_ns_;
         if (wake <= NowNs()) {
           timeout_ms = 0;  // Spin: poll the sockets until the deadline.
         } else if (wake != armed_ns_) {
@@ -331,6 +333,7 @@ class Proxy {
         const uint64_t tag = events[i].data.u64;
         if (tag == kSignalTag) return absl::OkStatus();
         if (tag == kTimerTag) {
+          if (armed_ns_ != 0) AdaptMargin(NowNs() - armed_ns_);
           uint64_t expirations;
           while (read(timer_, &expirations, sizeof(expirations)) > 0) {
           }
@@ -345,6 +348,7 @@ class Proxy {
   }
 
   const Stats& stats() const { return stats_; }
+  int64_t margin_ns() const { return margin_ns_; }
 
  private:
   // epoll tags: these three (beyond any connection's), or
@@ -355,6 +359,21 @@ class Proxy {
 
   static uint64_t Tag(uint64_t id, bool target) {
     return (id << 1) | (target ? 1 : 0);
+  }
+
+  // The spin before a deadline follows how late the timer wakes the proxy:
+  // up at once to the latest wake-up seen plus a guard, down slowly (1/32 of
+  // the gap per wake-up), within [0, --spin_us]. A busy-waiting proxy would
+  // take a core from the endpoints it sits between.
+  void AdaptMargin(int64_t overshoot_ns) {
+    constexpr int64_t kGuardNs = 10 * kNsPerUs;
+    const int64_t wanted = std::max<int64_t>(overshoot_ns, 0) + kGuardNs;
+    if (wanted > margin_ns_) {
+      margin_ns_ = wanted;
+    } else {
+      margin_ns_ -= (margin_ns_ - wanted) / 32;
+    }
+    margin_ns_ = std::min(margin_ns_, spin_ns_);
   }
 
   void Accept() {
@@ -559,6 +578,7 @@ class Proxy {
   int timer_ = -1;
   int signals_ = -1;
   int64_t armed_ns_ = 0;
+  int64_t margin_ns_ = spin_ns_;  // How long before a deadline the timer wakes.
   uint64_t next_id_ = 1;
   std::unordered_map<uint64_t, std::unique_ptr<Connection>> connections_;
   std::vector<char> buffer_ = std::vector<char>(kReadBytes);
@@ -632,12 +652,14 @@ absl::Status Main() {
   const Stats& stats = proxy.stats();
   std::printf(
       "{\"connections\": %lld, \"chunks\": %lld, \"bytes\": %lld, "
-      "\"late_us_p50\": %lld, \"late_us_p99\": %lld, \"late_us_max\": %lld}\n",
+      "\"late_us_p50\": %lld, \"late_us_p99\": %lld, \"late_us_max\": %lld, "
+      "\"spin_us_at_exit\": %lld}\n",
       static_cast<long long>(stats.connections),
       static_cast<long long>(stats.chunks), static_cast<long long>(stats.bytes),
       static_cast<long long>(stats.LatePercentile(0.5)),
       static_cast<long long>(stats.LatePercentile(0.99)),
-      static_cast<long long>(stats.LateMax()));
+      static_cast<long long>(stats.LateMax()),
+      static_cast<long long>(proxy.margin_ns() / kNsPerUs));
   std::fflush(stdout);
   return absl::OkStatus();
 }
