@@ -5,8 +5,11 @@
 //       --auth_token_file=tokens.txt --metrics_address=0.0.0.0:9464
 //       (one command line)
 //
-// SIGTERM or SIGINT: stop accepting calls, let in-flight calls finish (up to
-// a grace period), exit 0.
+// SIGTERM with --drain_s > 0: drain first (health NOT_SERVING, new envs and
+// Sessions refused, open Sessions ended with UNAVAILABLE "draining: ...", the
+// envs left served until they are gone or --drain_s has passed). Then, as on
+// SIGINT: stop accepting calls, let in-flight calls finish (up to a grace
+// period), exit 0.
 #include <pthread.h>
 #include <signal.h>
 #include <unistd.h>
@@ -54,6 +57,12 @@ ABSL_FLAG(double, idle_timeout_s, 300,
 ABSL_FLAG(double, shutdown_grace_s, 5,
           "after SIGTERM, in-flight calls get this many seconds to finish "
           "before they are cancelled (0 < S <= 3600)");
+ABSL_FLAG(double, drain_s, 0,
+          "on SIGTERM, drain first for up to this many seconds: health "
+          "NOT_SERVING, CreateEnv and new Sessions refused (UNAVAILABLE "
+          "\"draining: ...\"), open Sessions ended with that status so their "
+          "clients move their envs, the envs left served until they are gone "
+          "(0 <= S <= 3600; 0: no drain)");
 ABSL_FLAG(int32_t, max_message_mb, 64,
           "largest message received or sent, in MiB");
 ABSL_FLAG(std::string, tls_cert, "",
@@ -77,7 +86,7 @@ ABSL_FLAG(int64_t, parent_pid, 0,
 
 namespace {
 
-// Bounds of --shutdown_grace_s: a positive time, at most an hour.
+// Bounds of --shutdown_grace_s (a positive time) and --drain_s: an hour.
 constexpr double kMaxShutdownGraceS = 3600;
 
 // Writes through a temporary file and a rename, so that a reader polling
@@ -181,13 +190,14 @@ void PrintBanner(const mll::service::Server& server,
                "mll_server: listening on %s (--address=%s --port_file=%s "
                "--threads=%d --max_envs=%d --max_envs_per_token=%d "
                "--shared_memory_sessions=%d --idle_timeout_s=%g "
-               "--max_message_mb=%d --shutdown_grace_s=%g)\n",
+               "--max_message_mb=%d --shutdown_grace_s=%g --drain_s=%g)\n",
                listening.c_str(), options.address.c_str(), port_file.c_str(),
                options.service.threads, options.service.max_envs,
                mll::service::EffectiveMaxEnvsPerToken(options.service),
                options.service.shared_memory_sessions,
                absl::ToDoubleSeconds(options.service.idle_timeout),
-               options.max_message_mb, shutdown_grace_s);
+               options.max_message_mb, shutdown_grace_s,
+               absl::GetFlag(FLAGS_drain_s));
   const int n_tokens = static_cast<int>(options.service.auth_tokens.size());
   std::fprintf(
       stderr, "mll_server: TLS %s, auth %s, metrics %s\n",
@@ -241,6 +251,12 @@ int main(int argc, char** argv) {
                      " is out of range: allowed 0 < S <= ", kMaxShutdownGraceS,
                      " seconds")));
   }
+  const double drain_s = absl::GetFlag(FLAGS_drain_s);
+  if (!(drain_s >= 0 && drain_s <= kMaxShutdownGraceS)) {
+    return Fail(absl::InvalidArgumentError(absl::StrCat(
+        "--drain_s: ", drain_s, " is out of range: allowed 0 <= S <= ",
+        kMaxShutdownGraceS, " seconds (0: no drain)")));
+  }
   absl::StatusOr<mll::service::ServerOptions> options =
       ServerOptionsFromFlags();
   if (!options.ok()) return Fail(options.status());
@@ -257,6 +273,15 @@ int main(int argc, char** argv) {
 
   int signal_number = 0;
   sigwait(&signals, &signal_number);
+  if (signal_number == SIGTERM && drain_s > 0) {
+    std::fprintf(stderr,
+                 "mll_server: draining on signal %d (up to --drain_s=%g)\n",
+                 signal_number, drain_s);
+    const absl::Time began = absl::Now();
+    const int left = (*server)->Drain(absl::Seconds(drain_s));
+    std::fprintf(stderr, "mll_server: drained in %.3f s, %d envs left\n",
+                 absl::ToDoubleSeconds(absl::Now() - began), left);
+  }
   (*server)->Shutdown(absl::Seconds(shutdown_grace_s));
   std::fprintf(stderr, "mll_server: stopped on signal %d after shutdown\n",
                signal_number);

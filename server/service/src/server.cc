@@ -27,6 +27,8 @@ constexpr int kExamplePort = 50051;
 // shutdown, which fails calls that reach it before the client has seen its
 // GOAWAY with CANCELLED, a code clients do not retry elsewhere.
 constexpr absl::Duration kRefusalPeriod = absl::Milliseconds(100);
+// How often Drain looks whether envs are left.
+constexpr absl::Duration kDrainPoll = absl::Milliseconds(20);
 
 // Whether a server accepts connections on the Unix-domain socket `path`.
 // gRPC removes a socket file before binding its path, which would take the
@@ -218,6 +220,22 @@ std::shared_ptr<grpc::Channel> Server::InProcessChannel() {
   arguments.SetMaxReceiveMessageSize(-1);
   arguments.SetMaxSendMessageSize(-1);
   return server_->InProcessChannel(arguments);
+}
+
+int Server::Drain(absl::Duration period) {
+  if (shut_down_ || server_ == nullptr) return 0;
+  if (grpc::HealthCheckServiceInterface* health =
+          server_->GetHealthCheckService()) {
+    health->Shutdown();  // NOT_SERVING from now on.
+  }
+  service_->StartDraining();
+  const absl::Time deadline = absl::Now() + period;
+  Registry& registry = service_->registry();
+  for (absl::Time now = absl::Now(); registry.size() > 0 && now < deadline;
+       now = absl::Now()) {
+    absl::SleepFor(std::min(kDrainPoll, deadline - now));
+  }
+  return registry.size();
 }
 
 void Server::Shutdown(absl::Duration grace) {

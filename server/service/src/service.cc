@@ -14,6 +14,7 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "absl/synchronization/mutex.h"
 #include "absl/synchronization/notification.h"
 #include "mll/service/convert.h"
 #include "mll/service/server_info.h"
@@ -186,6 +187,52 @@ bool IsLocalPeer(absl::string_view peer) {
   return false;
 }
 
+// UNAVAILABLE "draining: <the server is shutting down>; <what to do>".
+absl::Status DrainingError(absl::string_view what_to_do) {
+  return absl::UnavailableError(absl::StrCat(
+      kDrainingPrefix, "the server is shutting down (SIGTERM); ", what_to_do));
+}
+
+// Something the SessionTracker can end when the server drains.
+class DrainableSession {
+ public:
+  virtual void Drain() = 0;
+
+ protected:
+  ~DrainableSession() = default;
+};
+
+}  // namespace
+
+// The open Session streams, so that draining can end them. A session adds
+// itself before its first read and removes itself in OnDone, before it is
+// deleted; Drain runs under the tracker's lock, so no session goes while
+// it is being drained.
+class SessionTracker {
+ public:
+  void Add(DrainableSession* session) {
+    absl::MutexLock lock(&mu_);
+    sessions_.insert(session);
+    if (draining_) session->Drain();
+  }
+  void Remove(DrainableSession* session) {
+    absl::MutexLock lock(&mu_);
+    sessions_.erase(session);
+  }
+  void DrainAll() {
+    absl::MutexLock lock(&mu_);
+    draining_ = true;
+    for (DrainableSession* session : sessions_) session->Drain();
+  }
+
+ private:
+  absl::Mutex mu_;
+  absl::flat_hash_set<DrainableSession*> sessions_ ABSL_GUARDED_BY(mu_);
+  bool draining_ ABSL_GUARDED_BY(mu_) = false;
+};
+
+namespace {
+
 // One Session stream: reads a request, runs it, writes its response, reads
 // the next; so responses come in request order and at most one operation of
 // the stream is in flight. Envs it created (not detached) are deleted when
@@ -196,16 +243,26 @@ bool IsLocalPeer(absl::string_view peer) {
 // session's shared-memory region instead (mll/shared_memory_pipe.h), served
 // by a thread of the session's own; the stream then only marks the
 // session's life, and a request sent on it gets FAILED_PRECONDITION.
+//
+// Draining (Drain, from the tracker) ends the stream with UNAVAILABLE
+// "draining: ..." at once when it waits for a request, else after the
+// operation in flight has answered; a request read after that is not run.
+// gRPC runs no read or write reaction inline, so the stream's operations
+// are started under mu_.
 class SessionReactor final
-    : public grpc::ServerBidiReactor<v1::SessionRequest, v1::SessionResponse> {
+    : public grpc::ServerBidiReactor<v1::SessionRequest, v1::SessionResponse>,
+      public DrainableSession {
  public:
   SessionReactor(Operations* operations, Registry* registry, Metrics* metrics,
-                 SharedMemorySessions* shared_memory_sessions, bool local_peer,
-                 absl::StatusOr<absl::string_view> owner)
+                 SharedMemorySessions* shared_memory_sessions,
+                 SessionTracker* tracker, const std::atomic<bool>* draining,
+                 bool local_peer, absl::StatusOr<absl::string_view> owner)
       : operations_(operations),
         registry_(registry),
         metrics_(metrics),
         shared_memory_sessions_(shared_memory_sessions),
+        tracker_(tracker),
+        draining_(draining),
         local_peer_(local_peer),
         timer_(metrics, Method::kSession) {
     if (!owner.ok()) {
@@ -214,13 +271,32 @@ class SessionReactor final
       return;
     }
     owner_ = *owner;
-    StartRead(&request_);
+    tracked_ = true;
+    {
+      absl::MutexLock lock(&mu_);
+      reading_ = true;  // The first read is as good as started.
+    }
+    tracker_->Add(this);  // Drains this stream at once while draining.
+    absl::MutexLock lock(&mu_);
+    if (!finished_) StartRead(&request_);
+  }
+
+  void Drain() override {
+    absl::MutexLock lock(&mu_);
+    if (finished_ || drain_asked_) return;
+    drain_asked_ = true;
+    if (reading_) FinishDraining();
   }
 
   void OnReadDone(bool ok) override {
-    if (!ok) {  // The client half-closed, or the call was cancelled.
-      EndStream();
-      return;
+    {
+      absl::MutexLock lock(&mu_);
+      reading_ = false;
+      if (finished_) return;  // Drained: the request, if any, is not run.
+      if (!ok) {  // The client half-closed, or the call was cancelled.
+        EndStream();
+        return;
+      }
     }
     timer_.Restart();
     response_.Clear();
@@ -241,16 +317,24 @@ class SessionReactor final
   }
 
   void OnWriteDone(bool ok) override {
+    absl::MutexLock lock(&mu_);
     if (!ok) {  // The stream broke; nobody reads any more answers.
       EndStream();
       return;
     }
+    if (drain_asked_) {
+      FinishDraining();
+      return;
+    }
+    reading_ = true;
     StartRead(&request_);
   }
 
   // Also covers a stream that ended without EndStream (e.g. cancelled while a
-  // write was pending).
+  // write was pending). Leaves the tracker first, which waits for a Drain
+  // under way.
   void OnDone() override {
+    if (tracked_) tracker_->Remove(this);
     StopServingSharedMemory();
     DeleteBoundEnvs();
     delete this;
@@ -258,11 +342,24 @@ class SessionReactor final
 
  private:
   // The bound envs go before the final status does, so a client that sees
-  // the stream end never finds them still listed.
+  // the stream end never finds them still listed. Under mu_.
   void EndStream() {
+    finished_ = true;
     StopServingSharedMemory();
     DeleteBoundEnvs();
     Finish(grpc::Status::OK);
+  }
+
+  // As EndStream, with the status that tells the client to move. Under mu_,
+  // with no operation in flight on the stream.
+  void FinishDraining() {
+    finished_ = true;
+    StopServingSharedMemory();
+    DeleteBoundEnvs();
+    const absl::Status status =
+        DrainingError("move this session's environments to another server");
+    timer_.Record(status);
+    Finish(ToGrpcStatus(status));
   }
 
   void DeleteBoundEnvs() {
@@ -293,6 +390,10 @@ class SessionReactor final
   // (mll/session_ops.h), then the session's record of its bound envs.
   absl::Status Run(const v1::SessionRequest& request,
                    v1::SessionResponse* response) {
+    if (request.op_case() == v1::SessionRequest::kCreateEnv &&
+        draining_->load()) {
+      return DrainingError("create environments on another server");
+    }
     const Dispatch run = dispatch();
     absl::Status status;
     switch (request.op_case()) {
@@ -436,7 +537,17 @@ class SessionReactor final
   Registry* const registry_;
   Metrics* const metrics_;
   SharedMemorySessions* const shared_memory_sessions_;
+  SessionTracker* const tracker_;
+  const std::atomic<bool>* const draining_;
   const bool local_peer_;
+  bool tracked_ = false;  // Added to tracker_ (an admitted stream).
+  absl::Mutex mu_;
+  // A read is pending: no operation of the stream is in flight.
+  bool reading_ ABSL_GUARDED_BY(mu_) = false;
+  // Finish was called (or is about to be, by EndStream).
+  bool finished_ ABSL_GUARDED_BY(mu_) = false;
+  // Drain was called: the stream ends after the operation in flight.
+  bool drain_asked_ ABSL_GUARDED_BY(mu_) = false;
   // Points into the Authenticator, which outlives every call.
   absl::string_view owner_;
   CallTimer timer_;
@@ -507,7 +618,8 @@ int EffectiveMaxEnvsPerToken(const ServiceOptions& options) {
 }
 
 MultiLunarLanderService::MultiLunarLanderService(const ServiceOptions& options)
-    : authenticator_(options.auth_tokens),
+    : sessions_(std::make_unique<SessionTracker>()),
+      authenticator_(options.auth_tokens),
       registry_(options.max_envs, options.idle_timeout,
                 EffectiveMaxEnvsPerToken(options)),
       operations_(&registry_, &pool_),
@@ -532,11 +644,23 @@ absl::StatusOr<absl::string_view> MultiLunarLanderService::Admit(
   return authenticator_.Authenticate(Authorization(context));
 }
 
+absl::StatusOr<absl::string_view> MultiLunarLanderService::AdmitNewWork(
+    const grpc::CallbackServerContext& context, absl::string_view what) const {
+  if (draining_.load() && !refusing_.load()) return DrainingError(what);
+  return Admit(context);
+}
+
+void MultiLunarLanderService::StartDraining() {
+  draining_.store(true);
+  sessions_->DrainAll();
+}
+
 grpc::ServerUnaryReactor* MultiLunarLanderService::CreateEnv(
     grpc::CallbackServerContext* context, const v1::CreateEnvRequest* request,
     v1::Env* response) {
   return RunUnary(
-      context, Admit(*context), &operations_, &metrics_, Method::kCreateEnv,
+      context, AdmitNewWork(*context, "create environments on another server"),
+      &operations_, &metrics_, Method::kCreateEnv,
       [&](const Dispatch& run) { return run.CreateEnv(*request, response); });
 }
 
@@ -628,8 +752,9 @@ grpc::ServerUnaryReactor* MultiLunarLanderService::KeepAlive(
 grpc::ServerUnaryReactor* MultiLunarLanderService::GetServerInfo(
     grpc::CallbackServerContext* context,
     const v1::GetServerInfoRequest* /*request*/, v1::ServerInfo* response) {
-  return RunUnary(context, Admit(*context), &operations_, &metrics_,
-                  Method::kGetServerInfo, [&](const Dispatch&) {
+  return RunUnary(context, AdmitNewWork(*context, "use another server"),
+                  &operations_, &metrics_, Method::kGetServerInfo,
+                  [&](const Dispatch&) {
                     *response = server_info_;
                     return absl::OkStatus();
                   });
@@ -637,9 +762,10 @@ grpc::ServerUnaryReactor* MultiLunarLanderService::GetServerInfo(
 
 grpc::ServerBidiReactor<v1::SessionRequest, v1::SessionResponse>*
 MultiLunarLanderService::Session(grpc::CallbackServerContext* context) {
-  return new SessionReactor(&operations_, &registry_, &metrics_,
-                            &shared_memory_sessions_,
-                            IsLocalPeer(context->peer()), Admit(*context));
+  return new SessionReactor(
+      &operations_, &registry_, &metrics_, &shared_memory_sessions_,
+      sessions_.get(), &draining_, IsLocalPeer(context->peer()),
+      AdmitNewWork(*context, "open the Session on another server"));
 }
 
 }  // namespace mll::service

@@ -70,6 +70,15 @@ class Server {
   std::shared_ptr<grpc::Channel> InProcessChannel();
   MultiLunarLanderService& service() { return *service_; }
 
+  // The first step of a graceful stop (mll_server on SIGTERM, --drain_s):
+  // health answers NOT_SERVING; CreateEnv, GetServerInfo and new Session
+  // streams get UNAVAILABLE "draining: ..." (kDrainingPrefix); every open
+  // Session stream is ended with that status, so that its client moves its
+  // envs; calls on the envs still here are served. Returns when no env is
+  // left or `period` has passed, whichever comes first, with the count of
+  // envs left. Shutdown follows.
+  int Drain(absl::Duration period);
+
   // Stops accepting calls, lets in-flight calls finish until `grace` has
   // passed, then cancels the rest. Returns when every call has ended.
   void Shutdown(absl::Duration grace);

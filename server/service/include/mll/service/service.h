@@ -8,11 +8,13 @@
 
 #include <atomic>
 #include <cstdint>
+#include <memory>
 #include <string>
 #include <utility>
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "absl/strings/string_view.h"
 #include "absl/time/time.h"
 #include "grpcpp/grpcpp.h"
 #include "mll/service/auth.h"
@@ -90,6 +92,13 @@ class SharedMemorySessions {
 // (unlimited: every caller is the one anonymous tenant).
 int EffectiveMaxEnvsPerToken(const ServiceOptions& options);
 
+// The message every refusal of a draining server starts with, which clients
+// recognise as "move to another server" (UNAVAILABLE, so that a client's
+// failover moves its envs).
+inline constexpr absl::string_view kDrainingPrefix = "draining: ";
+
+class SessionTracker;  // The open Session streams (service.cc).
+
 class MultiLunarLanderService final
     : public v1::MultiLunarLander::CallbackService {
  public:
@@ -104,6 +113,13 @@ class MultiLunarLanderService final
   // From now on new calls and Session streams get UNAVAILABLE, so clients
   // go elsewhere while admitted calls finish (Server::Shutdown).
   void RefuseNewCalls() { refusing_.store(true); }
+  // Starts draining (Server::Drain): CreateEnv, GetServerInfo and new
+  // Session streams get UNAVAILABLE "draining: ..."; every open Session
+  // stream is ended with UNAVAILABLE "draining: ..." once its operation in
+  // flight, if any, has answered (its bound envs deleted first); calls on
+  // existing envs go on being served. Idempotent.
+  void StartDraining();
+  bool draining() const { return draining_.load(); }
 
   grpc::ServerUnaryReactor* CreateEnv(grpc::CallbackServerContext* context,
                                       const v1::CreateEnvRequest* request,
@@ -147,6 +163,10 @@ class MultiLunarLanderService final
   // RefuseNewCalls ran.
   absl::StatusOr<absl::string_view> Admit(
       const grpc::CallbackServerContext& context) const;
+  // As Admit, for calls that start new work here (CreateEnv, GetServerInfo,
+  // a Session stream): also UNAVAILABLE while draining.
+  absl::StatusOr<absl::string_view> AdmitNewWork(
+      const grpc::CallbackServerContext& context, absl::string_view what) const;
 
   // Puts each StepBatch call's request and response on one protobuf arena:
   // a `steps` batch of 64 envs is ~2,000 sub-messages and strings, which
@@ -160,6 +180,8 @@ class MultiLunarLanderService final
   };
 
   std::atomic<bool> refusing_{false};
+  std::atomic<bool> draining_{false};
+  const std::unique_ptr<SessionTracker> sessions_;
   StepBatchArenas step_batch_arenas_;
   // Declared in this order so that destruction first stops the workers
   // (finishing queued steps), which use the operations, the envs, the
