@@ -185,6 +185,8 @@ class VectorEnv:
         self._env_in_flight = np.zeros(self.num_envs, bool)
         self._send_order: collections.deque[int] = collections.deque()
         self._ready: collections.deque[tuple[np.ndarray, dict]] = collections.deque()
+        # Requests of the async API, by (server, envs), reused over the native stream.
+        self._async_requests: dict[tuple[int, bytes], "pb.SessionRequest"] = {}
         # Env i starts on server i mod S (failover moves it); servers beyond num_envs get no connection.
         self._connections: list[Connection] = []
         self._security, self._peers = security, addresses
@@ -258,6 +260,7 @@ class VectorEnv:
 
     def _build_servers(self) -> None:
         """self._servers from the placement: one per connection that holds envs."""
+        self._async_requests = {}  # Their names may have changed (failover, restore_env).
         self._servers = []
         for index, connection in enumerate(self._connections):
             rows = np.flatnonzero(self._placement == index)
@@ -481,7 +484,7 @@ class VectorEnv:
         bad = ids[(ids < 0) | (ids >= self.num_envs)]
         if bad.size:
             raise invalid_argument(f"env_id holds {int(bad[0])}; allowed: 0..{self.num_envs - 1}")
-        if np.unique(ids).size != ids.size:
+        if np.count_nonzero(np.bincount(ids, minlength=self.num_envs) > 1):
             values, counts = np.unique(ids, return_counts=True)
             raise invalid_argument(f"env_id holds {int(values[counts > 1][0])} more than once; each env at most once")
         busy = ids[self._env_in_flight[ids]]
@@ -498,16 +501,32 @@ class VectorEnv:
             if not mine.any():
                 continue
             envs = ids[mine]
-            message = pb.SessionRequest()
-            packed = message.step_batch.packed
-            packed.names.extend(self._names[env] for env in envs)
-            packed.actions.dtype = self._action_dtype
-            packed.actions.shape.extend(block[mine].shape)
-            packed.actions.data = _arrays.to_bytes(block[mine], self._action_dtype)
+            message = self._async_request(server, envs)
+            message.step_batch.packed.actions.data = _arrays.to_bytes(block[mine], self._action_dtype)
             server.stream.send(message)
             server.in_flight.append(envs)
             self._send_order.append(index)
         self._env_in_flight[ids] = True
+
+    def _async_request(self, server: "_Server", envs: np.ndarray) -> "pb.SessionRequest":
+        """A packed StepBatch request for `envs` on `server`, its actions to be set. The native
+        stream encodes a request as it is sent, so the request of a group of envs sent before
+        (the usual case: fixed groups of batch_size) is reused; grpcio's stream encodes it later,
+        on its own thread, so it gets a new one each time."""
+        reusable = isinstance(server.stream, _native.NativeSessionStream)
+        key = (server.index, envs.tobytes())
+        message = self._async_requests.get(key) if reusable else None
+        if message is None:
+            message = pb.SessionRequest()
+            packed = message.step_batch.packed
+            packed.names.extend(self._names[env] for env in envs)
+            packed.actions.dtype = self._action_dtype
+            packed.actions.shape.extend((envs.size, self.n_landers) + ((2,) if self.continuous else ()))
+            if reusable:
+                if len(self._async_requests) >= 4 * self.num_envs:  # Bounded: groups that keep changing.
+                    self._async_requests.clear()
+                self._async_requests[key] = message
+        return message
 
     def recv(self):
         """The results of the first batch_size envs whose steps are done (in the order their
