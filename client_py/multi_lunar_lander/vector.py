@@ -793,6 +793,7 @@ class VectorEnv:
                 f"{first.message}",
             )
         placement, spread = {}, 0
+        draining: dict[int, list[str]] = {}  # Server index -> names of its moved envs, when it drains.
         for index in moving:
             if lost[index].code == grpc.StatusCode.UNAVAILABLE or int(self._placement[index]) in self._down:
                 placement[index] = targets[spread % len(targets)]  # Round robin over the usable ones.
@@ -811,10 +812,19 @@ class VectorEnv:
                 self._action_shape,
             )
             for index, env in zip(envs, created):
+                if "draining:" in lost[index].message:
+                    draining.setdefault(int(self._placement[index]), []).append(self._names[index])
                 self._names[index] = env.name
                 self._placement[index] = target
                 _lease.hold(connection, env.name, env.idle_timeout_s)
         self._build_servers()
+        # A draining server exits once it holds no env: its copies of the moved envs go now.
+        for index, names in draining.items():
+            for name in names:
+                try:
+                    self._connections[index].call("DeleteEnv", pb.DeleteEnvRequest(name=name), timeout=2.0)
+                except MLLError:
+                    pass  # Gone already, or the server went: either way it holds it no more.
         self.failovers += 1
         first = lost[moving[0]]
         _LOG.warning(
