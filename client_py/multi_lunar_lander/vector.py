@@ -185,6 +185,8 @@ class VectorEnv:
         self._env_in_flight = np.zeros(self.num_envs, bool)
         self._send_order: collections.deque[int] = collections.deque()
         self._ready: collections.deque[tuple[np.ndarray, dict]] = collections.deque()
+        # The result columns of the async API's answers, by their number of envs.
+        self._async_columns: dict[int, tuple] = {}
         # Requests of the async API, by (server, envs), reused over the native stream.
         self._async_requests: dict[tuple[int, bytes], "pb.SessionRequest"] = {}
         # Env i starts on server i mod S (failover moves it); servers beyond num_envs get no connection.
@@ -589,13 +591,13 @@ class VectorEnv:
                 )
             env = int(envs[item.index])
             raise from_item_error(item.error.code, item.error.message, f"env {env} ({self._names[env]}): ")
-        columns = {
-            field: _arrays.Column(field, wire, (envs.size,) + shape(self.n_landers), result).decode(
-                getattr(pack, field)
+        decoders = self._async_columns.get(envs.size)
+        if decoders is None:  # Worked out once per request size.
+            decoders = self._async_columns[envs.size] = tuple(
+                _arrays.Column(field, wire, (envs.size,) + shape(self.n_landers), result)
+                for field, wire, result, shape in _AGENT_COLUMNS + _ENV_COLUMNS
             )
-            for field, wire, result, shape in _AGENT_COLUMNS + _ENV_COLUMNS
-        }
-        self._ready.append((envs, columns))
+        self._ready.append((envs, {column.name: column.decode(getattr(pack, column.name)) for column in decoders}))
 
     @staticmethod
     def _packed_reply(server: "_Server", reply):
