@@ -57,6 +57,7 @@
 #include "absl/status/statusor.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "program_usage.h"
 
 ABSL_FLAG(std::string, listen, "127.0.0.1:0",
           "host:port to accept connections on (loopback; port 0: a free one)");
@@ -612,15 +613,10 @@ absl::Status Main() {
   absl::StatusOr<Endpoint> target =
       ParseLoopback("target", absl::GetFlag(FLAGS_target));
   if (!target.ok()) return target.status();
-  if (parent_pid < 0) {
-    return absl::InvalidArgumentError("--parent_pid must be >= 0");
-  }
-  if (parent_pid > 0) {
-    prctl(PR_SET_PDEATHSIG, SIGTERM);
-    if (getppid() != parent_pid) {
-      return absl::FailedPreconditionError(absl::StrCat(
-          "--parent_pid=", parent_pid, " has already exited; not starting"));
-    }
+  if (absl::Status status =
+          mll::core::tools::FollowParent(parent_pid, "delay_proxy");
+      !status.ok()) {
+    return status;
   }
   // Timers fire when asked, not up to 50 us later (the default slack).
   prctl(PR_SET_TIMERSLACK, 1UL);

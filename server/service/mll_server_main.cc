@@ -13,9 +13,6 @@
 #include <pthread.h>
 #include <signal.h>
 #include <unistd.h>
-#ifdef __linux__
-#include <sys/prctl.h>
-#endif
 
 #include <cstdio>
 #include <cstdlib>
@@ -126,30 +123,6 @@ sigset_t BlockStopSignals() {
   return signals;
 }
 
-// --parent_pid: SIGTERM when the parent dies. Set here, not between the
-// parent's fork and exec: a forked child of a multi-threaded parent (gRPC's
-// threads) must do nothing before exec. An error names the flag.
-absl::Status FollowParent() {
-  const int64_t parent_pid = absl::GetFlag(FLAGS_parent_pid);
-  if (parent_pid < 0) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "--parent_pid: ", parent_pid,
-        " is out of range: allowed 0 (off) or the pid of the process that "
-        "started mll_server"));
-  }
-#ifdef __linux__
-  if (parent_pid > 0) {
-    prctl(PR_SET_PDEATHSIG, SIGTERM);
-    // The parent may have exited before the line above took effect.
-    if (getppid() != parent_pid) {
-      return absl::FailedPreconditionError(absl::StrCat(
-          "--parent_pid=", parent_pid, " has already exited; not starting"));
-    }
-  }
-#endif
-  return absl::OkStatus();
-}
-
 // The server's options from the flags, with the auth tokens read.
 absl::StatusOr<mll::service::ServerOptions> ServerOptionsFromFlags() {
   mll::service::ServerOptions options;
@@ -242,7 +215,11 @@ int main(int argc, char** argv) {
   // envs'); the tests run with detection on.
   absl::SetMutexDeadlockDetectionMode(absl::OnDeadlockCycle::kIgnore);
   sigset_t signals = BlockStopSignals();
-  if (absl::Status status = FollowParent(); !status.ok()) return Fail(status);
+  if (absl::Status status = mll::core::tools::FollowParent(
+          absl::GetFlag(FLAGS_parent_pid), "mll_server");
+      !status.ok()) {
+    return Fail(status);
+  }
 
   const double shutdown_grace_s = absl::GetFlag(FLAGS_shutdown_grace_s);
   if (!(shutdown_grace_s > 0 && shutdown_grace_s <= kMaxShutdownGraceS)) {

@@ -1,6 +1,12 @@
 #include "program_usage.h"
 
+#ifdef __linux__
+#include <sys/prctl.h>
+#include <unistd.h>
+#endif
+
 #include <algorithm>
+#include <csignal>
 #include <cstdio>
 #include <cstdlib>
 #include <iostream>
@@ -105,6 +111,27 @@ void ParseFlagsOnly(int argc, char** argv, absl::string_view program,
               << " --help" << std::endl;
     std::exit(kExitUsage);
   }
+}
+
+absl::Status FollowParent(int64_t parent_pid, absl::string_view program) {
+  if (parent_pid < 0) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "--parent_pid: ", parent_pid,
+        " is out of range: allowed 0 (off) or the pid of the process that "
+        "started ",
+        program));
+  }
+#ifdef __linux__
+  if (parent_pid > 0) {
+    prctl(PR_SET_PDEATHSIG, SIGTERM);
+    // The parent may have exited before the line above took effect.
+    if (getppid() != parent_pid) {
+      return absl::FailedPreconditionError(absl::StrCat(
+          "--parent_pid=", parent_pid, " has already exited; not starting"));
+    }
+  }
+#endif
+  return absl::OkStatus();
 }
 
 }  // namespace mll::core::tools

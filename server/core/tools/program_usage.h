@@ -2,14 +2,18 @@
 // lists the program's own flags by name, default and description (never
 // abseil's internal flags or the paths of the files that define them) and
 // exits 0, and positional arguments are refused where a program takes none.
+// Also --parent_pid's rule for the programs that a client or a benchmark
+// starts (mll_server, delay_proxy).
 #ifndef MLL_CORE_TOOLS_PROGRAM_USAGE_H_
 #define MLL_CORE_TOOLS_PROGRAM_USAGE_H_
 
+#include <cstdint>
 #include <string>
 #include <vector>
 
 #include "absl/flags/commandlineflag.h"
 #include "absl/functional/function_ref.h"
+#include "absl/status/status.h"
 #include "absl/strings/string_view.h"
 
 namespace mll::core::tools {
@@ -40,6 +44,13 @@ std::vector<std::string> ParseCommandLine(
 // argument is a usage error (a one-line message on stderr, exit 2).
 void ParseFlagsOnly(int argc, char** argv, absl::string_view program,
                     absl::FunctionRef<std::string()> help);
+
+// --parent_pid=`parent_pid`: with a pid (> 0) the program gets SIGTERM when
+// that process, its parent, dies (Linux). Called by the program itself, not
+// between the parent's fork and exec: a forked child of a multi-threaded
+// parent must do nothing before exec. INVALID_ARGUMENT for a negative pid,
+// FAILED_PRECONDITION when the parent has already exited; 0 is off.
+absl::Status FollowParent(int64_t parent_pid, absl::string_view program);
 
 }  // namespace mll::core::tools
 
