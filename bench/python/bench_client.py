@@ -27,7 +27,6 @@ import argparse
 import json
 import os
 import pathlib
-import resource
 import subprocess
 import sys
 import tempfile
@@ -36,6 +35,8 @@ from concurrent import futures
 
 import grpc
 import numpy as np
+
+from process_cpu import children_cpu_s, process_cpu_s
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
 ECHO_METHOD = "/mll.bench.Echo/Echo"
@@ -115,14 +116,14 @@ class _RoundClock:
 
     def __init__(self, server_pid: int | None):
         self.server_pid = server_pid
-        self.server_before = _process_cpu_s(server_pid) if server_pid else 0.0
+        self.server_before = process_cpu_s(server_pid) if server_pid else 0.0
         self.client_before = time.process_time()
         self.start = time.perf_counter()
 
     def result(self, steps: float, agent_steps: int) -> dict:
         elapsed = time.perf_counter() - self.start
         client = time.process_time() - self.client_before
-        server = (_process_cpu_s(self.server_pid) if self.server_pid else 0.0) - self.server_before
+        server = (process_cpu_s(self.server_pid) if self.server_pid else 0.0) - self.server_before
         return {"steps": steps, "agent_steps": agent_steps, "seconds": elapsed, "cpu_s": client + server,
                 "client_cpu_s": client, "agent_steps_per_s": agent_steps / elapsed}
 
@@ -153,26 +154,15 @@ class VectorRunner:
         return clock.result(count, agent_steps)
 
 
-def _process_cpu_s(pid: int) -> float:
-    """user + system CPU seconds of a process so far (/proc/<pid>/stat)."""
-    fields = pathlib.Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def _children_cpu_s() -> float:
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
-
-
 def bench_core(binary: str, envs: int, n_landers: int, threads: int, steps: int, seconds: float) -> dict:
-    cpu_before = _children_cpu_s()
+    cpu_before = children_cpu_s()
     output = subprocess.run(
         [binary, f"--envs={envs}", f"--n_landers={n_landers}", f"--threads={threads}", f"--steps={steps}",
          f"--seconds={seconds}"],
         check=True, capture_output=True, text=True, timeout=seconds + 120,
     ).stdout
     result = json.loads(output.strip().splitlines()[-1])
-    result["cpu_s"] = _children_cpu_s() - cpu_before
+    result["cpu_s"] = children_cpu_s() - cpu_before
     return result
 
 
@@ -300,15 +290,15 @@ def bench_cli(binary: str, address: str, server_pid: int, envs: int, n_landers: 
     """`mll_cli bench` (the C++ VectorEnv, random discrete actions, auto-reset) against the server at
     `address`: its JSON line, plus the CPU seconds of mll_cli (`client_cpu_s`) and of the server
     (`server_cpu_s`) over the whole run, warm-up included."""
-    client_before, server_before = _children_cpu_s(), _process_cpu_s(server_pid)
+    client_before, server_before = children_cpu_s(), process_cpu_s(server_pid)
     output = subprocess.run(
         [binary, "bench", f"--address={address}", f"--envs={envs}", f"--n_landers={n_landers}",
          f"--seconds={seconds}", f"--transport={transport}", f"--clients={clients}"],
         check=True, capture_output=True, text=True, timeout=seconds * 3 + 60,
     ).stdout
     result = json.loads(output.strip().splitlines()[-1])
-    result["client_cpu_s"] = _children_cpu_s() - client_before
-    result["server_cpu_s"] = _process_cpu_s(server_pid) - server_before
+    result["client_cpu_s"] = children_cpu_s() - client_before
+    result["server_cpu_s"] = process_cpu_s(server_pid) - server_before
     return result
 
 

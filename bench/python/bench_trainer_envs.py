@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from bench_client import _process_cpu_s
+from process_cpu import process_cpu_s
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
 
@@ -34,7 +34,7 @@ def run(step, actions: np.ndarray, steps: int, seconds: float, server_pid: int |
     stepping with the rows of `actions` in turn."""
 
     def cpu_s() -> float:
-        return time.process_time() + (_process_cpu_s(server_pid) if server_pid else 0.0)
+        return time.process_time() + (process_cpu_s(server_pid) if server_pid else 0.0)
 
     deadline = time.perf_counter() + seconds
     started, cpu = time.perf_counter(), cpu_s()

@@ -30,7 +30,6 @@ import json
 import os
 import pathlib
 import re
-import resource
 import subprocess
 import sys
 import tempfile
@@ -38,17 +37,8 @@ import time
 import urllib.request
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
-
-
-def _process_cpu_s(pid: int) -> float:
-    """user + system CPU seconds of a process so far, all its threads (/proc/<pid>/stat)."""
-    fields = pathlib.Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def _children_cpu_s() -> float:
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
+sys.path.insert(0, str(REPO / "bench" / "python"))
+from process_cpu import children_cpu_s, process_cpu_s  # noqa: E402
 
 
 def _pin(pid: int, cores: list[int]) -> None:
@@ -98,7 +88,7 @@ class Server:
         /proc's CPU seconds read right after."""
         with urllib.request.urlopen(self.metrics_url, timeout=10) as response:
             text = response.read().decode()
-        proc_cpu_s = _process_cpu_s(self.pid)
+        proc_cpu_s = process_cpu_s(self.pid)
         sample = {"cpu_s": 0.0, "agent_steps": 0, "voluntary": 0, "involuntary": 0, "proc_cpu_s": proc_cpu_s}
         for line in text.splitlines():
             if line.startswith("#"):
@@ -132,8 +122,8 @@ def measure_server(args, threads: int, n_landers: int, server_cores, client_core
         command = _taskset(client_cores) + [
             args.cli, "bench", f"--address={server.address}", f"--envs={args.envs}", f"--n_landers={n_landers}",
             f"--seconds={args.seconds}", f"--clients={args.clients}", f"--transport={args.transport}"]
-        client_before = _children_cpu_s()
-        run_before = _process_cpu_s(server.pid)
+        client_before = children_cpu_s()
+        run_before = process_cpu_s(server.pid)
         cli = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
             # The window opens once stepping has begun, plus a second; it closes a second before
@@ -174,9 +164,9 @@ def measure_server(args, threads: int, n_landers: int, server_cores, client_core
             "involuntary_switches_per_s": (last["involuntary"] - first["involuntary"]) / window_s,
             # The whole run (warm-up, env creation, teardown included), from mll_cli's own count.
             "run_agent_steps": result["agent_steps"],
-            "run_server_cpu_us_per_agent_step": (_process_cpu_s(server.pid) - run_before)
+            "run_server_cpu_us_per_agent_step": (process_cpu_s(server.pid) - run_before)
             / max(1, result["agent_steps"]) * 1e6,
-            "client_cpu_s": _children_cpu_s() - client_before,
+            "client_cpu_s": children_cpu_s() - client_before,
             "cli": result,
         }
     finally:
@@ -185,14 +175,14 @@ def measure_server(args, threads: int, n_landers: int, server_cores, client_core
 
 def measure_core(args, threads: int, n_landers: int, cores) -> dict:
     envs = args.clients * args.envs
-    cpu_before = _children_cpu_s()
+    cpu_before = children_cpu_s()
     output = subprocess.run(
         _taskset(cores) + [args.core_timing, f"--envs={envs}", f"--n_landers={n_landers}", f"--threads={threads}",
                            "--steps=1000000", f"--seconds={args.seconds}"],
         check=True, capture_output=True, text=True, timeout=args.seconds + 120,
     ).stdout
     result = json.loads(output.strip().splitlines()[-1])
-    result["cpu_s"] = _children_cpu_s() - cpu_before
+    result["cpu_s"] = children_cpu_s() - cpu_before
     result["cpu_us_per_agent_step"] = result["cpu_s"] / result["agent_steps"] * 1e6
     return result
 
