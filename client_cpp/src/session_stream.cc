@@ -210,9 +210,13 @@ absl::Status SessionStream::SendBytes(absl::string_view request) {
           "request of ", request.size(),
           " bytes; allowed: up to the shared-memory region's ", capacity_)));
     }
-    region_queue_.emplace_back(request);
     ++sent_;
-    FeedRegion();
+    FeedRegion();  // The region is free once the previous answer was taken.
+    if (!region_busy_ && region_queue_.empty()) {
+      WriteToRegion(request);
+    } else {
+      region_queue_.emplace_back(request);
+    }
     return absl::OkStatus();
   }
   absl::Status status = WriteToStream(request);
@@ -246,14 +250,17 @@ absl::Status SessionStream::WriteToStream(absl::string_view request) {
 // answer lies in the region until the caller's next call.
 void SessionStream::FeedRegion() {
   if (!attached_ || region_busy_ || region_queue_.empty()) return;
-  const std::string& request = region_queue_.front();
+  WriteToRegion(region_queue_.front());
+  region_queue_.pop_front();
+}
+
+void SessionStream::WriteToRegion(absl::string_view request) {
   auto& header = *static_cast<shared_memory::Header*>(region_);
   std::memcpy(shared_memory::RequestArea(region_), request.data(),
               request.size());
   header.request_size.store(request.size(), std::memory_order_release);
   header.request_seq.store(++region_sequence_, std::memory_order_release);
   shared_memory::Wake(header.request_seq);
-  region_queue_.pop_front();
   region_busy_ = true;
 }
 

@@ -112,6 +112,8 @@ class SessionStream {
   void DropRegion();
   absl::Status WriteToStream(absl::string_view request);
   void FeedRegion();
+  // Puts `request` in the free region and wakes the server.
+  void WriteToRegion(absl::string_view request);
   std::optional<absl::Status> ReceiveFromRegion(absl::string_view* response,
                                                 gpr_timespec deadline);
   std::optional<bool> Await(Operation operation, gpr_timespec deadline);
