@@ -55,9 +55,12 @@ class EnvRecord:
 
 
 class GrowingLog:
-    """Operations of one or more envs that act together (a vector env's rows, a single env's
-    steps): row r holds each env's operation kind (0: none) and action bytes. Grows by doubling;
-    past MAX_RECORD_STEPS rows it stops growing and is `full` (the records are incomplete)."""
+    """Operations of one or more envs: row r holds each env's operation kind (0: none) and action
+    bytes. append() adds a row for every env (envs that act together: a vector env's synchronous
+    steps, a single env's steps); append_envs() adds one operation for some envs, each at its own
+    next row (envs that step on their own: EnvPool's send/recv), so each env's operations stay
+    dense, row_bytes + 1 bytes each. Grows by doubling; past MAX_RECORD_STEPS rows it stops
+    growing and is `full` (the records are incomplete)."""
 
     def __init__(self, num_envs: int, row_bytes: int):
         self.num_envs, self.row_bytes = num_envs, row_bytes
@@ -65,10 +68,25 @@ class GrowingLog:
         self.actions = np.zeros((64, num_envs, row_bytes), np.uint8)
         self.length = 0
         self.full = False
+        # Each env's next row for append_envs, valid while `length` is `_ends_length`: an append()
+        # or clear() since puts every env's next row at `length`.
+        self._ends = np.zeros(num_envs, np.int64)
+        self._ends_length = 0
 
     def clear(self) -> None:
         self.length = 0
         self.full = False
+        self._ends[:] = 0
+        self._ends_length = 0
+
+    def _grow(self, rows: int) -> None:
+        """Room for at least `rows` rows (at most MAX_RECORD_STEPS), doubling."""
+        capacity = self.kinds.shape[0]
+        while capacity < rows:
+            capacity *= 2
+        capacity = min(capacity, MAX_RECORD_STEPS)
+        self.kinds = np.resize(self.kinds, (capacity, self.num_envs))
+        self.actions = np.resize(self.actions, (capacity, self.num_envs, self.row_bytes))
 
     def append(self, kinds, actions) -> None:
         """One row: kinds (num_envs,) uint8, actions (num_envs, row_bytes) uint8 or bytes."""
@@ -76,20 +94,46 @@ class GrowingLog:
             self.full = True
             return
         if self.length == self.kinds.shape[0]:
-            capacity = min(2 * self.length, MAX_RECORD_STEPS)
-            self.kinds = np.resize(self.kinds, (capacity, self.num_envs))
-            self.actions = np.resize(self.actions, (capacity, self.num_envs, self.row_bytes))
+            self._grow(self.length + 1)
         self.kinds[self.length] = kinds
         if isinstance(actions, (bytes, bytearray, memoryview)):
             actions = np.frombuffer(actions, np.uint8).reshape(self.num_envs, self.row_bytes)
         self.actions[self.length] = actions
         self.length += 1
 
+    def append_envs(self, envs: np.ndarray, kinds: np.ndarray, actions: np.ndarray) -> None:
+        """One operation of each of `envs` (distinct env indices), each at its env's next row:
+        kinds (len(envs),) uint8, actions (len(envs), row_bytes) uint8."""
+        ends = self.ends()
+        rows = ends[envs]
+        top = int(rows.max()) + 1
+        if top > MAX_RECORD_STEPS:
+            self.full = True
+            return
+        if top > self.kinds.shape[0]:
+            self._grow(top)
+        self.kinds[rows, envs] = kinds
+        self.actions[rows, envs] = actions
+        ends[envs] = rows + 1
+        self.length = self._ends_length = max(self.length, top)
+
+    def ends(self) -> np.ndarray:
+        """Each env's next row (past its last operation), int64 (num_envs,)."""
+        if self._ends_length != self.length:
+            # Rows were appended for every env since append_envs: the rows an env skipped before
+            # them hold nothing of it, and every env goes on after them.
+            for env in np.flatnonzero(self._ends < self._ends_length):
+                self.kinds[self._ends[env] : self._ends_length, env] = 0
+            self._ends[:] = self.length
+            self._ends_length = self.length
+        return self._ends
+
     def of_env(self, env: int, start: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """Env `env`'s operations from row `start` on: (kinds, action rows)."""
-        kinds = self.kinds[start : self.length, env]
+        end = int(self.ends()[env])
+        kinds = self.kinds[start:end, env]
         used = kinds != 0
-        return kinds[used].copy(), self.actions[start : self.length, env][used].copy()
+        return kinds[used].copy(), self.actions[start:end, env][used].copy()
 
 
 def encode_state(

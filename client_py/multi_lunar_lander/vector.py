@@ -86,7 +86,6 @@ class _Server(NamedTuple):
     actions: "pb.Array"
     columns: tuple  # _arrays.Column of every result column, shaped for this server's envs.
     stream: SessionStream
-    in_flight: collections.deque  # Env indices of each async request in flight, oldest first.
 
 
 class VectorEnv:
@@ -179,11 +178,13 @@ class VectorEnv:
         self._names: list[str | None] = [None] * self.num_envs  # None: not created.
         self._step_in_flight = False  # From step_async until step_wait reads the answers.
         # The async API (send/recv): envs whose step (or async_reset) was sent and whose result
-        # recv has not returned yet; the server of each request in flight, in send order, and
-        # per server the env indices of its requests in flight; results received and not yet
+        # recv has not returned yet; the connection of each request in flight, in send order, and
+        # per connection its requests in flight, oldest first, as (env indices, action rows:
+        # uint8 (envs, row bytes), what failover sends again); results received and not yet
         # returned by recv, as (env indices, columns) chunks in the order they came.
         self._env_in_flight = np.zeros(self.num_envs, bool)
         self._send_order: collections.deque[int] = collections.deque()
+        self._in_flight: list[collections.deque[tuple[np.ndarray, np.ndarray]]] = []
         self._ready: collections.deque[tuple[np.ndarray, dict]] = collections.deque()
         # The result columns of the async API's answers, by their number of envs.
         self._async_columns: dict[int, tuple] = {}
@@ -230,12 +231,12 @@ class VectorEnv:
         self._action_shape = action_shape
         self._row_bytes = 4 * int(np.prod(action_shape))
         # Each env's record (see _record): the seed of its last seeded reset, a prefix restored by
-        # restore_env, and its operations in the shared log from row _start[i] on.
+        # restore_env, and its operations in the shared log from row _start[i] on (send/recv
+        # steps appended per env as their answers come).
         self._log = _record.GrowingLog(self.num_envs, self._row_bytes)
         self._seeds: list[int | None] = [None] * self.num_envs
         self._start = np.zeros(self.num_envs, np.int64)
         self._prefix: list[_record.EnvRecord | None] = [None] * self.num_envs
-        self._unrecorded = False  # A send/recv step since the last seeded reset: not recorded.
         self._last_observations = np.zeros((self.num_envs, self.n_landers, 12), np.float32)
         self._pending = np.zeros((self.num_envs, self._row_bytes), np.uint8)  # The step's action bytes.
         if native:
@@ -250,6 +251,7 @@ class VectorEnv:
             stream_type = SessionStream
         self._stream_type = stream_type
         self._streams = [stream_type(connection) for connection in self._connections]
+        self._in_flight = [collections.deque() for _ in self._connections]
         self._build_servers()
         if transport == "shared_memory":
             # Asked for by name: a refusal raises here, not at the first step.
@@ -279,10 +281,7 @@ class VectorEnv:
                 for field, wire, result, shape in _AGENT_COLUMNS + _ENV_COLUMNS
             )
             self._servers.append(
-                _Server(
-                    connection, index, rows, len(names), message, actions, columns, self._streams[index],
-                    collections.deque(),
-                )
+                _Server(connection, index, rows, len(names), message, actions, columns, self._streams[index])
             )
 
     @property
@@ -426,7 +425,6 @@ class VectorEnv:
         if reseeded.all():
             self._log.clear()
             self._start[:] = 0
-            self._unrecorded = False
         for index in np.flatnonzero(reseeded):
             self._seeds[index] = int(responses[index].seed)
             self._prefix[index] = None
@@ -497,18 +495,23 @@ class VectorEnv:
                 "before sending it another",
             )
         block = check_actions(actions, self.continuous, (ids.size, self.n_landers), "actions")
-        self._unrecorded = True  # send/recv steps are not recorded (failover covers step()).
-        for index, server in enumerate(self._servers):
+        rows = np.frombuffer(_arrays.to_bytes(block, self._action_dtype), np.uint8).reshape(ids.size, self._row_bytes)
+        self._send_steps(ids, rows)
+        self._env_in_flight[ids] = True
+
+    def _send_steps(self, ids: np.ndarray, rows: np.ndarray) -> None:
+        """Sends one step of the envs `ids` with action rows `rows` (uint8 (len(ids), row bytes)):
+        one packed StepBatch per server concerned, kept in flight until _receive_one."""
+        for server in self._servers:
             mine = self._placement[ids] == server.index
             if not mine.any():
                 continue
-            envs = ids[mine]
+            envs, actions = ids[mine], rows[mine]
             message = self._async_request(server, envs)
-            message.step_batch.packed.actions.data = _arrays.to_bytes(block[mine], self._action_dtype)
+            message.step_batch.packed.actions.data = actions.tobytes()
             server.stream.send(message)
-            server.in_flight.append(envs)
-            self._send_order.append(index)
-        self._env_in_flight[ids] = True
+            self._in_flight[server.index].append((envs, actions))
+            self._send_order.append(server.index)
 
     def _async_request(self, server: "_Server", envs: np.ndarray) -> "pb.SessionRequest":
         """A packed StepBatch request for `envs` on `server`, its actions to be set. The native
@@ -563,49 +566,79 @@ class VectorEnv:
         return result
 
     def _receive_one(self) -> None:
-        """Receives the answer to the oldest request in flight (its server's oldest) into the
-        ready chunks; a failed env's error raised as step does (its request's envs are then no
-        longer in flight)."""
+        """Receives the answer to the oldest request in flight (its server's oldest) into the ready
+        chunks and the envs' records. Envs lost with their server (or NOT_FOUND) are failed over
+        and their steps sent again (recv returns those results later, the same bits); another
+        failed env's error is raised as step raises it (its request's envs are then no longer in
+        flight)."""
         index = self._send_order.popleft()
-        server = self._servers[index]
-        envs = server.in_flight.popleft()
+        envs, actions = self._in_flight[index].popleft()
+        connection = self._connections[index]
         try:
-            pack = self._packed_reply(server, server.stream.receive().step_batch)
+            pack = self._packed_reply(connection, self._streams[index].receive().step_batch)
         except MLLError as error:
-            self._env_in_flight[envs] = False
-            if self.failover and error.code == grpc.StatusCode.UNAVAILABLE:
-                raise MLLError(
-                    error.code,
-                    f"{error.message} (failover covers step(), step_async/step_wait and reset(), "
-                    "not EnvPool's send/recv: this vector env cannot go on; close it)",
-                ) from None
-            raise
+            if not self._lost(error, int(envs[0])):
+                self._env_in_flight[envs] = False
+                raise
+            requests, moving = [(envs, actions)], envs
+            if error.code == grpc.StatusCode.UNAVAILABLE:
+                # The server is lost with every request in flight on it; its envs move together.
+                requests += self._in_flight[index]
+                self._in_flight[index].clear()
+                self._send_order = collections.deque(server for server in self._send_order if server != index)
+                moving = np.flatnonzero(self._placement == index)
+            self._fail_over_and_resend(dict.fromkeys(moving.tolist(), error), requests)
+            return
+        lost: dict[int, MLLError] = {}
         if pack.errors:
-            self._env_in_flight[envs] = False
-            item = min(pack.errors, key=lambda item: envs[item.index] if 0 <= item.index < envs.size else -1)
-            if not 0 <= item.index < envs.size:
-                raise MLLError(
-                    grpc.StatusCode.INTERNAL,
-                    f"{server.connection.address} reported an error for row {item.index} of a packed "
-                    f"StepBatch of {envs.size} envs",
-                )
-            env = int(envs[item.index])
-            raise from_item_error(item.error.code, item.error.message, f"env {env} ({self._names[env]}): ")
+            try:
+                failed = self._row_errors(connection, envs, pack.errors, lost)
+                if failed:  # The first failed env in env order.
+                    raise min(failed, key=lambda pair: pair[0])[1]
+            except MLLError:
+                self._env_in_flight[envs] = False
+                raise
         decoders = self._async_columns.get(envs.size)
         if decoders is None:  # Worked out once per request size.
             decoders = self._async_columns[envs.size] = tuple(
                 _arrays.Column(field, wire, (envs.size,) + shape(self.n_landers), result)
                 for field, wire, result, shape in _AGENT_COLUMNS + _ENV_COLUMNS
             )
-        self._ready.append((envs, {column.name: column.decode(getattr(pack, column.name)) for column in decoders}))
+        columns = {column.name: column.decode(getattr(pack, column.name)) for column in decoders}
+        if lost:  # Those rows hold no step: the others are received, the lost ones sent again.
+            stepped = ~np.isin(envs, list(lost))
+            columns = {name: value[stepped] for name, value in columns.items()}
+            retry = (envs[~stepped], actions[~stepped])
+            envs, actions = envs[stepped], actions[stepped]
+        if envs.size:
+            kinds = np.where(columns["auto_reset"], _record.AUTO_RESET, _record.STEP).astype(np.uint8)
+            self._log.append_envs(envs, kinds, actions)
+            self._last_observations[envs] = columns["observations"]
+            self._ready.append((envs, columns))
+        if lost:
+            self._fail_over_and_resend(lost, [retry])
+
+    def _fail_over_and_resend(self, lost: dict, requests: list) -> None:
+        """Fails the `lost` envs over (replayed to their last results received), then sends the
+        `requests` ((env indices, action rows) in flight where they were lost, oldest first) again
+        on the envs' new servers, so recv returns their results as it would have. If failover
+        fails, those envs are no longer in flight."""
+        try:
+            self._fail_over(lost)
+        except BaseException:
+            for envs, _ in requests:
+                self._env_in_flight[envs] = False
+            raise
+        for envs, actions in requests:
+            self._send_steps(envs, actions)
 
     @staticmethod
-    def _packed_reply(server: "_Server", reply):
+    def _packed_reply(connection: Connection, reply):
         """The packed results of a StepBatch reply; UNIMPLEMENTED from a server that predates them."""
         if not reply.HasField("packed"):
             raise MLLError(
                 grpc.StatusCode.UNIMPLEMENTED,
-                f"{server.connection.address} answered a packed StepBatch without packed results; "
+                f"{connection.address} answered a packed StepBatch without packed results; "
                 "its mll_server predates StepBatchRequest.packed: upgrade it",
             )
         return reply.packed
@@ -672,26 +705,15 @@ class VectorEnv:
         envs to fail over (failover on: NOT_FOUND rows) are added to `lost`, their rows unset."""
         servers = self._servers
         packs = []
-        failed = []  # (env index, ItemError) of every env whose step failed.
+        failed = []  # (env index, MLLError) of every env whose step failed.
         for server, reply in zip(servers, replies):
             if reply is None:
                 packs.append(None)
                 continue
-            pack = self._packed_reply(server, reply)
+            pack = self._packed_reply(server.connection, reply)
             packs.append(pack)
-            for item in pack.errors:
-                if not 0 <= item.index < server.count:
-                    raise MLLError(
-                        grpc.StatusCode.INTERNAL,
-                        f"{server.connection.address} reported an error for row {item.index} of a packed "
-                        f"StepBatch of {server.count} envs",
-                    )
-                env = int(server.rows[item.index])
-                error = from_item_error(item.error.code, item.error.message, f"env {env} ({self._names[env]}): ")
-                if self._lost(error, env):
-                    lost[env] = error
-                else:
-                    failed.append((env, error))
+            if pack.errors:
+                failed += self._row_errors(server.connection, server.rows, pack.errors, lost)
         if failed:  # The first failed env in env order, as on one server.
             raise min(failed, key=lambda pair: pair[0])[1]
         if len(servers) == 1 and packs[0] is not None:
@@ -706,6 +728,25 @@ class VectorEnv:
                 for column in server.columns:
                     columns[column.name][server.rows] = column.decode(getattr(pack, column.name))
         return columns
+
+    def _row_errors(self, connection: Connection, envs: np.ndarray, errors, lost: dict) -> list:
+        """The errors of a packed StepBatch's rows (`envs`: the env of each row): envs to fail over
+        go into `lost`, the others are returned as (env index, MLLError)."""
+        failed = []
+        for item in errors:
+            if not 0 <= item.index < envs.size:
+                raise MLLError(
+                    grpc.StatusCode.INTERNAL,
+                    f"{connection.address} reported an error for row {item.index} of a packed "
+                    f"StepBatch of {envs.size} envs",
+                )
+            env = int(envs[item.index])
+            error = from_item_error(item.error.code, item.error.message, f"env {env} ({self._names[env]}): ")
+            if self._lost(error, env):
+                lost[env] = error
+            else:
+                failed.append((env, error))
+        return failed
 
     def _retry_step(self, lost: dict, columns: dict) -> None:
         """Fails the `lost` envs over, then steps them again with the step's actions (the step
@@ -738,8 +779,6 @@ class VectorEnv:
         why = None
         if self._seeds[index] is None:
             why = "it was never reset (no known seed)"
-        elif self._unrecorded:
-            why = "it was stepped with send/recv since its last seeded reset, which are not recorded"
         elif self._log.full:
             why = f"its record passed {_record.MAX_RECORD_STEPS} operations since its last seeded reset"
         if why:
@@ -778,47 +817,62 @@ class VectorEnv:
 
     def _fail_over(self, lost: dict) -> None:
         """Recreates the `lost` envs (env index -> the error that lost it) on reachable servers
-        and replays their records to the bits the client last saw; one failover event."""
+        and replays their records to the bits the client last saw; one failover event. A target
+        that turns out unreachable during the replay (it began to drain, or died) is passed over
+        for the next reachable one; UNAVAILABLE naming the servers tried when none is left."""
         began = time.monotonic()
         moving = sorted(lost)
         unreachable = sorted({int(self._placement[i]) for i in moving if lost[i].code == grpc.StatusCode.UNAVAILABLE})
         for index in unreachable:
             self._down.add(index)
             self._streams[index].close()
-        records = [self._env_record(index) for index in moving]
-        targets = self._usable_connections()
-        if not targets:
-            first = lost[moving[0]]
-            raise MLLError(
-                grpc.StatusCode.UNAVAILABLE,
-                f"failover of {len(moving)} envs found no reachable server of {', '.join(self.addresses)}: "
-                f"{first.message}",
-            )
-        placement, spread = {}, 0
+        records = {index: self._env_record(index) for index in moving}
+        # NOT_FOUND on a server that answers: recreated there; the others go round robin over
+        # the usable servers.
+        pending = {
+            index: int(self._placement[index])
+            for index in moving
+            if lost[index].code != grpc.StatusCode.UNAVAILABLE and int(self._placement[index]) not in self._down
+        }
+        homeless = [index for index in moving if index not in pending]
+        refused: dict[int, MLLError] = {}  # Server index -> why the replay there failed.
+        placement: dict[int, int] = {}  # Env index -> the server it was recreated on.
         draining: dict[int, list[str]] = {}  # Server index -> names of its moved envs, when it drains.
-        for index in moving:
-            if lost[index].code == grpc.StatusCode.UNAVAILABLE or int(self._placement[index]) in self._down:
-                placement[index] = targets[spread % len(targets)]  # Round robin over the usable ones.
-                spread += 1
-            else:
-                placement[index] = int(self._placement[index])  # NOT_FOUND: its server answers.
-        for target in sorted(set(placement.values())):
-            envs = [index for index in moving if placement[index] == target]
-            connection = self._connections[target]
-            created, _ = _record.replay(
-                connection,
-                self._spec_config,
-                [records[moving.index(index)] for index in envs],
-                [f"env {index} ({self._names[index]})" for index in envs],
-                self._action_dtype,
-                self._action_shape,
-            )
-            for index, env in zip(envs, created):
-                if "draining:" in lost[index].message:
-                    draining.setdefault(int(self._placement[index]), []).append(self._names[index])
-                self._names[index] = env.name
-                self._placement[index] = target
-                _lease.hold(connection, env.name, env.idle_timeout_s)
+        while pending or homeless:
+            if homeless:
+                untried = len(refused) < len(self._connections)  # Else none is left to probe again.
+                targets = [index for index in self._usable_connections() if index not in refused] if untried else []
+                if not targets:
+                    raise self._no_server_left(lost, refused)
+                pending.update((index, targets[spread % len(targets)]) for spread, index in enumerate(homeless))
+                homeless = []
+            for target in sorted(set(pending.values())):
+                envs = [index for index in moving if pending.get(index) == target]
+                connection = self._connections[target]
+                try:
+                    created, _ = _record.replay(
+                        connection,
+                        self._spec_config,
+                        [records[index] for index in envs],
+                        [f"env {index} ({self._names[index]})" for index in envs],
+                        self._action_dtype,
+                        self._action_shape,
+                    )
+                except MLLError as error:
+                    if error.code != grpc.StatusCode.UNAVAILABLE:
+                        raise
+                    refused[target] = error  # Its envs try the next server.
+                    self._down.add(target)
+                    homeless += envs
+                    continue
+                for index, env in zip(envs, created):
+                    if "draining:" in lost[index].message:
+                        draining.setdefault(int(self._placement[index]), []).append(self._names[index])
+                    self._names[index] = env.name
+                    self._placement[index] = target
+                    placement[index] = target
+                    _lease.hold(connection, env.name, env.idle_timeout_s)
+            pending = {}
         self._build_servers()
         # A draining server exits once it holds no env: its copies of the moved envs go now.
         for index, names in draining.items():
@@ -830,13 +884,29 @@ class VectorEnv:
         self.failovers += 1
         first = lost[moving[0]]
         _LOG.warning(
-            "vector_env failover: %d env(s) lost (%s: %s); recreated on %s and replayed (%d steps) in %.3f s",
+            "vector_env failover: %d env(s) lost (%s: %s); recreated on %s and replayed (%d steps) in %.3f s%s",
             len(moving),
             first.code.name,
             first.message,
             ", ".join(sorted({self._connections[placement[i]].address for i in moving})),
-            sum(record.kinds.size for record in records),
+            sum(record.kinds.size for record in records.values()),
             time.monotonic() - began,
+            self._refusals(refused),
+        )
+
+    @staticmethod
+    def _refusals(refused: dict) -> str:
+        """"; passed over" and the error of each server whose replay failed (server index -> its
+        MLLError, whose message names the server), or ""."""
+        return "".join(f"; passed over {error.message}" for _, error in sorted(refused.items()))
+
+    def _no_server_left(self, lost: dict, refused: dict) -> MLLError:
+        """UNAVAILABLE: no server is left to fail the `lost` envs over to."""
+        first = lost[min(lost)]
+        return MLLError(
+            grpc.StatusCode.UNAVAILABLE,
+            f"failover of {len(lost)} envs found no reachable server of {', '.join(self.addresses)}: "
+            f"{first.message}{self._refusals(refused)}",
         )
 
     # ----------------------------------------------------------------- env state
@@ -876,7 +946,7 @@ class VectorEnv:
         self._build_servers()
         self._seeds[index] = decoded.record.seed
         self._prefix[index] = decoded.record
-        self._start[index] = self._log.length
+        self._start[index] = self._log.ends()[index]
         observations = np.frombuffer(decoded.record.last_observations, "<f4").reshape(self.n_landers, 12)
         self._last_observations[index] = observations
         return observations.astype(np.float32)
