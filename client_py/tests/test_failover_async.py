@@ -126,17 +126,18 @@ def _draining(server):
 def _rounds(vector, table, rounds, fault_round=None, fault=None):
     """Each env's results over `rounds` rounds after async_reset: a round sends envs 1 and 4,
     then 2 and 5, then 0 and 3 (over three servers: the second server's first), and recvs all
-    six (batch_size 3). fault() runs after the sends of round `fault_round`."""
+    six (batch_size 3). fault() runs before the sends of round `fault_round` (a server killed
+    after them may have answered already)."""
     deadline = time.monotonic() + SECONDS
     vector.async_reset(seed=3)
     got = [[] for _ in range(6)]
     for round_ in range(rounds + 1):
         assert time.monotonic() < deadline, f"round {round_} of {rounds} after {SECONDS} s"
+        if round_ == fault_round:
+            fault()
         if round_:
             for ids in ([1, 4], [2, 5], [0, 3]):
                 vector.send(table[round_ - 1, ids], ids)
-        if round_ == fault_round:
-            fault()
         for _ in range(2):
             observations, rewards, *_, infos = vector.recv()
             for row, env in enumerate(infos["env_id"]):
@@ -154,7 +155,7 @@ def test_a_target_that_drains_during_the_failover_is_passed_over(caplog):
             expected = _rounds(vector, table, rounds)
 
         def fault():
-            # b dies with steps of envs 1 and 4 in flight, the oldest: their failover picks a and
+            # b dies, then the steps of its envs 1 and 4 are sent first: their failover picks a and
             # c round robin, and c drains already, so env 4 goes on to a.
             _kill(b)
             c._process.send_signal(signal.SIGTERM)
@@ -178,11 +179,11 @@ def test_no_server_left_names_the_servers_tried():
             vector.async_reset(seed=1)
             for _ in range(3):
                 vector.recv()
-            vector.send(np.zeros((1, 2), np.int32), [1])  # On b.
             _kill(b)
             _kill(a)
             c._process.send_signal(signal.SIGTERM)
             _draining(c)
+            vector.send(np.zeros((1, 2), np.int32), [1])  # On b.
             with pytest.raises(mll.MLLError) as raised:
                 vector.recv()  # Env 1's failover tries a (dead), then c (draining).
     assert raised.value.code == grpc.StatusCode.UNAVAILABLE
