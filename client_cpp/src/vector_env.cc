@@ -1,24 +1,36 @@
 #include "mll/vector_env.h"
 
 #include <algorithm>
+#include <cstdio>
 #include <cstring>
 #include <deque>
+#include <functional>
+#include <map>
 #include <string>
 #include <type_traits>
 #include <utility>
 #include <vector>
 
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "absl/time/clock.h"
+#include "absl/time/time.h"
+#include "env_record.h"
 #include "transport.h"
 #include "wire.h"
 
 namespace mll::client {
 
+using internal::EnvRecord;
 using internal::StreamTransport;
 
 namespace {
 
 constexpr int kMaxVectorEnvs = 65536;
+// Replay requests in flight on one stream at once: enough to keep the server
+// busy, few enough that a long record does not queue all its requests.
+constexpr size_t kReplayWindow = 64;
 
 // Every request of `requests` sent on `transport` before any answer is
 // awaited (pipelined), then the answers in order; the first failure, with the
@@ -42,15 +54,20 @@ absl::Status CallPipelined(StreamTransport& transport,
   return first;
 }
 
-// One server's share: env rows `rows` (env i on server i mod S), and its
-// packed StepBatch request, built once, of which each step replaces only the
-// action bytes.
+// One server's share of a step: env rows `rows` (in env order), and its
+// packed StepBatch request, of which each step of every env replaces only
+// the action bytes.
 struct Shard {
+  int server = 0;
   StreamTransport* transport = nullptr;
   std::vector<int> rows;
   v1::SessionRequest request;
   v1::SessionResponse response;
 };
+
+// Envs, each with its error (e.g. the status that lost it, for failover), in
+// env order.
+using EnvErrors = std::map<int, absl::Status>;
 
 // Result columns of some envs (rows), env-major.
 struct Columns {
@@ -117,291 +134,10 @@ struct ReadyChunk {
 
 // An async request in flight: its server, sequence and envs.
 struct PendingRequest {
-  size_t shard = 0;
+  int server = 0;
   uint64_t sequence = 0;
   std::vector<int> envs;
 };
-
-}  // namespace
-
-struct VectorEnv::State {
-  explicit State(Client session_client) : session(std::move(session_client)) {}
-  // Unholds the leases; the envs created on the session's streams go with
-  // the streams (when `session` goes, after this).
-  ~State() {
-    for (size_t i = 0; i < names.size(); ++i) {
-      shards[i % shards.size()].transport->Unhold(names[i]);
-    }
-  }
-
-  Client session;
-  std::vector<Shard> shards;
-  std::vector<std::string> names;
-  int n_landers = 0;
-  bool continuous = false;
-
-  // The latest results (num_envs rows after Reset and Step, batch_size rows
-  // after Recv, whose envs are in `env_ids`).
-  Columns results;
-  std::vector<int> env_ids;
-
-  // The async API: batch_size, which envs have a step (or AsyncReset) whose
-  // results Recv has not returned, the requests in flight in send order, and
-  // the results received and not yet returned.
-  int batch_size = 0;
-  std::vector<bool> in_flight;
-  int in_flight_count = 0;
-  std::deque<PendingRequest> pending;
-  std::deque<ReadyChunk> ready;
-  size_t ready_rows = 0;
-
-  int num_envs() const { return static_cast<int>(names.size()); }
-};
-
-VectorEnv::VectorEnv(std::unique_ptr<State> state) : state_(std::move(state)) {}
-VectorEnv::VectorEnv(VectorEnv&&) noexcept = default;
-VectorEnv& VectorEnv::operator=(VectorEnv&&) noexcept = default;
-VectorEnv::~VectorEnv() = default;
-
-absl::StatusOr<VectorEnv> VectorEnv::Create(const Client& client, int num_envs,
-                                            RemoteEnvConfig config,
-                                            int batch_size) {
-  if (num_envs < 1 || num_envs > kMaxVectorEnvs) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "num_envs is ", num_envs, "; allowed: 1..", kMaxVectorEnvs));
-  }
-  if (batch_size == 0) batch_size = num_envs;
-  if (batch_size < 1 || batch_size > num_envs) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("batch_size is ", batch_size,
-                     "; allowed: 0 (num_envs) or 1..num_envs = 1..", num_envs));
-  }
-  absl::StatusOr<Client> session = client.OpenSession();
-  if (!session.ok()) return session.status();
-  config.auto_reset = true;
-  const size_t servers =
-      std::min<size_t>(session->transports_.size(), num_envs);
-  std::vector<EnvInfo> infos(num_envs);
-  absl::Status failure = absl::OkStatus();
-  for (size_t server = 0; server < servers; ++server) {
-    auto& transport =
-        static_cast<StreamTransport&>(*session->transports_[server]);
-    std::vector<v1::SessionRequest> requests;
-    for (int env = static_cast<int>(server); env < num_envs;
-         env += static_cast<int>(servers)) {
-      internal::EncodeConfig(
-          config,
-          requests.emplace_back().mutable_create_env()->mutable_config());
-    }
-    std::vector<v1::SessionResponse> responses;
-    absl::Status status = CallPipelined(transport, requests, &responses);
-    if (failure.ok()) failure = status;
-    for (size_t k = 0; k < responses.size(); ++k) {
-      infos[server + k * servers] = internal::DecodeEnv(responses[k].env());
-      infos[server + k * servers].server = static_cast<int>(server);
-    }
-  }
-  // A failure leaves what was made to the session's end.
-  if (!failure.ok()) return failure;
-  return Assemble(*std::move(session), std::move(infos), batch_size);
-}
-
-absl::StatusOr<VectorEnv> VectorEnv::Attach(
-    const Client& client, const std::vector<std::string>& names) {
-  if (names.empty() || names.size() > kMaxVectorEnvs) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "names has ", names.size(), " entries; allowed: 1..", kMaxVectorEnvs));
-  }
-  absl::StatusOr<Client> session = client.OpenSession();
-  if (!session.ok()) return session.status();
-  std::vector<EnvInfo> infos;
-  for (const std::string& name : names) {
-    absl::StatusOr<EnvInfo> info = session->GetEnv(name);
-    if (!info.ok()) return info.status();
-    if (!infos.empty() && (info->n_landers() != infos[0].n_landers() ||
-                           info->continuous() != infos[0].continuous())) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("names[", infos.size(), "] (", name, ") has n_landers ",
-                       info->n_landers(), " and ",
-                       info->continuous() ? "continuous" : "discrete",
-                       " actions; allowed: those of names[0] (", infos[0].name,
-                       "): ", infos[0].n_landers(), ", ",
-                       infos[0].continuous() ? "continuous" : "discrete"));
-    }
-    infos.push_back(*std::move(info));
-  }
-  // Each env stays on the server that has it; the packed batches are per
-  // server, so env i must be on server i mod S as for Create.
-  const int servers =
-      std::min(session->server_count(), static_cast<int>(names.size()));
-  for (size_t i = 0; i < infos.size(); ++i) {
-    if (infos[i].server != static_cast<int>(i) % servers) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("names[", i, "] (", names[i], ") is on server ",
-                       session->address(infos[i].server),
-                       "; allowed: env i on server i mod ", servers, " (",
-                       session->address(static_cast<int>(i) % servers), ")"));
-    }
-  }
-  return Assemble(*std::move(session), std::move(infos),
-                  static_cast<int>(names.size()));
-}
-
-// Created envs are bound to the session (they go with its streams);
-// attached ones are not.
-absl::StatusOr<VectorEnv> VectorEnv::Assemble(Client session,
-                                              std::vector<EnvInfo> infos,
-                                              int batch_size) {
-  auto state = std::make_unique<State>(std::move(session));
-  state->n_landers = infos[0].n_landers();
-  state->continuous = infos[0].continuous();
-  const int servers =
-      std::min(state->session.server_count(), static_cast<int>(infos.size()));
-  state->shards.resize(servers);
-  for (int server = 0; server < servers; ++server) {
-    Shard& shard = state->shards[server];
-    shard.transport =
-        static_cast<StreamTransport*>(state->session.transports_[server].get());
-    v1::PackedSteps* packed =
-        shard.request.mutable_step_batch()->mutable_packed();
-    v1::Array* actions = packed->mutable_actions();
-    actions->set_dtype(state->continuous ? v1::DTYPE_FLOAT32 : v1::DTYPE_INT32);
-    for (size_t env = server; env < infos.size(); env += servers) {
-      shard.rows.push_back(static_cast<int>(env));
-      packed->add_names(infos[env].name);
-    }
-    actions->add_shape(static_cast<int>(shard.rows.size()));
-    actions->add_shape(state->n_landers);
-    if (state->continuous) actions->add_shape(kRemoteContinuousActionSize);
-  }
-  for (size_t env = 0; env < infos.size(); ++env) {
-    state->names.push_back(infos[env].name);
-    state->shards[env % servers].transport->Hold(infos[env].name,
-                                                 infos[env].idle_timeout_s);
-  }
-  state->results.Resize(infos.size(), state->n_landers);
-  state->batch_size = batch_size;
-  state->in_flight.assign(infos.size(), false);
-  return VectorEnv(std::move(state));
-}
-
-int VectorEnv::num_envs() const { return state_->num_envs(); }
-int VectorEnv::n_landers() const { return state_->n_landers; }
-bool VectorEnv::continuous() const { return state_->continuous; }
-const std::vector<std::string>& VectorEnv::names() const {
-  return state_->names;
-}
-
-std::string VectorEnv::address(int env) const {
-  return state_->shards[env % state_->shards.size()].transport->address();
-}
-
-std::string VectorEnv::transport() {
-  for (Shard& shard : state_->shards) {
-    if (shard.transport->transport_name() != "shared_memory") return "native";
-  }
-  return "shared_memory";
-}
-
-absl::Status VectorEnv::Reset(std::optional<uint64_t> seed) {
-  if (!seed.has_value()) return Reset(absl::Span<const uint64_t>());
-  std::vector<uint64_t> seeds(num_envs());
-  for (int env = 0; env < num_envs(); ++env) seeds[env] = *seed + env;
-  return Reset(absl::MakeConstSpan(seeds));
-}
-
-absl::Status VectorEnv::CheckNothingInFlight() const {
-  if (state_->in_flight_count == 0) return absl::OkStatus();
-  return absl::FailedPreconditionError(absl::StrCat(
-      state_->in_flight_count,
-      " envs have a Send (or AsyncReset) whose results Recv has not "
-      "returned; Recv them first"));
-}
-
-absl::Status VectorEnv::Reset(absl::Span<const uint64_t> seeds) {
-  State& state = *state_;
-  if (absl::Status status = CheckNothingInFlight(); !status.ok()) return status;
-  // Empty from Reset(nullopt): no reseed.
-  if (!seeds.empty() && seeds.size() != state.names.size()) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("seeds has ", seeds.size(),
-                     " entries; expected num_envs = ", state.names.size()));
-  }
-  const int n = state.n_landers;
-  Columns& out = state.results;
-  out.Resize(state.names.size(), n);
-  absl::Status first = absl::OkStatus();
-  // Every shard's resets are in flight before any answer is awaited.
-  std::vector<std::vector<absl::StatusOr<uint64_t>>> sequences(
-      state.shards.size());
-  for (size_t s = 0; s < state.shards.size(); ++s) {
-    Shard& shard = state.shards[s];
-    for (int env : shard.rows) {
-      v1::SessionRequest request;
-      v1::ResetEnvRequest* reset = request.mutable_reset_env();
-      reset->set_name(state.names[env]);
-      if (!seeds.empty()) reset->set_seed(seeds[env]);
-      sequences[s].push_back(shard.transport->Send(request));
-    }
-  }
-  for (size_t s = 0; s < state.shards.size(); ++s) {
-    Shard& shard = state.shards[s];
-    for (size_t k = 0; k < shard.rows.size(); ++k) {
-      const int env = shard.rows[k];
-      v1::SessionResponse response;
-      absl::Status status = sequences[s][k].status();
-      if (status.ok()) {
-        status = shard.transport->Receive(*sequences[s][k], &response);
-      }
-      absl::StatusOr<StepData> data =
-          status.ok() ? internal::DecodeStepData(response.reset_env().data())
-                      : absl::StatusOr<StepData>(status);
-      if (!data.ok()) {
-        if (first.ok()) {
-          first = absl::Status(data.status().code(),
-                               absl::StrCat("env ", env, " (", state.names[env],
-                                            "): ", data.status().message()));
-        }
-        continue;
-      }
-      const size_t row = static_cast<size_t>(env) * n;
-      std::memcpy(&out.observations[row * kRemoteObservationSize],
-                  data->observations.data(),
-                  data->observations.size() * sizeof(float));
-      for (int a = 0; a < n; ++a) {
-        out.rewards[row + a] = data->rewards[a];
-        out.terminations[row + a] = data->terminations[a];
-        out.truncations[row + a] = data->truncations[a];
-        out.active[row + a] = data->stepped[a];
-        out.outcomes[row + a] = static_cast<uint8_t>(data->outcomes[a]);
-        out.episode_returns[row + a] = data->episode_returns[a];
-        out.episode_lengths[row + a] = data->episode_lengths[a];
-      }
-      out.auto_reset[env] = data->auto_reset;
-      out.episode_over[env] = data->episode_over;
-    }
-  }
-  out.MaskAutoResetRows(n);
-  state.env_ids.resize(state.names.size());
-  for (int env = 0; env < num_envs(); ++env) state.env_ids[env] = env;
-  return first;
-}
-
-absl::Status VectorEnv::Step(absl::Span<const int32_t> discrete_actions) {
-  return StepWith(
-      absl::string_view(reinterpret_cast<const char*>(discrete_actions.data()),
-                        discrete_actions.size() * sizeof(int32_t)),
-      discrete_actions.size(), /*continuous_actions=*/false);
-}
-
-absl::Status VectorEnv::Step(absl::Span<const float> continuous_actions) {
-  return StepWith(absl::string_view(
-                      reinterpret_cast<const char*>(continuous_actions.data()),
-                      continuous_actions.size() * sizeof(float)),
-                  continuous_actions.size(), /*continuous_actions=*/true);
-}
-
-namespace {
 
 // Copies a packed column's rows (`width` elements each) into `out` at rows
 // `rows` (row k of the column to row rows[k]); INTERNAL when the column has
@@ -470,45 +206,732 @@ absl::Status DecodePacked(const v1::PackedStepData& packed,
   return status;
 }
 
-// The packed results of `response` to a packed StepBatch of the envs `envs`
-// (in request order), or the first env's failure in env order, that env in
-// `*failed_env`: results missing (the request's first env), or an env's own
-// error (prefixed "env {i} ({name}): ").
-absl::StatusOr<const v1::PackedStepData*> PackedResults(
-    const v1::SessionResponse& response, const std::vector<int>& envs,
-    const std::vector<std::string>& names, const std::string& address,
-    int* failed_env) {
-  *failed_env = envs[0];
-  if (!response.step_batch().has_packed()) {
-    return absl::UnimplementedError(absl::StrCat(
-        address,
-        " answered a packed StepBatch without packed results; its mll_server "
-        "predates StepBatchRequest.packed: upgrade it"));
+// A packed StepBatch of `envs` (of one server) with their action rows
+// (`action_rows[k]` for envs[k]; none: the caller fills the data in).
+v1::SessionRequest PackedStepRequest(
+    const std::vector<int>& envs, const std::vector<std::string>& names,
+    const std::vector<absl::string_view>& action_rows, int n_landers,
+    bool continuous) {
+  v1::SessionRequest request;
+  v1::PackedSteps* packed = request.mutable_step_batch()->mutable_packed();
+  v1::Array* actions = packed->mutable_actions();
+  actions->set_dtype(continuous ? v1::DTYPE_FLOAT32 : v1::DTYPE_INT32);
+  for (size_t k = 0; k < envs.size(); ++k) {
+    packed->add_names(names[envs[k]]);
+    if (!action_rows.empty())
+      actions->mutable_data()->append(action_rows[k].data(),
+                                      action_rows[k].size());
   }
-  const v1::PackedStepData& packed = response.step_batch().packed();
-  const v1::IndexedItemError* first = nullptr;
-  for (const v1::IndexedItemError& item : packed.errors()) {
-    if (item.index() < 0 || item.index() >= static_cast<int>(envs.size())) {
-      return absl::InternalError(
-          absl::StrCat(address, " reported an error for row ", item.index(),
-                       " of a packed StepBatch of ", envs.size(), " envs"));
+  actions->add_shape(static_cast<int>(envs.size()));
+  actions->add_shape(n_landers);
+  if (continuous) actions->add_shape(kRemoteContinuousActionSize);
+  return request;
+}
+
+// One env to recreate by replay: its config, its record (none: a new env,
+// for an operation that starts afresh, with nothing to replay), the
+// observations its replay must end on, and its name in messages.
+struct ReplayJob {
+  const v1::EnvConfig* config = nullptr;
+  const EnvRecord* record = nullptr;
+  absl::string_view expected_observations;
+  std::string label;
+};
+
+// The request that replays operation `round` of `record` (round 0: its
+// seeded reset) on env `name`.
+v1::SessionRequest ReplayRequest(const EnvRecord& record, size_t round,
+                                 const std::string& name,
+                                 const v1::EnvConfig& config) {
+  v1::SessionRequest request;
+  if (round == 0) {
+    v1::ResetEnvRequest* reset = request.mutable_reset_env();
+    reset->set_name(name);
+    reset->set_seed(*record.seed);
+    return request;
+  }
+  const auto operation =
+      static_cast<internal::RecordOperation>(record.operations[round - 1]);
+  if (operation == internal::kReset ||
+      (operation == internal::kAutoReset && !config.auto_reset())) {
+    request.mutable_reset_env()->set_name(name);
+    return request;
+  }
+  const size_t row_bytes = record.actions.size() / record.operations.size();
+  v1::StepEnvRequest* step = request.mutable_step_env();
+  step->set_name(name);
+  v1::Array* actions = step->mutable_actions();
+  actions->set_dtype(config.continuous() ? v1::DTYPE_FLOAT32 : v1::DTYPE_INT32);
+  actions->add_shape(config.n_landers());
+  if (config.continuous()) actions->add_shape(kRemoteContinuousActionSize);
+  actions->set_data(record.actions.substr((round - 1) * row_bytes, row_bytes));
+  return request;
+}
+
+// Replays each job's record on its env `infos[k]` (all envs a round at a
+// time, kReplayWindow requests in flight) and checks each ends on the
+// observations the client last saw: DATA_LOSS naming the env whose bits
+// differ.
+absl::Status ReplayRecords(StreamTransport& transport,
+                           const std::vector<ReplayJob>& jobs,
+                           const std::vector<EnvInfo>& infos) {
+  size_t rounds = 0;
+  for (const ReplayJob& job : jobs) {
+    if (job.record != nullptr) {
+      rounds = std::max(rounds, job.record->operations.size() + 1);
     }
-    if (first == nullptr || envs[item.index()] < envs[first->index()]) {
-      first = &item;
+  }
+  std::vector<std::string> last(jobs.size());
+  std::deque<std::pair<absl::StatusOr<uint64_t>, size_t>> in_flight;
+  const auto receive_oldest = [&]() {
+    auto [sequence, job] = std::move(in_flight.front());
+    in_flight.pop_front();
+    if (!sequence.ok()) return sequence.status();
+    v1::SessionResponse response;
+    absl::Status status = transport.Receive(*sequence, &response);
+    if (!status.ok()) return status;
+    last[job] = response.has_reset_env()
+                    ? response.reset_env().data().observations().data()
+                    : response.step_env().data().observations().data();
+    return absl::OkStatus();
+  };
+  absl::Status status = absl::OkStatus();
+  for (size_t round = 0; round < rounds && status.ok(); ++round) {
+    for (size_t k = 0; k < jobs.size() && status.ok(); ++k) {
+      const EnvRecord* record = jobs[k].record;
+      if (record == nullptr || round > record->operations.size()) continue;
+      if (in_flight.size() == kReplayWindow) status = receive_oldest();
+      v1::SessionRequest request =
+          ReplayRequest(*record, round, infos[k].name, *jobs[k].config);
+      in_flight.emplace_back(transport.Send(request), k);
     }
   }
-  if (first != nullptr) {
-    const int env = envs[first->index()];
-    *failed_env = env;
-    const absl::Status error = internal::FromItemError(first->error());
-    return absl::Status(
-        error.code(),
-        absl::StrCat("env ", env, " (", names[env], "): ", error.message()));
+  // Every answer is read, so the stream is ready for what follows.
+  while (!in_flight.empty()) {
+    absl::Status answer = receive_oldest();
+    if (status.ok()) status = answer;
   }
-  return &packed;
+  if (!status.ok()) return status;
+  for (size_t k = 0; k < jobs.size(); ++k) {
+    const EnvRecord* record = jobs[k].record;
+    if (record != nullptr && last[k] != jobs[k].expected_observations) {
+      return absl::DataLossError(absl::StrCat(
+          jobs[k].label, ": replaying its ", record->operations.size(),
+          " operations since seed ", *record->seed, " on ", transport.address(),
+          " gave other observations than the last ones seen; the server's "
+          "release (physics) differs from the one that ran it, or the record "
+          "is wrong"));
+    }
+  }
+  return absl::OkStatus();
+}
+
+// Deletes the envs `infos` on `transport`, errors ignored (gone already, or
+// the server went: either way it holds them no more).
+void DeleteEnvs(StreamTransport& transport, const std::vector<EnvInfo>& infos) {
+  std::vector<v1::SessionRequest> requests(infos.size());
+  for (size_t k = 0; k < infos.size(); ++k) {
+    requests[k].mutable_delete_env()->set_name(infos[k].name);
+  }
+  std::vector<v1::SessionResponse> responses;
+  (void)CallPipelined(transport, requests, &responses);
+}
+
+// Creates one env per job on `transport`'s server (on its stream, so it goes
+// with the VectorEnv) and replays the job's record; returns the new envs in
+// job order. On any error the envs created here are deleted.
+absl::StatusOr<std::vector<EnvInfo>> Replay(
+    StreamTransport& transport, const std::vector<ReplayJob>& jobs) {
+  std::vector<v1::SessionRequest> requests(jobs.size());
+  for (size_t k = 0; k < jobs.size(); ++k) {
+    *requests[k].mutable_create_env()->mutable_config() = *jobs[k].config;
+  }
+  std::vector<v1::SessionResponse> responses;
+  absl::Status status = CallPipelined(transport, requests, &responses);
+  std::vector<EnvInfo> infos;
+  for (const v1::SessionResponse& response : responses) {
+    if (response.has_env())
+      infos.push_back(internal::DecodeEnv(response.env()));
+  }
+  if (status.ok()) status = ReplayRecords(transport, jobs, infos);
+  if (!status.ok()) {
+    DeleteEnvs(transport, infos);
+    return status;
+  }
+  return infos;
 }
 
 }  // namespace
+
+struct VectorEnv::State {
+  explicit State(Client session_client) : session(std::move(session_client)) {}
+  // Unholds the leases; the envs created on the session's streams go with
+  // the streams (when `session` goes, after this).
+  ~State() {
+    for (size_t env = 0; env < names.size(); ++env) {
+      TransportOf(placement[env]).Unhold(names[env]);
+    }
+  }
+
+  Client session;
+  // Env i is on server placement[i] (i mod S until failover moves it);
+  // shards: one per server holding envs.
+  std::vector<int> placement;
+  std::vector<Shard> shards;
+  std::vector<std::string> names;
+  // Each env's options as the server filled them in: what failover and
+  // RestoreEnv recreate, and what EnvState writes.
+  std::vector<v1::EnvConfig> configs;
+  int n_landers = 0;
+  bool continuous = false;
+
+  // Failover (see vector_env.h): whether it is on, whether the envs are the
+  // VectorEnv's own (Create; Attach's belong to others), the events so far,
+  // the servers found unreachable, each env's record and the observations
+  // the client last saw of it (float32 [num_envs, n_landers, 12]).
+  bool failover = false;
+  bool created = false;
+  int failovers = 0;
+  std::vector<bool> down;
+  std::vector<EnvRecord> records;
+  std::vector<float> last_observations;
+
+  // The latest results (num_envs rows after Reset and Step, batch_size rows
+  // after Recv, whose envs are in `env_ids`).
+  Columns results;
+  std::vector<int> env_ids;
+
+  // The async API: batch_size, which envs have a step (or AsyncReset) whose
+  // results Recv has not returned, the requests in flight in send order, and
+  // the results received and not yet returned.
+  int batch_size = 0;
+  std::vector<bool> in_flight;
+  int in_flight_count = 0;
+  std::deque<PendingRequest> pending;
+  std::deque<ReadyChunk> ready;
+  size_t ready_rows = 0;
+
+  int num_envs() const { return static_cast<int>(names.size()); }
+  int server_count() const { return session.server_count(); }
+  size_t row_bytes() const {
+    return static_cast<size_t>(n_landers) * sizeof(float) *
+           (continuous ? kRemoteContinuousActionSize : 1);
+  }
+  StreamTransport& TransportOf(int server) const {
+    return static_cast<StreamTransport&>(*session.transports_[server]);
+  }
+  std::string Label(int env) const {
+    return absl::StrCat("env ", env, " (", names[env], ")");
+  }
+  absl::string_view LastObservations(int env) const {
+    const size_t size = static_cast<size_t>(n_landers) * kRemoteObservationSize;
+    return absl::string_view(
+        reinterpret_cast<const char*>(last_observations.data() + env * size),
+        size * sizeof(float));
+  }
+
+  // The shards of `envs` (grouped by server, in `envs` order within each),
+  // their requests carrying `action_rows` (one per env, in `envs` order; none:
+  // filled in by each step).
+  std::vector<Shard> ShardsOf(
+      const std::vector<int>& envs,
+      const std::vector<absl::string_view>& action_rows) const {
+    std::map<int, std::vector<size_t>> by_server;
+    for (size_t k = 0; k < envs.size(); ++k) {
+      by_server[placement[envs[k]]].push_back(k);
+    }
+    std::vector<Shard> out;
+    for (const auto& [server, positions] : by_server) {
+      Shard& shard = out.emplace_back();
+      shard.server = server;
+      shard.transport = &TransportOf(server);
+      std::vector<absl::string_view> rows;
+      for (size_t k : positions) {
+        shard.rows.push_back(envs[k]);
+        if (!action_rows.empty()) rows.push_back(action_rows[k]);
+      }
+      shard.request =
+          PackedStepRequest(shard.rows, names, rows, n_landers, continuous);
+    }
+    return out;
+  }
+  std::vector<int> AllEnvs() const {
+    std::vector<int> envs(names.size());
+    for (int env = 0; env < num_envs(); ++env) envs[env] = env;
+    return envs;
+  }
+
+  // Whether env `env`'s `error` is one failover handles: its server is
+  // unreachable (a draining server's "draining:" UNAVAILABLE included), or
+  // it lost the env (NOT_FOUND naming it).
+  bool Lost(const absl::Status& error, int env) const {
+    return failover && (absl::IsUnavailable(error) ||
+                        (absl::IsNotFound(error) &&
+                         absl::StrContains(error.message(), names[env])));
+  }
+
+  // The packed results of `response` to a packed StepBatch of the envs
+  // `envs` (in request order) into `out` at rows `rows`; the envs' own
+  // errors (prefixed "env {i} ({name}): ") into `lost` when failover handles
+  // them (and `lost` is given), else into `failed`. A failure of the whole
+  // answer is returned.
+  absl::Status CollectPacked(const v1::SessionResponse& response,
+                             const std::vector<int>& envs,
+                             const std::vector<int>& rows,
+                             const std::string& address, Columns* out,
+                             EnvErrors* lost, EnvErrors* failed) const {
+    if (!response.step_batch().has_packed()) {
+      return absl::UnimplementedError(absl::StrCat(
+          address,
+          " answered a packed StepBatch without packed results; its "
+          "mll_server predates StepBatchRequest.packed: upgrade it"));
+    }
+    const v1::PackedStepData& packed = response.step_batch().packed();
+    for (const v1::IndexedItemError& item : packed.errors()) {
+      if (item.index() < 0 || item.index() >= static_cast<int>(envs.size())) {
+        return absl::InternalError(
+            absl::StrCat(address, " reported an error for row ", item.index(),
+                         " of a packed StepBatch of ", envs.size(), " envs"));
+      }
+      const int env = envs[item.index()];
+      const absl::Status error = internal::FromItemError(item.error());
+      absl::Status status(error.code(),
+                          absl::StrCat(Label(env), ": ", error.message()));
+      EnvErrors* into = lost != nullptr && Lost(status, env) ? lost : failed;
+      into->emplace(env, std::move(status));
+    }
+    return DecodePacked(packed, rows, n_landers, out);
+  }
+
+  // Sends every shard's request (all in flight at once) and decodes each
+  // answer into `out` at the shard's rows; the envs whose results came go
+  // to `stepped`, those failover handles to `lost`. Returns the first other
+  // failure in env order (a server's failure counts as its first env's).
+  absl::Status RunStepBatches(std::vector<Shard>& batches, Columns* out,
+                              EnvErrors* lost, std::vector<int>* stepped) {
+    std::vector<absl::StatusOr<uint64_t>> sequences;
+    for (Shard& shard : batches) {
+      sequences.push_back(shard.transport->Send(shard.request));
+    }
+    EnvErrors failed;
+    for (size_t s = 0; s < batches.size(); ++s) {
+      Shard& shard = batches[s];
+      absl::Status status = sequences[s].status();
+      if (status.ok()) {
+        status = shard.transport->Receive(*sequences[s], &shard.response);
+      }
+      if (status.ok()) {
+        status = CollectPacked(shard.response, shard.rows, shard.rows,
+                               shard.transport->address(), out, lost, &failed);
+      }
+      if (status.ok()) {
+        for (int row : shard.rows) {
+          if (lost->count(row) == 0 && failed.count(row) == 0) {
+            stepped->push_back(row);
+          }
+        }
+      } else if (Lost(status, shard.rows[0])) {
+        for (int row : shard.rows) lost->emplace(row, status);
+      } else {
+        failed.emplace(shard.rows[0], status);
+      }
+    }
+    std::sort(stepped->begin(), stepped->end());
+    return failed.empty() ? absl::OkStatus() : failed.begin()->second;
+  }
+
+  // Resets the envs `envs` (seeds[env] each; none: no reseed), their
+  // results into `out`; as RunStepBatches for the envs reset and lost.
+  absl::Status ResetEnvs(const std::vector<int>& envs,
+                         absl::Span<const uint64_t> seeds, Columns* out,
+                         EnvErrors* lost) {
+    std::vector<absl::StatusOr<uint64_t>> sequences;
+    for (int env : envs) {
+      v1::SessionRequest request;
+      v1::ResetEnvRequest* reset = request.mutable_reset_env();
+      reset->set_name(names[env]);
+      if (!seeds.empty()) reset->set_seed(seeds[env]);
+      sequences.push_back(TransportOf(placement[env]).Send(request));
+    }
+    absl::Status first = absl::OkStatus();
+    const int n = n_landers;
+    const std::string zero_actions(row_bytes(), '\0');
+    for (size_t k = 0; k < envs.size(); ++k) {
+      const int env = envs[k];
+      v1::SessionResponse response;
+      absl::Status status = sequences[k].status();
+      if (status.ok()) {
+        status = TransportOf(placement[env]).Receive(*sequences[k], &response);
+      }
+      absl::StatusOr<StepData> data =
+          status.ok() ? internal::DecodeStepData(response.reset_env().data())
+                      : absl::StatusOr<StepData>(status);
+      if (!data.ok()) {
+        const absl::Status error(
+            data.status().code(),
+            absl::StrCat(Label(env), ": ", data.status().message()));
+        if (Lost(error, env)) {
+          lost->emplace(env, error);
+        } else if (first.ok()) {
+          first = error;
+        }
+        continue;
+      }
+      const size_t row = static_cast<size_t>(env) * n;
+      std::memcpy(&out->observations[row * kRemoteObservationSize],
+                  data->observations.data(),
+                  data->observations.size() * sizeof(float));
+      for (int a = 0; a < n; ++a) {
+        out->rewards[row + a] = data->rewards[a];
+        out->terminations[row + a] = data->terminations[a];
+        out->truncations[row + a] = data->truncations[a];
+        out->active[row + a] = data->stepped[a];
+        out->outcomes[row + a] = static_cast<uint8_t>(data->outcomes[a]);
+        out->episode_returns[row + a] = data->episode_returns[a];
+        out->episode_lengths[row + a] = data->episode_lengths[a];
+      }
+      out->auto_reset[env] = data->auto_reset;
+      out->episode_over[env] = data->episode_over;
+      if (response.reset_env().has_seed()) {
+        records[env].Restart(response.reset_env().seed());
+      } else {
+        records[env].Append(internal::kReset, zero_actions);
+      }
+      KeepObservations(env, *out);
+    }
+    return first;
+  }
+
+  // Appends the step of `envs` (their rows of `action_bytes`, env-indexed)
+  // to their records, with its results in `out`.
+  void RecordSteps(const std::vector<int>& envs, absl::string_view action_bytes,
+                   const Columns& out) {
+    for (int env : envs) {
+      records[env].Append(
+          out.auto_reset[env] ? internal::kAutoReset : internal::kStep,
+          action_bytes.substr(env * row_bytes(), row_bytes()));
+      KeepObservations(env, out);
+    }
+  }
+  void KeepObservations(int env, const Columns& out) {
+    const size_t size = static_cast<size_t>(n_landers) * kRemoteObservationSize;
+    std::copy_n(out.observations.begin() + env * size, size,
+                last_observations.begin() + env * size);
+  }
+
+  // OK when env `env`'s record recreates it; else FAILED_PRECONDITION
+  // naming it and why.
+  absl::Status RecordProblem(int env) const {
+    const EnvRecord& record = records[env];
+    if (record.seed.has_value() && record.gap.empty()) return absl::OkStatus();
+    return absl::FailedPreconditionError(absl::StrCat(
+        Label(env), " cannot be recreated: ",
+        record.seed.has_value() ? record.gap : "it was never reset with a seed",
+        "; Reset with a seed starts a new record"));
+  }
+
+  // Runs `operation` on the envs `envs`, then again on those it lost after
+  // failing them over (`fresh`: the operation starts them afresh, so nothing
+  // is replayed), at most server_count() + 2 times.
+  absl::Status WithFailover(
+      std::vector<int> envs, bool fresh,
+      const std::function<absl::Status(const std::vector<int>&, EnvErrors*)>&
+          operation) {
+    const int tries = server_count() + 2;
+    for (int attempt = 0; attempt < tries; ++attempt) {
+      EnvErrors lost;
+      absl::Status status = operation(envs, &lost);
+      if (!status.ok() || lost.empty()) return status;
+      status = FailOver(lost, fresh);
+      if (!status.ok()) return status;
+      envs.clear();
+      for (const auto& [env, error] : lost) envs.push_back(env);
+    }
+    return absl::UnavailableError(
+        absl::StrCat("failover gave up after ", tries, " tries"));
+  }
+
+  // Servers not found unreachable; when none is left, those that answer a
+  // health check again.
+  std::vector<int> UsableServers() {
+    std::vector<int> usable;
+    for (int server = 0; server < server_count(); ++server) {
+      if (!down[server]) usable.push_back(server);
+    }
+    if (!usable.empty()) return usable;
+    for (int server = 0; server < server_count(); ++server) {
+      if (TransportOf(server).CheckHealth("").ok()) {
+        down[server] = false;
+        usable.push_back(server);
+      }
+    }
+    return usable;
+  }
+
+  // Recreates the `lost` envs on reachable servers (round robin; an env
+  // whose server answers NOT_FOUND stays there) and replays their records
+  // to the bits the client last saw: one failover event, logged.
+  absl::Status FailOver(const EnvErrors& lost, bool fresh) {
+    const absl::Time began = absl::Now();
+    for (const auto& [env, error] : lost) {
+      if (absl::IsUnavailable(error)) down[placement[env]] = true;
+      if (!fresh) {
+        if (absl::Status problem = RecordProblem(env); !problem.ok()) {
+          return problem;
+        }
+      }
+    }
+    const absl::Status& first = lost.begin()->second;
+    const std::vector<int> targets = UsableServers();
+    if (targets.empty()) {
+      std::vector<std::string> addresses;
+      for (int server = 0; server < server_count(); ++server) {
+        addresses.push_back(session.address(server));
+      }
+      return absl::UnavailableError(absl::StrCat(
+          "failover of ", lost.size(), " envs found no reachable server of ",
+          absl::StrJoin(addresses, ", "), ": ", first.message()));
+    }
+    std::map<int, std::vector<int>> moves;  // Target server -> envs.
+    size_t spread = 0;
+    for (const auto& [env, error] : lost) {
+      int target = placement[env];
+      if (absl::IsUnavailable(error) || down[target]) {
+        target = targets[spread++ % targets.size()];
+      }
+      moves[target].push_back(env);
+    }
+    size_t replayed = 0;
+    std::vector<std::string> where;
+    for (const auto& [target, envs] : moves) {
+      std::vector<ReplayJob> jobs;
+      for (int env : envs) {
+        jobs.push_back({&configs[env], fresh ? nullptr : &records[env],
+                        LastObservations(env), Label(env)});
+        replayed += records[env].operations.size();
+      }
+      absl::StatusOr<std::vector<EnvInfo>> created =
+          Replay(TransportOf(target), jobs);
+      if (!created.ok()) return created.status();
+      for (size_t k = 0; k < envs.size(); ++k) {
+        Replace(envs[k], target, (*created)[k]);
+      }
+      where.push_back(session.address(target));
+    }
+    shards = ShardsOf(AllEnvs(), {});
+    ++failovers;
+    std::fprintf(stderr,
+                 "mll_client: VectorEnv failover: %zu env(s) lost (%s: %s); "
+                 "recreated on %s and replayed (%zu steps) in %.3f s\n",
+                 lost.size(), absl::StatusCodeToString(first.code()).c_str(),
+                 std::string(first.message()).c_str(),
+                 absl::StrJoin(where, ", ").c_str(), fresh ? 0 : replayed,
+                 absl::ToDoubleSeconds(absl::Now() - began));
+    return absl::OkStatus();
+  }
+
+  // Env `env` is now `info`, on server `server`: the lease moves with it.
+  void Replace(int env, int server, const EnvInfo& info) {
+    TransportOf(placement[env]).Unhold(names[env]);
+    names[env] = info.name;
+    placement[env] = server;
+    TransportOf(server).Hold(info.name, info.idle_timeout_s);
+  }
+};
+
+VectorEnv::VectorEnv(std::unique_ptr<State> state) : state_(std::move(state)) {}
+VectorEnv::VectorEnv(VectorEnv&&) noexcept = default;
+VectorEnv& VectorEnv::operator=(VectorEnv&&) noexcept = default;
+VectorEnv::~VectorEnv() = default;
+
+absl::StatusOr<VectorEnv> VectorEnv::Create(const Client& client, int num_envs,
+                                            RemoteEnvConfig config,
+                                            int batch_size,
+                                            std::optional<bool> failover) {
+  if (num_envs < 1 || num_envs > kMaxVectorEnvs) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "num_envs is ", num_envs, "; allowed: 1..", kMaxVectorEnvs));
+  }
+  if (batch_size == 0) batch_size = num_envs;
+  if (batch_size < 1 || batch_size > num_envs) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("batch_size is ", batch_size,
+                     "; allowed: 0 (num_envs) or 1..num_envs = 1..", num_envs));
+  }
+  absl::StatusOr<Client> session = client.OpenSession();
+  if (!session.ok()) return session.status();
+  config.auto_reset = true;
+  const size_t servers =
+      std::min<size_t>(session->transports_.size(), num_envs);
+  std::vector<EnvInfo> infos(num_envs);
+  absl::Status failure = absl::OkStatus();
+  for (size_t server = 0; server < servers; ++server) {
+    auto& transport =
+        static_cast<StreamTransport&>(*session->transports_[server]);
+    std::vector<v1::SessionRequest> requests;
+    for (int env = static_cast<int>(server); env < num_envs;
+         env += static_cast<int>(servers)) {
+      internal::EncodeConfig(
+          config,
+          requests.emplace_back().mutable_create_env()->mutable_config());
+    }
+    std::vector<v1::SessionResponse> responses;
+    absl::Status status = CallPipelined(transport, requests, &responses);
+    if (failure.ok()) failure = status;
+    for (size_t k = 0; k < responses.size(); ++k) {
+      infos[server + k * servers] = internal::DecodeEnv(responses[k].env());
+      infos[server + k * servers].server = static_cast<int>(server);
+    }
+  }
+  // A failure leaves what was made to the session's end.
+  if (!failure.ok()) return failure;
+  const bool several_servers = session->server_count() > 1;
+  absl::StatusOr<VectorEnv> envs =
+      Assemble(*std::move(session), std::move(infos), batch_size);
+  if (envs.ok()) {
+    envs->state_->created = true;
+    envs->state_->failover = failover.value_or(several_servers);
+  }
+  return envs;
+}
+
+absl::StatusOr<VectorEnv> VectorEnv::Attach(
+    const Client& client, const std::vector<std::string>& names) {
+  if (names.empty() || names.size() > kMaxVectorEnvs) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "names has ", names.size(), " entries; allowed: 1..", kMaxVectorEnvs));
+  }
+  absl::StatusOr<Client> session = client.OpenSession();
+  if (!session.ok()) return session.status();
+  std::vector<EnvInfo> infos;
+  for (const std::string& name : names) {
+    absl::StatusOr<EnvInfo> info = session->GetEnv(name);
+    if (!info.ok()) return info.status();
+    if (!infos.empty() && (info->n_landers() != infos[0].n_landers() ||
+                           info->continuous() != infos[0].continuous())) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("names[", infos.size(), "] (", name, ") has n_landers ",
+                       info->n_landers(), " and ",
+                       info->continuous() ? "continuous" : "discrete",
+                       " actions; allowed: those of names[0] (", infos[0].name,
+                       "): ", infos[0].n_landers(), ", ",
+                       infos[0].continuous() ? "continuous" : "discrete"));
+    }
+    infos.push_back(*std::move(info));
+  }
+  // Each env stays on the server that has it; the packed batches are per
+  // server, so env i must be on server i mod S as for Create.
+  const int servers =
+      std::min(session->server_count(), static_cast<int>(names.size()));
+  for (size_t i = 0; i < infos.size(); ++i) {
+    if (infos[i].server != static_cast<int>(i) % servers) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("names[", i, "] (", names[i], ") is on server ",
+                       session->address(infos[i].server),
+                       "; allowed: env i on server i mod ", servers, " (",
+                       session->address(static_cast<int>(i) % servers), ")"));
+    }
+  }
+  return Assemble(*std::move(session), std::move(infos),
+                  static_cast<int>(names.size()));
+}
+
+// Created envs are bound to the session (they go with its streams);
+// attached ones are not.
+absl::StatusOr<VectorEnv> VectorEnv::Assemble(Client session,
+                                              std::vector<EnvInfo> infos,
+                                              int batch_size) {
+  auto state = std::make_unique<State>(std::move(session));
+  State& built = *state;
+  built.n_landers = infos[0].n_landers();
+  built.continuous = infos[0].continuous();
+  for (const EnvInfo& info : infos) {
+    built.names.push_back(info.name);
+    built.placement.push_back(info.server);
+    internal::EncodeConfig(info.config, &built.configs.emplace_back());
+    built.TransportOf(info.server).Hold(info.name, info.idle_timeout_s);
+  }
+  built.shards = built.ShardsOf(built.AllEnvs(), {});
+  built.down.assign(built.server_count(), false);
+  built.records.resize(infos.size());
+  built.last_observations.assign(
+      infos.size() * built.n_landers * kRemoteObservationSize, 0.0f);
+  built.results.Resize(infos.size(), built.n_landers);
+  built.batch_size = batch_size;
+  built.in_flight.assign(infos.size(), false);
+  return VectorEnv(std::move(state));
+}
+
+int VectorEnv::num_envs() const { return state_->num_envs(); }
+int VectorEnv::n_landers() const { return state_->n_landers; }
+bool VectorEnv::continuous() const { return state_->continuous; }
+const std::vector<std::string>& VectorEnv::names() const {
+  return state_->names;
+}
+
+std::string VectorEnv::address(int env) const {
+  return state_->session.address(state_->placement[env]);
+}
+
+std::string VectorEnv::transport() {
+  for (Shard& shard : state_->shards) {
+    if (shard.transport->transport_name() != "shared_memory") return "native";
+  }
+  return "shared_memory";
+}
+
+bool VectorEnv::failover() const { return state_->failover; }
+int VectorEnv::failovers() const { return state_->failovers; }
+
+absl::Status VectorEnv::Reset(std::optional<uint64_t> seed) {
+  if (!seed.has_value()) return Reset(absl::Span<const uint64_t>());
+  std::vector<uint64_t> seeds(num_envs());
+  for (int env = 0; env < num_envs(); ++env) seeds[env] = *seed + env;
+  return Reset(absl::MakeConstSpan(seeds));
+}
+
+absl::Status VectorEnv::CheckNothingInFlight() const {
+  if (state_->in_flight_count == 0) return absl::OkStatus();
+  return absl::FailedPreconditionError(absl::StrCat(
+      state_->in_flight_count,
+      " envs have a Send (or AsyncReset) whose results Recv has not "
+      "returned; Recv them first"));
+}
+
+absl::Status VectorEnv::Reset(absl::Span<const uint64_t> seeds) {
+  State& state = *state_;
+  if (absl::Status status = CheckNothingInFlight(); !status.ok()) return status;
+  // Empty from Reset(nullopt): no reseed.
+  if (!seeds.empty() && seeds.size() != state.names.size()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("seeds has ", seeds.size(),
+                     " entries; expected num_envs = ", state.names.size()));
+  }
+  Columns& out = state.results;
+  out.Resize(state.names.size(), state.n_landers);
+  // A seeded reset starts its envs afresh: failover has nothing to replay.
+  absl::Status status =
+      state.WithFailover(state.AllEnvs(), /*fresh=*/!seeds.empty(),
+                         [&](const std::vector<int>& envs, EnvErrors* lost) {
+                           return state.ResetEnvs(envs, seeds, &out, lost);
+                         });
+  state.env_ids = state.AllEnvs();
+  return status;
+}
+
+absl::Status VectorEnv::Step(absl::Span<const int32_t> discrete_actions) {
+  return StepWith(
+      absl::string_view(reinterpret_cast<const char*>(discrete_actions.data()),
+                        discrete_actions.size() * sizeof(int32_t)),
+      discrete_actions.size(), /*continuous_actions=*/false);
+}
+
+absl::Status VectorEnv::Step(absl::Span<const float> continuous_actions) {
+  return StepWith(absl::string_view(
+                      reinterpret_cast<const char*>(continuous_actions.data()),
+                      continuous_actions.size() * sizeof(float)),
+                  continuous_actions.size(), /*continuous_actions=*/true);
+}
 
 absl::Status VectorEnv::CheckActions(size_t count, bool continuous_actions,
                                      size_t envs) const {
@@ -540,8 +963,7 @@ absl::Status VectorEnv::StepWith(absl::string_view action_bytes, size_t count,
       !status.ok()) {
     return status;
   }
-  const int n = state.n_landers;
-  const size_t env_bytes = action_bytes.size() / state.names.size();
+  const size_t env_bytes = state.row_bytes();
   for (Shard& shard : state.shards) {
     std::string* data = shard.request.mutable_step_batch()
                             ->mutable_packed()
@@ -553,44 +975,32 @@ absl::Status VectorEnv::StepWith(absl::string_view action_bytes, size_t count,
                   action_bytes.data() + shard.rows[k] * env_bytes, env_bytes);
     }
   }
-  // One packed StepBatch per server, all in flight at once.
-  std::vector<absl::StatusOr<uint64_t>> sequences;
-  for (Shard& shard : state.shards) {
-    sequences.push_back(shard.transport->Send(shard.request));
-  }
   Columns& out = state.results;
-  out.Resize(state.names.size(), n);
-  absl::Status failure = absl::OkStatus();
-  int failed_env = state.num_envs();
-  for (size_t s = 0; s < state.shards.size(); ++s) {
-    Shard& shard = state.shards[s];
-    absl::Status status = sequences[s].status();
-    if (status.ok()) {
-      status = shard.transport->Receive(*sequences[s], &shard.response);
-    }
-    // A server's failure counts as its first env's; an env's own error as
-    // that env's. The first in env order is reported.
-    int env = shard.rows[0];
-    absl::StatusOr<const v1::PackedStepData*> packed =
-        status.ok() ? PackedResults(shard.response, shard.rows, state.names,
-                                    shard.transport->address(), &env)
-                    : absl::StatusOr<const v1::PackedStepData*>(status);
-    if (packed.ok()) {
-      status = DecodePacked(**packed, shard.rows, n, &out);
-    } else {
-      status = packed.status();
-    }
-    if (!status.ok()) {
-      if (env < failed_env) {
-        failed_env = env;
-        failure = status;
-      }
-    }
-  }
-  out.MaskAutoResetRows(n);
-  state.env_ids.resize(state.names.size());
-  for (int env = 0; env < num_envs(); ++env) state.env_ids[env] = env;
-  return failure;
+  out.Resize(state.names.size(), state.n_landers);
+  // The first try steps every env with the shards' reused requests; a retry
+  // after a failover, the envs it moved, with this step's actions.
+  bool first_try = true;
+  absl::Status status = state.WithFailover(
+      state.AllEnvs(), /*fresh=*/false,
+      [&](const std::vector<int>& envs, EnvErrors* lost) {
+        std::vector<Shard> retry;
+        if (!first_try) {
+          std::vector<absl::string_view> rows;
+          for (int env : envs) {
+            rows.push_back(action_bytes.substr(env * env_bytes, env_bytes));
+          }
+          retry = state.ShardsOf(envs, rows);
+        }
+        std::vector<int> stepped;
+        absl::Status result = state.RunStepBatches(
+            first_try ? state.shards : retry, &out, lost, &stepped);
+        first_try = false;
+        state.RecordSteps(stepped, action_bytes, out);
+        return result;
+      });
+  out.MaskAutoResetRows(state.n_landers);
+  state.env_ids = state.AllEnvs();
+  return status;
 }
 
 // ----------------------------------------------------- EnvPool's async API
@@ -660,69 +1070,130 @@ absl::Status VectorEnv::SendWith(absl::string_view action_bytes, size_t count,
       !status.ok()) {
     return status;
   }
-  const size_t env_bytes = action_bytes.size() / env_ids.size();
-  const size_t servers = state.shards.size();
-  for (size_t s = 0; s < servers; ++s) {
-    PendingRequest request{s, 0, {}};
-    v1::SessionRequest message;
-    v1::PackedSteps* packed = message.mutable_step_batch()->mutable_packed();
-    std::string* data = packed->mutable_actions()->mutable_data();
-    for (size_t k = 0; k < env_ids.size(); ++k) {
-      const int env = env_ids[k];
-      if (static_cast<size_t>(env) % servers != s) continue;
-      request.envs.push_back(env);
-      packed->add_names(state.names[env]);
-      data->append(action_bytes.data() + k * env_bytes, env_bytes);
+  const size_t env_bytes = state.row_bytes();
+  const std::vector<int> envs(env_ids.begin(), env_ids.end());
+  std::vector<absl::string_view> rows;
+  for (size_t k = 0; k < envs.size(); ++k) {
+    rows.push_back(action_bytes.substr(k * env_bytes, env_bytes));
+  }
+  for (Shard& shard : state.ShardsOf(envs, rows)) {
+    absl::StatusOr<uint64_t> sequence = shard.transport->Send(shard.request);
+    if (!sequence.ok()) return SendRecvFailure(sequence.status());
+    for (int env : shard.rows) {
+      state.in_flight[env] = true;
+      // Send/Recv steps are not recorded: failover covers Step and Reset.
+      if (state.records[env].gap.empty()) {
+        state.records[env].gap =
+            "it was stepped with Send/Recv since its last seeded reset, "
+            "which are not recorded";
+      }
     }
-    if (request.envs.empty()) continue;
-    v1::Array* actions = packed->mutable_actions();
-    actions->set_dtype(state.continuous ? v1::DTYPE_FLOAT32 : v1::DTYPE_INT32);
-    actions->add_shape(static_cast<int>(request.envs.size()));
-    actions->add_shape(state.n_landers);
-    if (state.continuous) actions->add_shape(kRemoteContinuousActionSize);
-    absl::StatusOr<uint64_t> sequence =
-        state.shards[s].transport->Send(message);
-    if (!sequence.ok()) return sequence.status();
-    request.sequence = *sequence;
-    for (int env : request.envs) state.in_flight[env] = true;
-    state.in_flight_count += static_cast<int>(request.envs.size());
-    state.pending.push_back(std::move(request));
+    state.in_flight_count += static_cast<int>(shard.rows.size());
+    state.pending.push_back({shard.server, *sequence, std::move(shard.rows)});
   }
   return absl::OkStatus();
+}
+
+absl::Status VectorEnv::SendRecvFailure(absl::Status status) const {
+  if (!state_->failover || !absl::IsUnavailable(status)) return status;
+  return absl::UnavailableError(absl::StrCat(
+      status.message(), " (failover covers Step and Reset, not Send/Recv)"));
 }
 
 absl::Status VectorEnv::ReceiveOne() {
   State& state = *state_;
   PendingRequest request = std::move(state.pending.front());
   state.pending.pop_front();
-  Shard& shard = state.shards[request.shard];
+  StreamTransport& transport = state.TransportOf(request.server);
   v1::SessionResponse response;
-  absl::Status status = shard.transport->Receive(request.sequence, &response);
-  int failed_env = 0;
-  absl::StatusOr<const v1::PackedStepData*> packed =
-      status.ok() ? PackedResults(response, request.envs, state.names,
-                                  shard.transport->address(), &failed_env)
-                  : absl::StatusOr<const v1::PackedStepData*>(status);
+  absl::Status status = transport.Receive(request.sequence, &response);
   ReadyChunk chunk;
-  if (packed.ok()) {
+  EnvErrors failed;
+  if (status.ok()) {
     chunk.columns.Resize(request.envs.size(), state.n_landers);
     std::vector<int> rows(request.envs.size());
     for (size_t k = 0; k < rows.size(); ++k) rows[k] = static_cast<int>(k);
-    status = DecodePacked(**packed, rows, state.n_landers, &chunk.columns);
-  } else {
-    status = packed.status();
+    status = state.CollectPacked(response, request.envs, rows,
+                                 transport.address(), &chunk.columns,
+                                 /*lost=*/nullptr, &failed);
   }
+  if (status.ok() && !failed.empty()) status = failed.begin()->second;
   if (!status.ok()) {
     // This request's envs are no longer in flight: their results are lost.
     for (int env : request.envs) state.in_flight[env] = false;
     state.in_flight_count -= static_cast<int>(request.envs.size());
-    return status;
+    return SendRecvFailure(status);
   }
   chunk.columns.MaskAutoResetRows(state.n_landers);
   chunk.envs = std::move(request.envs);
   state.ready_rows += chunk.envs.size();
   state.ready.push_back(std::move(chunk));
   return absl::OkStatus();
+}
+
+// ------------------------------------------------------------ env state
+
+absl::Status VectorEnv::CheckEnvIndex(int env) const {
+  if (env >= 0 && env < num_envs()) return absl::OkStatus();
+  return absl::InvalidArgumentError(
+      absl::StrCat("env index is ", env, "; allowed: 0..", num_envs() - 1));
+}
+
+absl::StatusOr<std::string> VectorEnv::EnvState(int env) const {
+  const State& state = *state_;
+  if (absl::Status status = CheckNothingInFlight(); !status.ok()) return status;
+  if (absl::Status status = CheckEnvIndex(env); !status.ok()) return status;
+  if (absl::Status status = state.RecordProblem(env); !status.ok()) {
+    return status;
+  }
+  absl::StatusOr<v1::ServerInfo> server =
+      state.TransportOf(state.placement[env]).ServerInfo();
+  if (!server.ok()) return server.status();
+  return internal::EncodeState(
+      state.configs[env], *server, state.records[env],
+      state.continuous ? v1::DTYPE_FLOAT32 : v1::DTYPE_INT32,
+      static_cast<uint32_t>(state.row_bytes()), state.LastObservations(env));
+}
+
+absl::StatusOr<std::vector<float>> VectorEnv::RestoreEnv(
+    int env, absl::string_view env_state) {
+  State& state = *state_;
+  if (absl::Status status = CheckNothingInFlight(); !status.ok()) return status;
+  if (absl::Status status = CheckEnvIndex(env); !status.ok()) return status;
+  if (!state.created) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        state.Label(env),
+        " was attached, not created by this VectorEnv: RestoreEnv replaces "
+        "an env, and this one is not the VectorEnv's to delete"));
+  }
+  absl::StatusOr<internal::DecodedState> decoded =
+      internal::DecodeState(env_state);
+  if (!decoded.ok()) return decoded.status();
+  if (absl::Status status =
+          internal::CheckStateConfig(*decoded, state.configs[env]);
+      !status.ok()) {
+    return status;
+  }
+  const int server = state.placement[env];
+  StreamTransport& transport = state.TransportOf(server);
+  absl::StatusOr<std::vector<EnvInfo>> created = Replay(
+      transport,
+      {{&state.configs[env], &decoded->record, decoded->last_observations,
+        absl::StrCat("env ", env, " (restored)")}});
+  if (!created.ok()) return created.status();
+  EnvInfo replaced;
+  replaced.name = state.names[env];
+  state.Replace(env, server, (*created)[0]);
+  DeleteEnvs(transport, {replaced});
+  state.shards = state.ShardsOf(state.AllEnvs(), {});
+  state.records[env] = std::move(decoded->record);
+  std::vector<float> observations(static_cast<size_t>(state.n_landers) *
+                                  kRemoteObservationSize);
+  std::memcpy(observations.data(), decoded->last_observations.data(),
+              observations.size() * sizeof(float));
+  std::copy(observations.begin(), observations.end(),
+            state.last_observations.begin() + env * observations.size());
+  return observations;
 }
 
 absl::Status VectorEnv::Recv() {

@@ -333,9 +333,11 @@ TEST_F(VectorEnvTest, BadActionsAreRefusedNamingTheSizeAndType) {
             absl::StatusCode::kInvalidArgument);
 }
 
+// With failover off (on, failover_test.cc: the env is recreated).
 TEST_F(VectorEnvTest, AnEnvDeletedBehindItsBackFailsNamingItAndTheOthersStep) {
   Client client = ClientOf(2, SessionTransport::kAuto);
-  absl::StatusOr<VectorEnv> envs = VectorEnv::Create(client, 4);
+  absl::StatusOr<VectorEnv> envs =
+      VectorEnv::Create(client, 4, {}, 0, /*failover=*/false);
   ASSERT_TRUE(envs.ok()) << envs.status();
   ASSERT_TRUE(envs->Reset(uint64_t{3}).ok());
   const std::string deleted = envs->names()[3];

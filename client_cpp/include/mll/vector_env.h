@@ -11,12 +11,12 @@
 //   std::vector<int32_t> actions(envs->num_envs() * envs->n_landers());
 //   envs->Step(actions);  // envs->observations(), rewards(), active(), ...
 //
-// Env i lives on server i mod S of the client's S servers for its whole life.
-// Each step sends one packed StepBatch to every server at once (pipelined on
-// each server's Session stream: shared memory for a server on this host, as
-// ClientOptions::session_transport chooses) and puts the results back in env
-// order. The envs are created on those streams with the server's auto_reset,
-// so they die with the VectorEnv (or its process).
+// Env i lives on server i mod S of the client's S servers (until failover
+// moves it, below). Each step sends one packed StepBatch to every server at
+// once (pipelined on each server's Session stream: shared memory for a server
+// on this host, as ClientOptions::session_transport chooses) and puts the
+// results back in env order. The envs are created on those streams with the
+// server's auto_reset, so they die with the VectorEnv (or its process).
 //
 // Episode ends (auto-reset): when an env's episode is over (no lander
 // active), its next step ignores the actions and starts a new episode,
@@ -30,6 +30,29 @@
 // (e.g. an env deleted behind the VectorEnv's back: NOT_FOUND) returns the
 // server's code and message for the first of them in env order, prefixed
 // "env {i} ({name}): "; the other envs did step. One thread at a time.
+//
+// Failover: the VectorEnv keeps each env's record (its options, the seed of
+// its last seeded reset, and every operation since: each step's actions,
+// auto-reset steps, unseeded resets). When a server becomes unreachable
+// (UNAVAILABLE, a draining server's "draining: ..." included) or loses an env
+// (NOT_FOUND naming it) during Reset or Step, the VectorEnv recreates each
+// lost env on a reachable server (round robin over the servers not found
+// down; when none is left, those that answer a health check again), replays
+// its record, checks that the replayed observations equal the last ones seen
+// (else DATA_LOSS naming the env), and retries the operation: the caller
+// sees the same observations, rewards and episode boundaries as without the
+// fault. Each event counts in failovers() and is logged once on stderr with
+// its cause. EnvPool's Send/Recv are not recorded: an unreachable server there
+// returns UNAVAILABLE saying so, and failover (and EnvState) of the envs sent
+// waits for their next seeded reset. A record holds at most 100,000
+// operations since its seeded reset; past it failover and EnvState of that env
+// fail FAILED_PRECONDITION naming it, until its next seeded reset.
+//
+// Env state: EnvState(i) gives env i's record as bytes in the Python client's
+// format (multi_lunar_lander/_record.py: "MLLS", format version, the server's
+// wire protocol and release, the EnvConfig, the seed, the operations and their
+// actions, the last observations, a CRC-32), and RestoreEnv(i, state) puts
+// env i at the point a state (from either client) describes.
 #ifndef MLL_VECTOR_ENV_H_
 #define MLL_VECTOR_ENV_H_
 
@@ -41,6 +64,7 @@
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "absl/strings/string_view.h"
 #include "absl/types/span.h"
 #include "mll/client.h"
 
@@ -52,14 +76,18 @@ class VectorEnv {
   // forced on) on the servers of `client` (env i on server i mod S), over a
   // session of its own (Client::OpenSession with the client's options).
   // batch_size: how many envs Recv returns (EnvPool's async API, below);
-  // 0 means num_envs.
-  static absl::StatusOr<VectorEnv> Create(const Client& client, int num_envs,
-                                          RemoteEnvConfig config = {},
-                                          int batch_size = 0);
+  // 0 means num_envs. failover (above): unset turns it on with several
+  // servers and off with one; false turns it off (errors reach the caller
+  // as they are), true turns it on with one server too (the VectorEnv then
+  // retries that server once it answers again).
+  static absl::StatusOr<VectorEnv> Create(
+      const Client& client, int num_envs, RemoteEnvConfig config = {},
+      int batch_size = 0, std::optional<bool> failover = std::nullopt);
   // Existing environments, by name, which must share n_landers and the
   // action type (INVALID_ARGUMENT naming the first that does not); they are
   // not deleted by the VectorEnv. Without auto_reset, a step of an env whose
-  // episode is over fails FAILED_PRECONDITION.
+  // episode is over fails FAILED_PRECONDITION. Failover is off: the envs are
+  // not the VectorEnv's to recreate.
   static absl::StatusOr<VectorEnv> Attach(
       const Client& client, const std::vector<std::string>& names);
 
@@ -72,7 +100,7 @@ class VectorEnv {
   bool continuous() const;
   // `envs/{id}` of each env, in env order.
   const std::vector<std::string>& names() const;
-  // The address of each env's server, in env order.
+  // The address of env `env`'s server.
   std::string address(int env) const;
   // "shared_memory" when every server's stream passes its messages through
   // shared memory, else "native" (opening the streams if none is open).
@@ -136,6 +164,27 @@ class VectorEnv {
   // pilot that acts on one env.
   StepData Result(int row) const;
 
+  // Whether failover is on, and the failover events so far.
+  bool failover() const;
+  int failovers() const;
+
+  // Env `env`'s state: bytes that recreate it at this point to the same bits
+  // on any server of the same release (RestoreEnv here, restore_env or
+  // parallel_env's restore in Python). FAILED_PRECONDITION naming the env
+  // when its record cannot (never reset with a seed, stepped with Send, or
+  // past 100,000 operations), or while any env is in flight.
+  absl::StatusOr<std::string> EnvState(int env) const;
+  // Puts env `env` at the point `state` describes: a new env on the same
+  // server replays it, checked to the bits, then replaces the old one (a new
+  // name). Returns its observations, float32 [n_landers, 12]; the latest
+  // results are unchanged. INVALID_ARGUMENT naming what is wrong for a
+  // damaged state (CRC, magic, format version, truncation) or one of an env
+  // with other options; DATA_LOSS when the replay gives other bits (another
+  // release's physics); FAILED_PRECONDITION for an attached env. On any
+  // error the env is untouched.
+  absl::StatusOr<std::vector<float>> RestoreEnv(int env,
+                                                absl::string_view state);
+
  private:
   struct State;
   explicit VectorEnv(std::unique_ptr<State> state);
@@ -150,6 +199,10 @@ class VectorEnv {
   absl::Status SendWith(absl::string_view action_bytes, size_t count,
                         bool continuous_actions, absl::Span<const int> env_ids);
   absl::Status ReceiveOne();
+  // `status` of a Send or Recv, saying when failover is on that it does not
+  // cover them.
+  absl::Status SendRecvFailure(absl::Status status) const;
+  absl::Status CheckEnvIndex(int env) const;
 
   std::unique_ptr<State> state_;
 };

@@ -1,0 +1,369 @@
+// VectorEnv's failover and env state, against real mll_server processes: a
+// server killed (kill -9) mid-run costs no episode and no bit; failover off
+// reports the loss; a state restores on another server to the same bits, and
+// a damaged or foreign state is refused with the env untouched.
+#include <zlib.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cstdint>
+#include <cstring>
+#include <functional>
+#include <memory>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "mll/client.h"
+#include "mll/vector_env.h"
+#include "server_process.h"
+
+namespace mll::client {
+namespace {
+
+using ::testing::HasSubstr;
+
+constexpr int kLanders = 2;
+
+std::vector<std::unique_ptr<ServerProcess>> StartServers(int count) {
+  std::vector<std::unique_ptr<ServerProcess>> servers;
+  for (int i = 0; i < count; ++i) {
+    absl::StatusOr<std::unique_ptr<ServerProcess>> server =
+        ServerProcess::Start(MLL_SERVER_PATH, {"--threads=1"});
+    EXPECT_TRUE(server.ok()) << server.status();
+    if (server.ok()) servers.push_back(*std::move(server));
+  }
+  return servers;
+}
+
+Client ClientOf(const std::vector<std::unique_ptr<ServerProcess>>& servers,
+                SessionTransport transport = SessionTransport::kAuto) {
+  ClientOptions options;
+  options.session_transport = transport;
+  std::vector<std::string> addresses;
+  for (const auto& server : servers) addresses.push_back(server->address());
+  absl::StatusOr<Client> client = Client::Create(addresses, options);
+  EXPECT_TRUE(client.ok()) << client.status();
+  return *std::move(client);
+}
+
+RemoteEnvConfig SmallConfig(int n_landers = kLanders) {
+  RemoteEnvConfig config;
+  config.n_landers = n_landers;
+  // Short episodes: every run crosses auto-resets.
+  config.max_cycles = 40;
+  return config;
+}
+
+// Random discrete actions for every env, the same for every run.
+std::vector<int32_t> ActionsOf(int step, int num_envs) {
+  std::mt19937_64 rng(1000 + step);
+  std::vector<int32_t> actions(num_envs * kLanders);
+  for (int32_t& a : actions) a = static_cast<int32_t>(rng() % 4);
+  return actions;
+}
+
+// What a run showed the caller: every step's observations and rewards.
+struct Trajectory {
+  std::vector<float> observations;
+  std::vector<float> rewards;
+  std::vector<uint8_t> auto_resets;
+};
+
+void Keep(const VectorEnv& envs, Trajectory* trajectory) {
+  trajectory->observations.insert(trajectory->observations.end(),
+                                  envs.observations().begin(),
+                                  envs.observations().end());
+  trajectory->rewards.insert(trajectory->rewards.end(), envs.rewards().begin(),
+                             envs.rewards().end());
+  trajectory->auto_resets.insert(trajectory->auto_resets.end(),
+                                 envs.auto_reset().begin(),
+                                 envs.auto_reset().end());
+}
+
+template <typename T>
+bool SameBits(const std::vector<T>& a, const std::vector<T>& b) {
+  return a.size() == b.size() &&
+         std::memcmp(a.data(), b.data(), a.size() * sizeof(T)) == 0;
+}
+
+// Seeded reset, then kSteps steps with an unseeded reset at step 20; before
+// step `kill_at` (if any) `kill` runs.
+constexpr int kSteps = 120;
+Trajectory Fly(VectorEnv& envs, int kill_at,
+               const std::function<void()>& kill) {
+  Trajectory trajectory;
+  EXPECT_TRUE(envs.Reset(uint64_t{77}).ok());
+  Keep(envs, &trajectory);
+  for (int step = 0; step < kSteps; ++step) {
+    if (step == kill_at) kill();
+    if (step == 20) {
+      const absl::Status status = envs.Reset();
+      EXPECT_TRUE(status.ok()) << status;
+      Keep(envs, &trajectory);
+    }
+    const absl::Status status =
+        envs.Step(absl::MakeConstSpan(ActionsOf(step, envs.num_envs())));
+    EXPECT_TRUE(status.ok()) << "step " << step << ": " << status;
+    if (!status.ok()) break;
+    Keep(envs, &trajectory);
+  }
+  return trajectory;
+}
+
+// kill -9 of one of three servers mid-run: the run finishes, every
+// observation and reward equal to an uninterrupted run's, on both
+// transports.
+TEST(FailoverTest, AServerKilledMidRunCostsNoBit) {
+  constexpr int kEnvs = 9;
+  for (SessionTransport transport :
+       {SessionTransport::kSharedMemory, SessionTransport::kNative}) {
+    SCOPED_TRACE(SessionTransportName(transport));
+    std::vector<std::unique_ptr<ServerProcess>> servers = StartServers(3);
+    ASSERT_EQ(servers.size(), 3u);
+    Client client = ClientOf(servers, transport);
+    absl::StatusOr<VectorEnv> reference =
+        VectorEnv::Create(client, kEnvs, SmallConfig());
+    ASSERT_TRUE(reference.ok()) << reference.status();
+    const Trajectory expected = Fly(*reference, -1, [] {});
+    EXPECT_EQ(reference->failovers(), 0);
+
+    absl::StatusOr<VectorEnv> envs =
+        VectorEnv::Create(client, kEnvs, SmallConfig());
+    ASSERT_TRUE(envs.ok()) << envs.status();
+    EXPECT_TRUE(envs->failover());
+    const std::string killed = servers[1]->address();
+    const Trajectory got = Fly(*envs, 70, [&] { servers[1]->Kill(); });
+    EXPECT_EQ(envs->failovers(), 1);
+    EXPECT_TRUE(SameBits(got.observations, expected.observations));
+    EXPECT_TRUE(SameBits(got.rewards, expected.rewards));
+    EXPECT_EQ(got.auto_resets, expected.auto_resets);
+    EXPECT_GT(
+        std::count(expected.auto_resets.begin(), expected.auto_resets.end(), 1),
+        kEnvs);
+    for (int env = 0; env < kEnvs; ++env) {
+      EXPECT_NE(envs->address(env), killed) << "env " << env;
+    }
+  }
+}
+
+TEST(FailoverTest, AnEnvDeletedBehindItsBackIsRecreatedWhereItWas) {
+  std::vector<std::unique_ptr<ServerProcess>> servers = StartServers(2);
+  ASSERT_EQ(servers.size(), 2u);
+  Client client = ClientOf(servers);
+  absl::StatusOr<VectorEnv> reference =
+      VectorEnv::Create(client, 4, SmallConfig());
+  absl::StatusOr<VectorEnv> envs = VectorEnv::Create(client, 4, SmallConfig());
+  ASSERT_TRUE(reference.ok() && envs.ok());
+  const Trajectory expected = Fly(*reference, -1, [] {});
+  const Trajectory got = Fly(
+      *envs, 50, [&] { ASSERT_TRUE(client.DeleteEnv(envs->names()[3]).ok()); });
+  EXPECT_EQ(envs->failovers(), 1);
+  EXPECT_EQ(envs->address(3), servers[1]->address());
+  EXPECT_TRUE(SameBits(got.observations, expected.observations));
+  EXPECT_TRUE(SameBits(got.rewards, expected.rewards));
+}
+
+TEST(FailoverTest, OffTheLossReachesTheCaller) {
+  std::vector<std::unique_ptr<ServerProcess>> servers = StartServers(2);
+  ASSERT_EQ(servers.size(), 2u);
+  Client client = ClientOf(servers);
+  absl::StatusOr<VectorEnv> envs = VectorEnv::Create(
+      client, 4, SmallConfig(), /*batch_size=*/0, /*failover=*/false);
+  ASSERT_TRUE(envs.ok()) << envs.status();
+  EXPECT_FALSE(envs->failover());
+  ASSERT_TRUE(envs->Reset(uint64_t{1}).ok());
+  servers[1]->Kill();
+  const absl::Status status = envs->Step(absl::MakeConstSpan(ActionsOf(0, 4)));
+  EXPECT_EQ(status.code(), absl::StatusCode::kUnavailable) << status;
+  EXPECT_EQ(envs->failovers(), 0);
+}
+
+// Failover on with one address: with its server gone and none other, the
+// step says so.
+TEST(FailoverTest, OnWithOneAddressReportsThatNoServerAnswers) {
+  std::vector<std::unique_ptr<ServerProcess>> servers = StartServers(1);
+  ASSERT_EQ(servers.size(), 1u);
+  Client client = ClientOf(servers);
+  absl::StatusOr<VectorEnv> one = VectorEnv::Create(client, 2, SmallConfig());
+  ASSERT_TRUE(one.ok());
+  EXPECT_FALSE(one->failover());
+  absl::StatusOr<VectorEnv> envs =
+      VectorEnv::Create(client, 2, SmallConfig(), 0, /*failover=*/true);
+  ASSERT_TRUE(envs.ok()) << envs.status();
+  ASSERT_TRUE(envs->Reset(uint64_t{1}).ok());
+  servers[0]->Kill();
+  const absl::Status status = envs->Step(absl::MakeConstSpan(ActionsOf(0, 2)));
+  EXPECT_EQ(status.code(), absl::StatusCode::kUnavailable) << status;
+  EXPECT_THAT(std::string(status.message()),
+              HasSubstr("found no reachable server of"));
+}
+
+// The state's bytes with `edit` applied and a valid CRC again.
+std::string Edited(std::string state,
+                   const std::function<void(std::string*)>& edit) {
+  state.resize(state.size() - 4);
+  edit(&state);
+  const uint32_t crc = static_cast<uint32_t>(
+      crc32(0L, reinterpret_cast<const Bytef*>(state.data()),
+            static_cast<uInt>(state.size())));
+  for (int byte = 0; byte < 4; ++byte) {
+    state.push_back(static_cast<char>((crc >> (8 * byte)) & 0xff));
+  }
+  return state;
+}
+
+class EnvStateTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() { servers_ = new auto(StartServers(2)); }
+  static void TearDownTestSuite() { delete servers_; }
+  static Client ClientOn(int server) {
+    absl::StatusOr<Client> client =
+        Client::Create((*servers_)[server]->address());
+    EXPECT_TRUE(client.ok());
+    return *std::move(client);
+  }
+  static inline std::vector<std::unique_ptr<ServerProcess>>* servers_;
+};
+
+// A state taken on one server restores on another to the same bits: the
+// restored env's state is the same bytes, and both envs go on alike.
+TEST_F(EnvStateTest, RestoresOnAnotherServerToTheSameBits) {
+  Client first = ClientOn(0);
+  Client second = ClientOn(1);
+  absl::StatusOr<VectorEnv> source = VectorEnv::Create(first, 3, SmallConfig());
+  absl::StatusOr<VectorEnv> target =
+      VectorEnv::Create(second, 3, SmallConfig());
+  ASSERT_TRUE(source.ok() && target.ok());
+  ASSERT_TRUE(source->Reset(uint64_t{5}).ok());
+  ASSERT_TRUE(target->Reset(uint64_t{500}).ok());
+  for (int step = 0; step < 55; ++step) {
+    ASSERT_TRUE(source->Step(absl::MakeConstSpan(ActionsOf(step, 3))).ok());
+  }
+  ASSERT_TRUE(source->Reset().ok());  // An unseeded reset in the record.
+  for (int step = 55; step < 70; ++step) {
+    ASSERT_TRUE(source->Step(absl::MakeConstSpan(ActionsOf(step, 3))).ok());
+  }
+  absl::StatusOr<std::string> state = source->EnvState(1);
+  ASSERT_TRUE(state.ok()) << state.status();
+  EXPECT_EQ(state->substr(0, 4), "MLLS");
+  const std::string old_name = target->names()[2];
+  absl::StatusOr<std::vector<float>> observations =
+      target->RestoreEnv(2, *state);
+  ASSERT_TRUE(observations.ok()) << observations.status();
+  EXPECT_NE(target->names()[2], old_name);
+  EXPECT_EQ(*observations, source->Result(1).observations);
+  EXPECT_EQ(*target->EnvState(2), *state);
+  for (int step = 70; step < 100; ++step) {
+    const std::vector<int32_t> actions = ActionsOf(step, 3);
+    std::vector<int32_t> moved(actions);
+    std::copy(actions.begin() + 1 * kLanders, actions.begin() + 2 * kLanders,
+              moved.begin() + 2 * kLanders);
+    ASSERT_TRUE(source->Step(absl::MakeConstSpan(actions)).ok());
+    ASSERT_TRUE(target->Step(absl::MakeConstSpan(moved)).ok());
+    const StepData want = source->Result(1);
+    const StepData got = target->Result(2);
+    ASSERT_EQ(got.observations, want.observations) << "step " << step;
+    ASSERT_EQ(got.rewards, want.rewards) << "step " << step;
+  }
+}
+
+TEST_F(EnvStateTest, DamagedOrForeignStatesAreRefusedAndTheEnvIsUntouched) {
+  Client client = ClientOn(0);
+  absl::StatusOr<VectorEnv> envs = VectorEnv::Create(client, 2, SmallConfig());
+  absl::StatusOr<VectorEnv> three =
+      VectorEnv::Create(client, 1, SmallConfig(3));
+  ASSERT_TRUE(envs.ok() && three.ok());
+  ASSERT_TRUE(envs->Reset(uint64_t{8}).ok());
+  ASSERT_TRUE(three->Reset(uint64_t{8}).ok());
+  for (int step = 0; step < 10; ++step) {
+    ASSERT_TRUE(envs->Step(absl::MakeConstSpan(ActionsOf(step, 2))).ok());
+  }
+  const absl::StatusOr<std::string> state = envs->EnvState(0);
+  const absl::StatusOr<std::string> foreign = three->EnvState(0);
+  ASSERT_TRUE(state.ok() && foreign.ok());
+  const std::vector<std::string> names = envs->names();
+
+  struct Refusal {
+    const char* label;
+    std::string state;
+    absl::StatusCode code;
+    const char* says;
+  };
+  std::string flipped = *state;
+  flipped[flipped.size() / 2] ^= 0x10;
+  const std::vector<Refusal> refusals = {
+      {"damaged", flipped, absl::StatusCode::kInvalidArgument,
+       "state is damaged: its CRC-32"},
+      {"bad magic", "XXXX" + state->substr(4),
+       absl::StatusCode::kInvalidArgument, "does not start with \"MLLS\""},
+      {"other format version",
+       Edited(*state, [](std::string* s) { (*s)[4] = 2; }),
+       absl::StatusCode::kInvalidArgument, "format version 2"},
+      {"truncated",
+       Edited(*state, [](std::string* s) { s->resize(s->size() - 30); }),
+       absl::StatusCode::kInvalidArgument, "state is truncated in its"},
+      {"other options", *foreign, absl::StatusCode::kInvalidArgument,
+       "other options (n_landers: 3"},
+      {"other bits",
+       Edited(*state, [](std::string* s) { (*s)[s->size() - 1] ^= 0x01; }),
+       absl::StatusCode::kDataLoss, "env 1 (restored): replaying its 10"},
+  };
+  for (const Refusal& refusal : refusals) {
+    SCOPED_TRACE(refusal.label);
+    absl::StatusOr<std::vector<float>> restored =
+        envs->RestoreEnv(1, refusal.state);
+    EXPECT_EQ(restored.status().code(), refusal.code) << restored.status();
+    EXPECT_THAT(std::string(restored.status().message()),
+                HasSubstr(refusal.says));
+    EXPECT_EQ(envs->names(), names);
+  }
+  // Nothing else harmed: the envs step on, their records whole.
+  ASSERT_TRUE(envs->Step(absl::MakeConstSpan(ActionsOf(10, 2))).ok());
+  EXPECT_TRUE(envs->EnvState(1).ok());
+  EXPECT_EQ(envs->RestoreEnv(2, *state).status().code(),
+            absl::StatusCode::kInvalidArgument);
+}
+
+TEST_F(EnvStateTest, RecordsThatCannotRecreateTheirEnvSaySo) {
+  Client client = ClientOn(0);
+  absl::StatusOr<VectorEnv> envs =
+      VectorEnv::Create(client, 2, SmallConfig(1), /*batch_size=*/1);
+  ASSERT_TRUE(envs.ok());
+  absl::StatusOr<std::string> state = envs->EnvState(0);
+  EXPECT_EQ(state.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(std::string(state.status().message()), HasSubstr("env 0 (envs/"));
+  EXPECT_THAT(std::string(state.status().message()),
+              HasSubstr("never reset with a seed"));
+  // Send/Recv steps are not recorded.
+  ASSERT_TRUE(envs->AsyncReset(uint64_t{2}).ok());
+  ASSERT_TRUE(envs->Recv().ok());
+  ASSERT_TRUE(envs->Recv().ok());
+  ASSERT_TRUE(
+      envs->Send(absl::MakeConstSpan(std::vector<int32_t>{1}), {1}).ok());
+  ASSERT_TRUE(envs->Recv().ok());
+  EXPECT_TRUE(envs->EnvState(0).ok());
+  state = envs->EnvState(1);
+  EXPECT_EQ(state.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(std::string(state.status().message()), HasSubstr("Send/Recv"));
+  // Past 100,000 operations since the seeded reset.
+  ASSERT_TRUE(envs->Reset(uint64_t{3}).ok());
+  const std::vector<int32_t> actions(2, 0);
+  const auto deadline =
+      std::chrono::steady_clock::now() + std::chrono::minutes(5);
+  for (int step = 0; step <= 100000; ++step) {
+    ASSERT_LT(std::chrono::steady_clock::now(), deadline) << "step " << step;
+    ASSERT_TRUE(envs->Step(absl::MakeConstSpan(actions)).ok());
+  }
+  state = envs->EnvState(1);
+  EXPECT_EQ(state.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(std::string(state.status().message()),
+              HasSubstr("passed 100000 operations"));
+  ASSERT_TRUE(envs->Reset(uint64_t{3}).ok());
+  EXPECT_TRUE(envs->EnvState(1).ok());
+}
+
+}  // namespace
+}  // namespace mll::client
