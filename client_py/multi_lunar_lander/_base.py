@@ -1,18 +1,22 @@
-"""The part of the AEC and parallel environments that is not about stepping: creating the
-server-side environment, spaces, rendering and deletion."""
+"""What the AEC and parallel environments share beyond their step: creating the server-side
+environment, spaces, rendering, deletion, and the env's record (see _record) with what it gives:
+state() / restore / clone(), and failover (an env lost with its server is recreated on another
+and replayed, and the call retried)."""
 
 from __future__ import annotations
 
+import time
 import weakref
 from typing import Any, Sequence
 
+import grpc
 import gymnasium
 import numpy as np
 
-from . import _arrays, _lease
+from . import _arrays, _lease, _record
 from ._errors import MLLError
 from ._channel import Security, parse_addresses
-from ._remote import Connection, config_dict, connect_single, make_config, rebuild, space_from_proto
+from ._remote import Connection, choose_server, config_dict, connect_single, make_config, rebuild, space_from_proto
 from ._server_info import ServerInfo
 from ._stubs import pb
 from ._viewer import Viewer
@@ -29,9 +33,7 @@ def _delete_env(connection: Connection, name: str) -> None:
     """Deletes the server-side env and closes the connection (on close() or garbage collection).
     The server may already be gone (e.g. at interpreter exit): then there is nothing to delete."""
     try:
-        connection.call("DeleteEnv", pb.DeleteEnvRequest(name=name), timeout=2.0)
-    except MLLError:
-        pass
+        _record.delete_quietly(connection, name)
     finally:
         connection.close()
 
@@ -50,34 +52,39 @@ class RemoteEnvBase:
         tls_root_cert: str | bytes | None = None,
         tls_server_name: str | None = None,
         token: str | None = None,
+        failover: bool | None = None,
         **options: Any,
     ):
         """Creates the environment on one server of `address` (see the package docstring for
-        address lists, server_index, TLS and token); `options` are the EnvConfig options."""
+        address lists, server_index, TLS and token); `options` are the EnvConfig options.
+        failover: None is on with several servers or the embedded one (docs/python.md)."""
         super().__init__()  # pettingzoo.AECEnv / ParallelEnv, next in the subclass's MRO.
         security = Security.from_options(tls_root_cert, tls_server_name, token)
         config = make_config(render_mode, False, options)
         connection, server_index = connect_single(address, server_index, security)
         # What a pickle carries (__reduce__): the arguments that make the same environment on the
-        # same server again, never the connection.
+        # same server again (the one it lives on now), never the connection.
         addresses = parse_addresses(address)
         self._init_kwargs = dict(
             options,
             address=list(addresses) or None,
             server_index=server_index if addresses else None,
             render_mode=render_mode,
+            failover=failover,
             **security.as_options(),
         )
+        self.failover = _record.failover_on(failover, addresses)
+        self.failovers = 0  # Failover events so far.
+        self._security, self._addresses = security, addresses
+        self._server_index = server_index  # Into addresses (0 for the embedded server).
+        self._down: set[int] = set()  # Servers found unreachable (tried again when none is left).
         try:
             connection.check_server()  # GetServerInfo, once per connection.
             env = connection.call("CreateEnv", pb.CreateEnvRequest(config=config))
         except BaseException:
             connection.close()
             raise
-        self._connection = connection
-        self._name = env.name
-        self._deleter = weakref.finalize(self, _delete_env, connection, env.name)
-        _lease.hold(connection, env.name, env.idle_timeout_s)
+        self._adopt(connection, env)
         self.render_mode = render_mode
         self.config = config_dict(env.config)
         self._env_config = env.config  # Filled in by the server (what a state carries).
@@ -90,6 +97,15 @@ class RemoteEnvBase:
         self.action_spaces = {a: space_from_proto(env.action_space) for a in self.possible_agents}
         self.metadata = dict(METADATA, render_fps=env.render_fps or METADATA["render_fps"])
         self._viewer: Viewer | None = None
+        # The record (see _record): the seed of the last seeded reset, the operations since, each
+        # with its action row (the step's actions in _actions, zeros where ignored), and the
+        # observations last seen.
+        n = len(self.possible_agents)
+        self._dtype = pb.DTYPE_FLOAT32 if self.continuous else pb.DTYPE_INT32
+        self._actions = np.zeros((n, 2) if self.continuous else (n,), np.float32 if self.continuous else np.int32)
+        self._log = _record.GrowingLog(1, self._actions.nbytes)
+        self._seed: int | None = None
+        self._last_observations = b""
         self._init_state()
 
     def __reduce__(self):
@@ -103,6 +119,114 @@ class RemoteEnvBase:
     def _init_state(self) -> None:
         """The subclass's own attributes, set once the server-side env exists."""
         raise NotImplementedError
+
+    def _adopt(self, connection: Connection, env: "pb.Env") -> None:
+        """Makes the server-side `env` on `connection`'s server this object's: its name, its
+        deletion on close() or garbage collection, its lease."""
+        self._connection, self._name = connection, env.name
+        self._deleter = weakref.finalize(self, _delete_env, connection, env.name)
+        _lease.hold(connection, env.name, env.idle_timeout_s)
+
+    def _call(self, method: str, request):
+        """Calls `method` with `request` on this env (its `name` set here). With failover on, when
+        the server is unreachable or has lost the env, the env is recreated on a reachable
+        server from its record and the call is made again there."""
+        tries = len(self._addresses) + 2
+        for _ in range(tries):
+            request.name = self._name
+            try:
+                return self._connection.call(method, request)
+            except MLLError as error:
+                if not (self.failover and _record.loses_env(error, self._name)):
+                    raise
+                self._fail_over(error)
+        raise _record.gave_up(tries)
+
+    def _record_reset(self, response: "pb.ResetEnvResponse") -> None:
+        """The record after a reset: a new one when the server reseeded, else an unseeded reset."""
+        if response.HasField("seed"):
+            self._seed = int(response.seed)
+            self._log.clear()
+        else:
+            self._log.append(np.array([_record.RESET], np.uint8), np.zeros((1, self._actions.nbytes), np.uint8))
+        self._last_observations = _record.observations_of(response)
+
+    def _record_step(self, kind: int, response) -> None:
+        """The record after a step of `kind` with the actions in _actions and its `response`."""
+        self._log.append(np.array([kind], np.uint8), self._actions.view(np.uint8).reshape(1, -1))
+        self._last_observations = _record.observations_of(response)
+
+    def _env_record(self) -> _record.EnvRecord:
+        """This env's record; FAILED_PRECONDITION when it cannot recreate the env."""
+        if self._seed is None or self._log.full:
+            why = (
+                "it was never reset" if self._seed is None
+                else f"its record passed {_record.MAX_RECORD_STEPS} operations since its last seeded reset"
+            )
+            raise MLLError(
+                grpc.StatusCode.FAILED_PRECONDITION,
+                f"{self._name} cannot be recreated: {why}; reset(seed=...) starts a new record",
+            )
+        kinds, actions = self._log.of_env(0)
+        return _record.EnvRecord(self._seed, kinds, actions, self._last_observations)
+
+    def _fail_over(self, cause: MLLError) -> None:
+        """Recreates this env, lost to `cause`, from its record: on its own server when that
+        answers (NOT_FOUND), else on a reachable server of `address`, round robin (the embedded
+        server restarted); one that turns out unreachable or draining is passed over. One
+        failover event, logged; UNAVAILABLE when no server is left. (A draining server serves
+        the envs it holds until its drain ends: this env moves when the server refuses it.)"""
+        began = time.monotonic()
+        record = self._env_record()
+        old_connection, old_name, old_index = self._connection, self._name, self._server_index
+        # One connection per server, to pick from; the env's own among them.
+        connections = [
+            old_connection if index == old_index else Connection(address, self._security, self._addresses)
+            for index, address in enumerate(self._addresses)
+        ] or [old_connection]
+        unreachable = cause.code == grpc.StatusCode.UNAVAILABLE
+        target, adopted = old_index, None
+        try:
+            for _ in range(len(connections) + 1):
+                if unreachable:
+                    self._down.add(target)
+                    usable = _record.usable_servers(connections, self._down, self._security, not self._addresses)
+                    if not usable:
+                        raise MLLError(
+                            grpc.StatusCode.UNAVAILABLE,
+                            f"failover of {old_name} found no reachable server of {', '.join(self._addresses)}: "
+                            f"{cause.message}",
+                        )
+                    target = usable[choose_server(tuple(connections[index].address for index in usable), None)]
+                try:
+                    connections[target].check_server()
+                    (env,), _ = _record.replay(
+                        connections[target], self._env_config, [record], [old_name], self._dtype,
+                        self._actions.shape,
+                    )
+                except MLLError as error:
+                    if error.code != grpc.StatusCode.UNAVAILABLE:
+                        raise
+                    unreachable = True  # It went too (or drains): the next one.
+                    continue
+                adopted = connections[target]
+                break
+            else:
+                raise _record.gave_up(len(connections) + 1)
+        finally:
+            for connection in connections:
+                if connection is not adopted and connection is not old_connection:
+                    connection.close()
+        # The old env went with its server (or, NOT_FOUND, is gone from it): nothing to delete.
+        self._deleter.detach()
+        if adopted is not old_connection:
+            old_connection.close()
+        self._adopt(adopted, env)
+        self._server_index = target
+        if self._addresses:
+            self._init_kwargs["server_index"] = target  # Pickles go where the env lives now.
+        self.failovers += 1
+        _record.log_failover(type(self).__name__, 1, cause, [adopted.address], record.kinds.size, began)
 
     @property
     def address(self) -> str:
@@ -118,8 +242,55 @@ class RemoteEnvBase:
     @property
     def server_info(self) -> ServerInfo:
         """The release, wire protocol version, capabilities and limits of this environment's server
-        (GetServerInfo, asked when the environment was created)."""
+        (GetServerInfo, asked when the environment was created or moved there by failover)."""
         return self._connection.server_info
+
+    # ----------------------------------------------------------------- env state
+
+    def state(self) -> bytes:
+        """This env's state: bytes that recreate it at this point (restore, clone) to the same bits
+        on any server of the same release. FAILED_PRECONDITION before the first reset or past the
+        record's limit (docs/python.md)."""
+        info = self.server_info
+        return _record.encode_state(
+            self._env_config, info.protocol, info.server_version, self._env_record(), self._dtype,
+            self._actions.nbytes,
+        )
+
+    def _restore(self, state: bytes, operations: Sequence[int]):
+        """Puts this env at the point `state` describes (its steps among `operations`): a new
+        server-side env replays it, checked against the state's last observations, then replaces
+        this one's. Returns the replay's last answer. INVALID_ARGUMENT for a damaged state or one
+        of an env with other options or steps, DATA_LOSS when the replay gives other bits; on any
+        error the env is untouched."""
+        decoded = _record.decode_state(state, operations)
+        _record.check_config(decoded.config, self._env_config, decoded.row_bytes, decoded.dtype)
+        (env,), (answer,) = _record.replay(
+            self._connection, self._env_config, [decoded.record], [f"{self._name} (restored)"],
+            self._dtype, self._actions.shape,
+        )
+        self._deleter.detach()  # The old env goes; the connection stays.
+        _record.delete_quietly(self._connection, self._name)
+        self._adopt(self._connection, env)
+        record = decoded.record
+        self._seed = record.seed
+        self._log.clear()
+        for kind, row in zip(record.kinds, record.actions):
+            self._log.append(np.array([kind], np.uint8), row[None])
+        self._last_observations = record.last_observations
+        return answer
+
+    def clone(self):
+        """A new env of this class on the same server with the same arguments, at this same point
+        (state() restored into it)."""
+        state = self.state()
+        other = rebuild(type(self), self._init_kwargs)
+        try:
+            other.restore(state)
+        except BaseException:
+            other.close()
+            raise
+        return other
 
     def observation_space(self, agent: str) -> gymnasium.spaces.Space:
         return self.observation_spaces[agent]
@@ -128,9 +299,7 @@ class RemoteEnvBase:
         return self.action_spaces[agent]
 
     def _frame(self) -> np.ndarray:
-        frame = self._connection.call(
-            "RenderEnv", pb.RenderEnvRequest(name=self._name, format=pb.FRAME_FORMAT_RGB)
-        )
+        frame = self._call("RenderEnv", pb.RenderEnvRequest(format=pb.FRAME_FORMAT_RGB))
         return _arrays.from_bytes(frame.data, pb.DTYPE_UINT8, (frame.height, frame.width, 3))
 
     def _show_if_human(self) -> None:

@@ -1,4 +1,5 @@
-"""An environment's record: what recreates it to the same bits on any server of the same release.
+"""An environment's record: what recreates it to the same bits on any server of the same release,
+and the failover that uses it.
 
 An env is deterministic to the bit: it is fully described by its config, the seed of its last
 seeded reset and every operation since (steps with their actions, auto-reset steps, unseeded
@@ -10,12 +11,22 @@ Operations (one byte each) and their action row (the wire bytes of the step's ac
   STEP: a step with these actions; AUTO_RESET: a step that started a new episode (actions
   ignored; replayed as a step on an auto-reset env, as an unseeded ResetEnv on another);
   RESET: an unseeded ResetEnv (the generator's stream continues).
+  The AEC env's turns (StepAgent), each acting for the agent_selection of the answer before it
+  (so the record needs no agent index: replay reads it from that answer):
+  AGENT_STEP: the action at the acting agent's slot of the row; DEAD_STEP: a dead step (no
+  action; the row is zeros).
+A record holds StepEnv operations (STEP, AUTO_RESET) or StepAgent ones, never both: the server
+refuses to mix the two step APIs within an episode, so each env kind restores only states of
+its own operations (and RESET).
 
 A record holds at most MAX_RECORD_STEPS operations since its seeded reset; past it the env
 cannot be recreated (failover raises FAILED_PRECONDITION naming the env) until its next seeded
 reset starts a new record.
 
-State format (env.state(), all integers little-endian): b"MLLS", u16 format version, u16 and
+State format (env.state(), all integers little-endian): b"MLLS", u16 format version (1: operations
+STEP, AUTO_RESET, RESET; 2: the same layout, AGENT_STEP and DEAD_STEP allowed too. A state is
+written with the lowest version that holds its operations, so the states of vector and parallel
+envs stay readable by version-1 clients, which refuse an AEC env's by its version), u16 and
 u16 the wire protocol (major, minor) of the server that ran the env, u16 length + the server's
 release string, u32 length + the EnvConfig message (the server's filled-in config), u64 seed,
 u8 action wire dtype, u32 action row bytes, u32 operation count n, n operation bytes, n action
@@ -24,24 +35,36 @@ rows, u32 length + the last observations (float32 [n_landers, 12]), u32 CRC-32 o
 
 from __future__ import annotations
 
+import logging
 import struct
+import time
 import zlib
-from typing import Sequence
+from typing import Iterable, Sequence
 
 import grpc
 import numpy as np
 
 from . import _arrays
+from ._channel import Security
 from ._errors import MLLError, invalid_argument
+from ._remote import Connection, encode_agent_action
 from ._stubs import pb
 
-STEP, AUTO_RESET, RESET = 1, 2, 3
+STEP, AUTO_RESET, RESET, AGENT_STEP, DEAD_STEP = 1, 2, 3, 4, 5
+# The operations each env kind records and restores: vector and parallel envs step with StepEnv
+# (StepBatch), the AEC env with StepAgent.
+STEP_OPERATIONS = (STEP, AUTO_RESET, RESET)
+AEC_OPERATIONS = (AGENT_STEP, DEAD_STEP, RESET)
 
 # Operations kept per env since its seeded reset (see the module docstring).
 MAX_RECORD_STEPS = 100_000
 
 MAGIC = b"MLLS"
-FORMAT_VERSION = 1
+# The operations each format version may hold (see the module docstring); the newest version.
+VERSION_OPERATIONS = {1: STEP_OPERATIONS, 2: STEP_OPERATIONS + (AGENT_STEP, DEAD_STEP)}
+FORMAT_VERSION = max(VERSION_OPERATIONS)
+
+_LOG = logging.getLogger("multi_lunar_lander")
 
 
 class EnvRecord:
@@ -142,9 +165,10 @@ def encode_state(
     config_bytes = config.SerializeToString(deterministic=True)
     release_bytes = release.encode("utf-8")[:65535]
     kinds = np.ascontiguousarray(record.kinds, np.uint8)
+    version = min(v for v, operations in VERSION_OPERATIONS.items() if np.isin(kinds, operations).all())
     parts = [
         MAGIC,
-        struct.pack("<HHHH", FORMAT_VERSION, int(protocol[0]), int(protocol[1]), len(release_bytes)),
+        struct.pack("<HHHH", version, int(protocol[0]), int(protocol[1]), len(release_bytes)),
         release_bytes,
         struct.pack("<I", len(config_bytes)),
         config_bytes,
@@ -162,8 +186,9 @@ class DecodedState:
     __slots__ = ("protocol", "release", "config", "record", "dtype", "row_bytes")
 
 
-def decode_state(state) -> DecodedState:
-    """Parses and checks a state; INVALID_ARGUMENT naming what is wrong."""
+def decode_state(state, operations: Sequence[int] = STEP_OPERATIONS) -> DecodedState:
+    """Parses and checks a state for an env that replays `operations` (STEP_OPERATIONS: vector
+    and parallel envs; AEC_OPERATIONS: the AEC env); INVALID_ARGUMENT naming what is wrong."""
     if not isinstance(state, (bytes, bytearray, memoryview)):
         raise invalid_argument(f"state is a {type(state).__name__}; expected the bytes of env.state()")
     data = bytes(state)
@@ -183,9 +208,9 @@ def decode_state(state) -> DecodedState:
         return chunk
 
     version, major, minor, release_len = struct.unpack("<HHHH", take(8, "header"))
-    if version != FORMAT_VERSION:
+    if version not in VERSION_OPERATIONS:
         raise invalid_argument(
-            f"state has format version {version}; this client reads version {FORMAT_VERSION} (upgrade the client)"
+            f"state has format version {version}; this client reads versions 1 to {FORMAT_VERSION} (upgrade the client)"
         )
     decoded = DecodedState()
     decoded.protocol = (major, minor)
@@ -202,8 +227,13 @@ def decode_state(state) -> DecodedState:
     if count > MAX_RECORD_STEPS:
         raise invalid_argument(f"state holds {count} operations; at most {MAX_RECORD_STEPS}")
     kinds = np.frombuffer(take(count, "operations"), np.uint8)
-    if count and not np.isin(kinds, (STEP, AUTO_RESET, RESET)).all():
-        raise invalid_argument("state holds an unknown operation code")
+    if not np.isin(kinds, VERSION_OPERATIONS[version]).all():
+        raise invalid_argument(f"state holds an operation code unknown to format version {version}")
+    if not np.isin(kinds, operations).all():
+        raise invalid_argument(
+            "state holds steps of the other step API (StepAgent: an AEC env's; StepEnv: a vector or parallel "
+            "env's), which this env does not replay"
+        )
     actions = np.frombuffer(take(count * row_bytes, "actions"), np.uint8).reshape(count, row_bytes)
     (obs_len,) = struct.unpack("<I", take(4, "observations length"))
     last = take(obs_len, "observations")
@@ -234,6 +264,23 @@ def check_config(state_config: "pb.EnvConfig", config: "pb.EnvConfig", row_bytes
         raise invalid_argument(f"state's actions are {row_bytes} bytes a step; this env's are {expected}")
 
 
+def observations_of(response) -> bytes:
+    """The observations of a ResetEnv, StepEnv or StepAgent answer (StepAgent's in its AecState,
+    the others' in its StepData) as float32 little-endian bytes: a record's last_observations."""
+    message = response.aec if isinstance(response, pb.StepAgentResponse) else response.data
+    return _arrays.to_numpy(message.observations).astype("<f4").tobytes()
+
+
+def agent_step_request(kind: int, actions: np.ndarray, agent: int) -> "pb.StepAgentRequest":
+    """The StepAgent request (its name to be set) of an AGENT_STEP or DEAD_STEP operation of
+    `agent`, with the agent's action at its row of `actions` (int32 [n_landers] or float32
+    [n_landers, 2]); the agent is sent for the server to check against agent_selection."""
+    request = pb.StepAgentRequest(agent=agent)
+    if kind == AGENT_STEP:
+        encode_agent_action(actions[agent], actions.dtype == np.float32, f"lander_{agent}", request.action)
+    return request
+
+
 def replay(
     connection,
     config: "pb.EnvConfig",
@@ -245,8 +292,8 @@ def replay(
     """Creates one env per record on `connection`'s server (with `config`), replays each
     record's operations (all envs a round at a time, concurrently) and checks each replayed
     observation equals the record's last seen; returns the created Env messages and each env's
-    last StepData. On any error
-    the envs created here are deleted; DATA_LOSS names the env whose bits differ."""
+    last answer (ResetEnvResponse, StepEnvResponse or StepAgentResponse). On any error the envs
+    created here are deleted; DATA_LOSS names the env whose bits differ."""
     for record, label in zip(records, labels):
         if record.seed is None:
             raise MLLError(
@@ -265,8 +312,9 @@ def replay(
         if failure is not None:
             raise failure
         auto_reset = bool(config.auto_reset)
-        datas = [
-            wait().data
+        element = "<f4" if dtype == pb.DTYPE_FLOAT32 else "<i4"
+        answers = [
+            wait()
             for wait in [
                 connection.future("ResetEnv", pb.ResetEnvRequest(name=env.name, seed=record.seed))
                 for env, record in zip(envs, records)
@@ -281,6 +329,11 @@ def replay(
                 kind = record.kinds[t]
                 if kind == RESET or (kind == AUTO_RESET and not auto_reset):
                     waits.append((index, connection.future("ResetEnv", pb.ResetEnvRequest(name=env.name))))
+                elif kind in (AGENT_STEP, DEAD_STEP):
+                    actions = np.frombuffer(record.actions[t].tobytes(), element).reshape(action_shape)
+                    request = agent_step_request(kind, actions, answers[index].aec.agent_selection)
+                    request.name = env.name
+                    waits.append((index, connection.future("StepAgent", request)))
                 else:
                     request = pb.StepEnvRequest(name=env.name)
                     request.actions.dtype = dtype
@@ -288,10 +341,9 @@ def replay(
                     request.actions.data = record.actions[t].tobytes()
                     waits.append((index, connection.future("StepEnv", request)))
             for index, wait in waits:
-                datas[index] = wait().data
-        for record, label, data in zip(records, labels, datas):
-            got = _arrays.to_numpy(data.observations).astype("<f4").tobytes()
-            if got != record.last_observations:
+                answers[index] = wait()
+        for record, label, answer in zip(records, labels, answers):
+            if observations_of(answer) != record.last_observations:
                 raise MLLError(
                     grpc.StatusCode.DATA_LOSS,
                     f"{label}: replaying its {record.kinds.size} operations since seed {record.seed} on "
@@ -300,9 +352,80 @@ def replay(
                 )
     except BaseException:
         for env in envs:
-            try:
-                connection.call("DeleteEnv", pb.DeleteEnvRequest(name=env.name), timeout=2.0)
-            except MLLError:
-                pass
+            delete_quietly(connection, env.name)
         raise
-    return envs, datas
+    return envs, answers
+
+
+def delete_quietly(connection, name: str) -> None:
+    """Deletes env `name` on `connection`'s server, ignoring errors: the env, or the server, may
+    be gone already; either way the server holds it no more."""
+    try:
+        connection.call("DeleteEnv", pb.DeleteEnvRequest(name=name), timeout=2.0)
+    except MLLError:
+        pass
+
+
+# ----------------------------------------------------------------- failover
+
+
+def failover_on(failover: bool | None, addresses: Sequence[str]) -> bool:
+    """The `failover=` argument resolved: None is on with several servers or the embedded one
+    (no address), off with one address."""
+    return len(addresses) != 1 if failover is None else bool(failover)
+
+
+def loses_env(error: MLLError, name: str) -> bool:
+    """Whether `error`, of a call on env `name`, is one failover handles: the server unreachable
+    (UNAVAILABLE, a draining server's "draining: ..." included), or the env gone from a server
+    that answers (NOT_FOUND naming it)."""
+    return error.code == grpc.StatusCode.UNAVAILABLE or (
+        error.code == grpc.StatusCode.NOT_FOUND and name in error.message
+    )
+
+
+def gave_up(tries: int) -> MLLError:
+    """The error of a call still failing over after `tries` tries (each server found down)."""
+    return MLLError(grpc.StatusCode.UNAVAILABLE, f"failover gave up after {tries} tries")
+
+
+def usable_servers(connections: list[Connection], down: set[int], security: Security, embedded: bool) -> list[int]:
+    """Indices of `connections` not in `down` (found unreachable); when none is left, those that
+    answer GetServerInfo again (taken out of `down`), or with the embedded server (`embedded`:
+    one connection, address=None) connections[0] replaced by a new connection, which restarts
+    the server if it died."""
+    alive = [index for index in range(len(connections)) if index not in down]
+    if alive:
+        return alive
+    if embedded:
+        old = connections[0]
+        connections[0] = Connection(None, security)
+        old.close()
+        down.clear()
+        return [0]
+    for index, connection in enumerate(connections):
+        try:
+            connection.call("GetServerInfo", pb.GetServerInfoRequest(), timeout=2.0)
+        except MLLError:
+            continue
+        down.discard(index)
+    return [index for index in range(len(connections)) if index not in down]
+
+
+def log_failover(
+    client: str, moved: int, cause: MLLError, targets: Iterable[str], operations: int, began: float, detail: str = ""
+) -> None:
+    """The one warning of a failover event of `client` (e.g. "vector_env"): `moved` envs lost to
+    `cause`, recreated on `targets` (addresses) with `operations` replayed since `began`
+    (time.monotonic()); `detail` is appended."""
+    _LOG.warning(
+        "%s failover: %d env(s) lost (%s: %s); recreated on %s and replayed (%d steps) in %.3f s%s",
+        client,
+        moved,
+        cause.code.name,
+        cause.message,
+        ", ".join(sorted(set(targets))),
+        operations,
+        time.monotonic() - began,
+        detail,
+    )

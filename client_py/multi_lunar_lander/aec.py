@@ -2,7 +2,9 @@
 
 The server keeps PettingZoo's AEC bookkeeping (agent order, the dead-step rule, `rewards` and
 `_cumulative_rewards`); after each call this class copies the returned `AecState` into the
-attributes pettingzoo.AECEnv's own `last()`, `observe()` and `agent_iter()` read.
+attributes pettingzoo.AECEnv's own `last()`, `observe()` and `agent_iter()` read. Each turn is
+recorded (AGENT_STEP or DEAD_STEP, see _record), so replaying the record gives the same agent
+selection and bits: what failover and state()/restore()/clone() use.
 """
 
 from __future__ import annotations
@@ -10,9 +12,10 @@ from __future__ import annotations
 import numpy as np
 from pettingzoo import AECEnv
 
-from . import _arrays
+from . import _arrays, _record
+from ._actions import check_actions
 from ._base import RemoteEnvBase
-from ._remote import Columns, encode_agent_action, seed_value
+from ._remote import Columns, seed_value
 from ._stubs import pb
 
 
@@ -53,8 +56,13 @@ class MultiLunarLanderEnv(RemoteEnvBase, AECEnv):
     (-12, 0)), enable_wind (False), wind_power (15, [0, 20]), turbulence_power (1.5, [0, 2]),
     remove_on_damage, terminate_on_damage, shared_reward (True), damage_reward (-100),
     successful_reward (+100), terminate_reward (-100), render_mode (None, "rgb_array",
-    "human"), and address (None: an embedded local mll_server), tls_root_cert,
-    tls_server_name, token.
+    "human"), and address (None: an embedded local mll_server), server_index, tls_root_cert,
+    tls_server_name, token, failover (on by default with several servers or the embedded one:
+    an env lost with its server is recreated on another from its record and the turn retried;
+    `failovers` counts the events).
+
+    ## Env state
+    state() -> bytes, restore(state), clone(): as the parallel env's, for AEC states.
     """
 
     def _init_state(self) -> None:
@@ -68,23 +76,39 @@ class MultiLunarLanderEnv(RemoteEnvBase, AECEnv):
         self._observations = np.zeros((len(self.possible_agents), 12), dtype=np.float32)
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> None:
-        request = pb.ResetEnvRequest(name=self._name)
+        request = pb.ResetEnvRequest()
         seed = seed_value(seed)
         if seed is not None:
             request.seed = seed
-        self._apply(self._connection.call("ResetEnv", request).aec)
+        response = self._call("ResetEnv", request)
+        self._record_reset(response)
+        self._apply(response.aec)
         self._show_if_human()
 
     def step(self, action) -> None:
         """Acts for agent_selection; `action` must be None for a terminated or truncated agent
         (PettingZoo's dead step). Server errors raise MLLError."""
-        request = pb.StepAgentRequest(name=self._name, agent=self._agent_index[self.agent_selection])
-        if action is not None:
-            encode_agent_action(action, self.continuous, self.agent_selection, request.action)
-        aec = self._connection.call("StepAgent", request).aec
-        self._apply(aec)
-        if aec.world_stepped:
+        agent = self._agent_index[self.agent_selection]
+        self._actions.fill(0)
+        if action is None:
+            kind = _record.DEAD_STEP
+        else:
+            kind = _record.AGENT_STEP
+            self._actions[agent] = check_actions(action, self.continuous, (), f"the action of {self.agent_selection}")
+        response = self._call("StepAgent", _record.agent_step_request(kind, self._actions, agent))
+        self._record_step(kind, response)
+        self._apply(response.aec)
+        if response.aec.world_stepped:
             self._show_if_human()
+
+    def restore(self, state: bytes) -> None:
+        """Puts this env at the point `state` (another AEC env's state()) describes, agent_selection
+        and the PettingZoo attributes included: a new server-side env replays it, checked against
+        the state's last observations, then replaces this one's. INVALID_ARGUMENT for a damaged
+        state or one of an env with other options (or of a parallel or vector env, which steps
+        with the other step API), DATA_LOSS when the replay gives other bits; on any error the env
+        is untouched."""
+        self._apply(self._restore(state, _record.AEC_OPERATIONS).aec)
 
     def observe(self, agent: str) -> np.ndarray:
         return self._observations[self._agent_index[agent]].copy()

@@ -23,7 +23,6 @@ their `active` entries are False.
 from __future__ import annotations
 
 import collections
-import logging
 import time
 from typing import Any, NamedTuple, Sequence
 
@@ -67,9 +66,6 @@ _ENV_COLUMNS = (
     ("episode_over", pb.DTYPE_UINT8, bool, lambda n: ()),
     ("auto_reset", pb.DTYPE_UINT8, bool, lambda n: ()),
 )
-
-
-_LOG = logging.getLogger("multi_lunar_lander")
 
 
 class _Server(NamedTuple):
@@ -171,7 +167,7 @@ class VectorEnv:
         self._transport = transport
         servers = addresses or (None,)  # None: the embedded server.
         # Failover (see failover's docs): on by default with several servers or the embedded one.
-        self.failover = (len(servers) > 1 or not addresses) if failover is None else bool(failover)
+        self.failover = _record.failover_on(failover, addresses)
         self.failovers = 0  # Failover events so far.
         self._embedded = not addresses
         self._down: set[int] = set()  # Connections found unreachable (tried again when none is left).
@@ -379,7 +375,7 @@ class VectorEnv:
             self._fail_over(lost)
             todo = sorted(lost)
         else:
-            raise MLLError(grpc.StatusCode.UNAVAILABLE, f"failover gave up after {len(self._connections) + 2} tries")
+            raise _record.gave_up(len(self._connections) + 2)
         datas = [response.data for response in responses]
         columns = self._columns_of(datas)
         self._record_reset(responses, columns["observations"])
@@ -401,10 +397,7 @@ class VectorEnv:
 
     def _lost(self, error: MLLError, index: int) -> bool:
         """Whether env `index`'s `error` is one failover handles."""
-        return self.failover and (
-            error.code == grpc.StatusCode.UNAVAILABLE
-            or (error.code == grpc.StatusCode.NOT_FOUND and self._names[index] in error.message)
-        )
+        return self.failover and _record.loses_env(error, self._names[index])
 
     def _columns_of(self, datas) -> dict:
         """Result columns (num_envs leading) from one StepData per env."""
@@ -768,7 +761,7 @@ class VectorEnv:
             if not lost:
                 break
         else:
-            raise MLLError(grpc.StatusCode.UNAVAILABLE, f"failover gave up after {len(self._connections) + 2} tries")
+            raise _record.gave_up(len(self._connections) + 2)
         rows = np.array(done)
         retried = self._columns_of([datas[index].data for index in done])
         for name, values in retried.items():
@@ -796,24 +789,12 @@ class VectorEnv:
     def _usable_connections(self) -> list[int]:
         """Connections not found unreachable; when none is left, those that answer again (the
         embedded server restarted if it died)."""
-        alive = [index for index in range(len(self._connections)) if index not in self._down]
-        if alive:
-            return alive
-        if self._embedded:
-            old = self._connections[0]
-            self._connections[0] = Connection(None, self._security)  # Restarts it if it died.
-            old.close()
+        before = self._connections[0]
+        usable = _record.usable_servers(self._connections, self._down, self._security, self._embedded)
+        if self._connections[0] is not before:  # The embedded server restarted: a new stream to it.
             self._streams[0].close()
             self._streams[0] = self._stream_type(self._connections[0])
-            self._down.clear()
-            return [0]
-        for index, connection in enumerate(self._connections):
-            try:
-                connection.call("GetServerInfo", pb.GetServerInfoRequest(), timeout=2.0)
-            except MLLError:
-                continue
-            self._down.discard(index)
-        return [index for index in range(len(self._connections)) if index not in self._down]
+        return usable
 
     def _fail_over(self, lost: dict) -> None:
         """Recreates the `lost` envs (env index -> the error that lost it) on reachable servers
@@ -877,20 +858,15 @@ class VectorEnv:
         # A draining server exits once it holds no env: its copies of the moved envs go now.
         for index, names in draining.items():
             for name in names:
-                try:
-                    self._connections[index].call("DeleteEnv", pb.DeleteEnvRequest(name=name), timeout=2.0)
-                except MLLError:
-                    pass  # Gone already, or the server went: either way it holds it no more.
+                _record.delete_quietly(self._connections[index], name)
         self.failovers += 1
-        first = lost[moving[0]]
-        _LOG.warning(
-            "vector_env failover: %d env(s) lost (%s: %s); recreated on %s and replayed (%d steps) in %.3f s%s",
+        _record.log_failover(
+            "vector_env",
             len(moving),
-            first.code.name,
-            first.message,
-            ", ".join(sorted({self._connections[placement[i]].address for i in moving})),
+            lost[moving[0]],
+            (self._connections[placement[index]].address for index in moving),
             sum(record.kinds.size for record in records.values()),
-            time.monotonic() - began,
+            began,
             self._refusals(refused),
         )
 
@@ -937,10 +913,7 @@ class VectorEnv:
             connection, self._spec_config, [decoded.record], [f"env {index} (restored)"],
             self._action_dtype, self._action_shape,
         )
-        try:
-            connection.call("DeleteEnv", pb.DeleteEnvRequest(name=self._names[index]), timeout=2.0)
-        except MLLError:
-            pass
+        _record.delete_quietly(connection, self._names[index])
         self._names[index] = env.name
         _lease.hold(connection, env.name, env.idle_timeout_s)
         self._build_servers()

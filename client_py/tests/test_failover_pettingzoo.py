@@ -1,0 +1,231 @@
+"""Failover of the PettingZoo envs (issue "A fleet that loses no episode"): a parallel or AEC env
+whose server dies (kill -9), drains (SIGTERM), or loses it goes on from its record on a reachable
+server; every turn shows the bits of an env that ran without the fault, with the same seed and
+actions. Each test drives the env in lockstep with such a reference env."""
+
+import logging
+import os
+import pickle
+import signal
+import time
+
+import grpc
+import numpy as np
+import pytest
+
+import multi_lunar_lander as mll
+from multi_lunar_lander._stubs import pb
+
+KINDS = {"parallel": mll.parallel_env, "aec": mll.env}
+
+
+def _parallel_turn(env, reference, rng):
+    """One step of both envs with the same random actions (a reset at the episode's end);
+    what each returned, with its agents."""
+    if not reference.agents:
+        results = env.reset(), reference.reset()
+    else:
+        actions = {agent: int(rng.integers(0, 4)) for agent in reference.agents}
+        results = env.step(actions), reference.step(actions)
+    return [(result, e.agents) for result, e in zip(results, (env, reference))]
+
+
+def _aec_view(env):
+    """Everything a PettingZoo trainer reads of an AEC env after a turn."""
+    return (
+        env.agent_selection if env.agents else None,
+        list(env.agents),
+        env.last() if env.agents else None,
+        dict(env.rewards),
+        dict(env._cumulative_rewards),
+        dict(env.terminations),
+        dict(env.truncations),
+        dict(env.infos),
+        [env.observe(agent) for agent in env.possible_agents],
+    )
+
+
+def _aec_turn(env, reference, rng):
+    """One turn of both envs (agent_selection's random action, or its dead step; a reset at the
+    episode's end); what a trainer reads of each afterwards."""
+    if not reference.agents:
+        env.reset()
+        reference.reset()
+    else:
+        _, _, terminated, truncated, _ = reference.last()
+        action = None if terminated or truncated else int(rng.integers(0, 4))
+        env.step(action)
+        reference.step(action)
+    return [_aec_view(env), _aec_view(reference)]
+
+
+TURNS = {"parallel": _parallel_turn, "aec": _aec_turn}
+
+
+def _lockstep(kind, env, reference, turns, fault_at=None, fault=None, seed=7):
+    """`turns` turns of `env` and `reference` with the same seed and actions, fault() called
+    before turn `fault_at` (mid-episode); asserts every turn shows the same bits in both
+    (pickled: -0.0 and 0.0 differ)."""
+    rng = np.random.default_rng(seed)
+    first = [e.reset(seed=seed) for e in (env, reference)]
+    assert pickle.dumps(first[0]) == pickle.dumps(first[1])
+    for turn in range(turns):
+        if turn == fault_at:
+            assert reference.agents, "the fault is meant to come mid-episode"
+            fault()
+        got, want = TURNS[kind](env, reference, rng)
+        assert pickle.dumps(got) == pickle.dumps(want), f"turn {turn} differs"
+
+
+def _lockstep_on(kind, env, twin, turns=60):
+    """`turns` more turns of both, as they are, with the same actions: the same bits."""
+    rng = np.random.default_rng(11)
+    for _ in range(turns):
+        got, want = TURNS[kind](env, twin, rng)
+        assert pickle.dumps(got) == pickle.dumps(want)
+
+
+def _kill(server):
+    os.kill(server.pid, signal.SIGKILL)
+    server._process.wait(timeout=10)
+
+
+def _failover_warnings(caplog):
+    return [r.getMessage() for r in caplog.records if "failover" in r.getMessage()]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_kill_the_server_of_an_env_mid_episode(kind, caplog):
+    with mll.ServerProcess(threads=1) as a, mll.ServerProcess(threads=1) as b, mll.ServerProcess(threads=1) as c:
+        env = KINDS[kind](address=[a.address, b.address, c.address], server_index=1, n_landers=2)
+        reference = KINDS[kind](address=a.address, n_landers=2)
+        assert env.failover and env.failovers == 0 and env.address == b.address
+        turns = 400 if kind == "parallel" else 800  # Past episode ends: unseeded resets replayed.
+        with caplog.at_level(logging.WARNING, logger="multi_lunar_lander"):
+            _lockstep(kind, env, reference, turns, fault_at=turns // 2 + 5, fault=lambda: _kill(b))
+        assert env.failovers == 1
+        assert env.address in (a.address, c.address)
+        warnings = _failover_warnings(caplog)
+        assert len(warnings) == 1 and "UNAVAILABLE" in warnings[0], warnings
+        state = env.state()  # The record goes on past the failover.
+        twin = KINDS[kind](address=c.address, n_landers=2)
+        twin.restore(state)
+        _lockstep_on(kind, env, twin)
+        for e in (env, reference, twin):
+            e.close()
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_failover_off_raises_unavailable(kind):
+    with mll.ServerProcess(threads=1) as a, mll.ServerProcess(threads=1) as d:
+        env = KINDS[kind](address=[a.address, d.address], server_index=1, n_landers=2, failover=False)
+        assert not env.failover
+        env.reset(seed=1)
+        _kill(d)
+        with pytest.raises(mll.MLLError) as raised:
+            if kind == "parallel":
+                env.step({agent: 0 for agent in env.agents})
+            else:
+                env.step(0)
+        assert raised.value.code == grpc.StatusCode.UNAVAILABLE
+        assert env.failovers == 0
+        env.close()
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_the_embedded_server_killed_is_restarted_and_the_env_replayed(kind, address):
+    env = KINDS[kind](n_landers=2)  # address=None: the embedded server.
+    reference = KINDS[kind](address=address, n_landers=2)
+    assert env.failover
+    killed = mll.embedded_server()
+    _lockstep(kind, env, reference, 160, fault_at=60, fault=lambda: _kill(killed))
+    assert env.failovers == 1
+    restarted = mll.embedded_server()
+    assert restarted is not killed and restarted.running and env.address == restarted.address
+    env.close()
+    reference.close()
+    assert mll.embedded_server() is None  # The restarted one stops with its last user.
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_draining_server_moves_its_env_when_it_refuses_it(kind, caplog):
+    """A draining server serves the envs it holds until its drain ends (calls on them are not new
+    work), then refuses them: the env moves, passing over servers that drain too."""
+    with (
+        mll.ServerProcess(threads=1, extra_args=("--drain_s=1",)) as drained,
+        mll.ServerProcess(threads=1, extra_args=("--drain_s=60",)) as draining,
+        mll.ServerProcess(threads=1) as healthy,
+    ):
+        addresses = [drained.address, draining.address, healthy.address]
+        env = KINDS[kind](address=addresses, server_index=0, n_landers=2)
+        reference = KINDS[kind](address=draining.address, n_landers=2)  # Served while its server drains.
+        rng = np.random.default_rng(3)
+        env.reset(seed=3)
+        reference.reset(seed=3)
+        for _ in range(20):
+            TURNS[kind](env, reference, rng)
+        draining._process.send_signal(signal.SIGTERM)
+        drained._process.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + 30
+        with caplog.at_level(logging.WARNING, logger="multi_lunar_lander"):
+            for _ in range(10_000):  # Until the drain of `drained` ends and the env moves.
+                got, want = TURNS[kind](env, reference, rng)
+                assert pickle.dumps(got) == pickle.dumps(want)
+                if env.failovers or time.monotonic() > deadline:
+                    break
+                time.sleep(0.005)
+        assert env.failovers == 1 and env.address == healthy.address
+        assert drained._process.wait(timeout=15) == 0 and "drained in" in drained.log_tail()
+        assert len(_failover_warnings(caplog)) == 1
+        _lockstep_on(kind, env, reference, 30)
+        env.close()
+        reference.close()
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_an_env_lost_by_its_server_is_recreated_there(kind, address, raw_stub):
+    env = KINDS[kind](address=address, n_landers=2, failover=True)
+    reference = KINDS[kind](address=address, n_landers=2)
+
+    def delete():
+        raw_stub.DeleteEnv(pb.DeleteEnvRequest(name=env.name))
+
+    _lockstep(kind, env, reference, 80, fault_at=30, fault=delete)
+    assert env.failovers == 1 and env.address == address
+    env.close()
+    reference.close()
+
+
+def test_aec_state_restores_clones_and_refuses_the_other_step_api(address):
+    with mll.ServerProcess(threads=1) as other:
+        env = mll.env(address=address, n_landers=3, continuous=True)
+        env.reset(seed=5)
+        rng = np.random.default_rng(8)
+        for _ in range(31):  # Mid-cycle: some agents have acted since the world stepped.
+            env.step(None if env.terminations[env.agent_selection] or env.truncations[env.agent_selection]
+                     else rng.uniform(-1, 1, 2).astype(np.float32))
+        state = env.state()
+        assert state[:4] == b"MLLS" and state[4:6] == (2).to_bytes(2, "little")  # Format version 2.
+        elsewhere = mll.env(address=other.address, n_landers=3, continuous=True)
+        assert elsewhere.restore(state) is None
+        twin = env.clone()
+        for copy in (elsewhere, twin):
+            assert pickle.dumps(_aec_view(copy)) == pickle.dumps(_aec_view(env))
+        for _ in range(40):
+            action = None if env.terminations[env.agent_selection] or env.truncations[env.agent_selection] else (
+                rng.uniform(-1, 1, 2).astype(np.float32))
+            for e in (env, elsewhere, twin):
+                e.step(action)
+            assert pickle.dumps(_aec_view(elsewhere)) == pickle.dumps(_aec_view(env))
+            assert pickle.dumps(_aec_view(twin)) == pickle.dumps(_aec_view(env))
+            if not env.agents:
+                break
+        parallel = mll.parallel_env(address=address, n_landers=3, continuous=True)
+        parallel.reset(seed=5)
+        parallel.step({agent: np.zeros(2, np.float32) for agent in parallel.agents})
+        for target, foreign in ((env, parallel.state()), (parallel, state)):
+            with pytest.raises(mll.MLLError, match="other step API") as raised:
+                target.restore(foreign)
+            assert raised.value.code == grpc.StatusCode.INVALID_ARGUMENT
+        for e in (env, elsewhere, twin, parallel):
+            e.close()
