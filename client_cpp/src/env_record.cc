@@ -63,6 +63,13 @@ class StateReader {
     if (!bytes.ok()) return bytes.status();
     return GetLittleEndian<T>(*bytes);
   }
+  // A u32 length, then that many bytes.
+  absl::StatusOr<absl::string_view> Sized(absl::string_view what) {
+    absl::StatusOr<uint32_t> size =
+        Integer<uint32_t>(absl::StrCat(what, " length"));
+    if (!size.ok()) return size.status();
+    return Take(*size, what);
+  }
   size_t left() const { return body_.size() - offset_; }
 
  private:
@@ -172,11 +179,7 @@ absl::StatusOr<DecodedState> DecodeState(absl::string_view state) {
       reader.Take(GetLittleEndian<uint16_t>(header->substr(6)), "release");
   if (!release.ok()) return release.status();
   decoded.release = std::string(*release);
-  absl::StatusOr<uint32_t> config_size =
-      reader.Integer<uint32_t>("config length");
-  if (!config_size.ok()) return config_size.status();
-  absl::StatusOr<absl::string_view> config =
-      reader.Take(*config_size, "config");
+  absl::StatusOr<absl::string_view> config = reader.Sized("config");
   if (!config.ok()) return config.status();
   if (!decoded.config.ParseFromArray(config->data(),
                                      static_cast<int>(config->size()))) {
@@ -212,11 +215,7 @@ absl::StatusOr<DecodedState> DecodeState(absl::string_view state) {
       reader.Take(static_cast<uint64_t>(count) * decoded.row_bytes, "actions");
   if (!actions.ok()) return actions.status();
   decoded.record.actions = std::string(*actions);
-  absl::StatusOr<uint32_t> observations_size =
-      reader.Integer<uint32_t>("observations length");
-  if (!observations_size.ok()) return observations_size.status();
-  absl::StatusOr<absl::string_view> observations =
-      reader.Take(*observations_size, "observations");
+  absl::StatusOr<absl::string_view> observations = reader.Sized("observations");
   if (!observations.ok()) return observations.status();
   decoded.last_observations = std::string(*observations);
   if (reader.left() != 0) {
