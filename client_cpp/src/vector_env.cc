@@ -626,7 +626,8 @@ struct VectorEnv::State {
     if (record.seed.has_value() && record.gap.empty()) return absl::OkStatus();
     return absl::FailedPreconditionError(absl::StrCat(
         Label(env), " cannot be recreated: ",
-        record.seed.has_value() ? record.gap : "it was never reset with a seed",
+        record.seed.has_value() ? record.gap
+                                : "it was never reset (no known seed)",
         "; Reset with a seed starts a new record"));
   }
 

@@ -336,7 +336,7 @@ TEST_F(EnvStateTest, RecordsThatCannotRecreateTheirEnvSaySo) {
   EXPECT_EQ(state.status().code(), absl::StatusCode::kFailedPrecondition);
   EXPECT_THAT(std::string(state.status().message()), HasSubstr("env 0 (envs/"));
   EXPECT_THAT(std::string(state.status().message()),
-              HasSubstr("never reset with a seed"));
+              HasSubstr("never reset (no known seed)"));
   // Send/Recv steps are not recorded.
   ASSERT_TRUE(envs->AsyncReset(uint64_t{2}).ok());
   ASSERT_TRUE(envs->Recv().ok());
