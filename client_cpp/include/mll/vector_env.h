@@ -171,8 +171,8 @@ class VectorEnv {
   // Env `env`'s state: bytes that recreate it at this point to the same bits
   // on any server of the same release (RestoreEnv here, restore_env or
   // parallel_env's restore in Python). FAILED_PRECONDITION naming the env
-  // when its record cannot (never reset, stepped with Send, or
-  // past 100,000 operations), or while any env is in flight.
+  // when its record cannot (never reset, stepped with Send, or past 100,000
+  // operations), or while any env is in flight.
   absl::StatusOr<std::string> EnvState(int env) const;
   // Puts env `env` at the point `state` describes: a new env on the same
   // server replays it, checked to the bits, then replaces the old one (a new
