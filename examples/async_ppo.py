@@ -27,7 +27,6 @@ return of the lander episodes that ended in it, the losses); --save writes the p
 from __future__ import annotations
 
 import json
-import math
 import time
 
 import numpy as np
@@ -45,11 +44,6 @@ def parse_args(argv=None):
     )
     parser.add_argument("--batch-size", type=int, default=None,
                         help="environments per recv (K); must divide --envs; default about envs/4")
-    parser.add_argument("--save", default=None, metavar="PATH", help="write the trained policy (torch.save)")
-    parser.add_argument("--evaluate", default=None, metavar="PATH",
-                        help="do not train: reload the policy saved at PATH and evaluate it greedily")
-    parser.add_argument("--eval-episodes", type=int, default=10,
-                        help="environment episodes of greedy evaluation after training or with --evaluate (0: none)")
     args = parser.parse_args(argv)
     if args.batch_size is None:  # The largest divisor of --envs up to envs / 4.
         args.batch_size = max(k for k in range(1, max(1, args.envs // 4) + 1) if args.envs % k == 0)
@@ -76,8 +70,8 @@ def train(args) -> ppo_common.Agent:
     torch.manual_seed(args.seed)
     torch.set_num_threads(args.threads)
     steps, count, size = args.num_steps, args.envs, args.batch_size
-    envs = mll.vector_env(count, address=args.address, batch_size=size, n_landers=args.landers,
-                          max_cycles=args.max_cycles)
+    options = trainer_common.environment_options(args)
+    envs = mll.vector_env(count, address=args.address, batch_size=size, **options)
     landers, features = envs.n_landers, envs.single_observation_space.shape[0]
     agent = ppo_common.Agent(features, envs.single_action_space.n)
     optimizer = torch.optim.Adam(agent.parameters(), lr=args.lr, eps=1e-5)
@@ -105,7 +99,8 @@ def train(args) -> ppo_common.Agent:
         sent[ids] = in_flight[ids] = True
 
     updates = max(1, args.total_steps // (steps * count * landers))
-    transitions, started = 0, time.perf_counter()
+    transitions, env_steps, started = 0, 0, time.perf_counter()
+    scores = ppo_common.EnvEpisodes(count, landers)
     envs.async_reset(seed=args.seed)
     in_flight[:] = True
     curve = []
@@ -132,6 +127,8 @@ def train(args) -> ppo_common.Agent:
                 sent[rows] = False
             ended = term | trunc
             returns.extend(infos["episode_return"][ended].tolist())
+            env_steps += int(closes.sum())
+            scores.add(ended, infos["episode_return"], env_steps, time.perf_counter() - started, envs=ids)
             more = step[ids] < steps
             if more.any():
                 act_and_send(ids[more], observation[more])
@@ -157,55 +154,23 @@ def train(args) -> ppo_common.Agent:
         print(json.dumps(line), flush=True)
     envs.close()
     trainer_common.write_csv(args.csv, ["lander_steps", "episodes", "mean_return"], curve)
+    scores.write(args.episodes_csv)
     if args.save:
-        config = {"observations": features, "actions": int(envs.single_action_space.n), "n_landers": landers,
-                  "max_cycles": args.max_cycles, "args": vars(args)}
-        torch.save({"state_dict": agent.state_dict(), "config": config}, args.save)
+        ppo_common.save(args.save, agent, options, args)
     return agent
-
-
-def load(path: str) -> tuple[ppo_common.Agent, dict]:
-    """The policy saved by --save, and its config."""
-    saved = torch.load(path)
-    config = saved["config"]
-    agent = ppo_common.Agent(config["observations"], config["actions"])
-    agent.load_state_dict(saved["state_dict"])
-    return agent, config
-
-
-def evaluate(agent: ppo_common.Agent, args, n_landers: int, max_cycles: int) -> dict:
-    """Runs the policy greedily (argmax) for args.eval_episodes environment episodes on
-    min(--envs, episodes) environments; returns their mean score (the sum of an episode's
-    lander returns), mean lander return and the share of landers that landed."""
-    episodes = args.eval_episodes
-    count = min(args.envs, episodes)
-    scores, lander_returns, landed = [], [], []
-    limit = math.ceil(episodes / count) * (max_cycles + 1) + 1  # Steps: every env ends an episode by then.
-    with mll.vector_env(count, address=args.address, n_landers=n_landers, max_cycles=max_cycles) as envs:
-        observation, _ = envs.reset(seed=args.seed + 1_000_000)  # Not the training seeds.
-        for _ in range(limit):
-            with torch.no_grad():
-                action = agent.actor(torch.from_numpy(observation)).argmax(-1)
-            observation, _, _, _, _, infos = envs.step(action.numpy())
-            over = infos["episode_over"]
-            scores.extend(infos["episode_return"][over].sum(axis=1).tolist())
-            lander_returns.extend(infos["episode_return"][over].ravel().tolist())
-            landed.extend((infos["outcome"][over].ravel() == mll.OUTCOMES.index("landed")).tolist())
-            if len(scores) >= episodes:
-                break
-    return {"evaluation_episodes": len(scores[:episodes]), "mean_score": float(np.mean(scores[:episodes])),
-            "mean_lander_return": float(np.mean(lander_returns)), "landed": float(np.mean(landed))}
 
 
 def main(argv=None):
     args = parse_args(argv)
     if args.evaluate:
-        agent, config = load(args.evaluate)
-        n_landers, max_cycles = config["n_landers"], config["max_cycles"]
+        agent, config, _ = ppo_common.load(args.evaluate)
+        options = config["options"]
     else:
-        agent, n_landers, max_cycles = train(args), args.landers, args.max_cycles
+        agent, options = train(args), trainer_common.environment_options(args)
     if args.eval_episodes > 0:
-        print(json.dumps(evaluate(agent, args, n_landers, max_cycles)), flush=True)
+        result = ppo_common.evaluate_greedy(ppo_common.greedy(agent), options, args.eval_episodes,
+                                            address=args.address, envs=args.envs, seed=args.seed)
+        print(json.dumps(result), flush=True)
 
 
 if __name__ == "__main__":

@@ -1,13 +1,16 @@
 """Single-file PPO in the CleanRL style on `mll.gym_vector_env`: every lander is one
 sub-environment of a gymnasium.vector.VectorEnv and all of them share one policy (parameter
-sharing).
+sharing). Its defaults are the recipe that lands (docs/training.md "PPO recipes").
 
-    python examples/ppo_cleanrl.py --envs 16 --landers 3 --total-steps 2000000 --csv ppo.csv
-    python examples/ppo_cleanrl.py --paper --total-steps 2500000 --episodes-csv ppo_paper.csv
+    python examples/ppo_cleanrl.py --seed 1 --save ppo.pt --episodes-csv ppo_episodes.csv
+    python examples/ppo_cleanrl.py --paper --seed 1 --save ppo_paper.pt --episodes-csv ppo_paper_episodes.csv
+    python examples/ppo_cleanrl.py --evaluate ppo.pt --eval-episodes 100
 
---paper uses the environment of the paper's DQN experiment (docs/dqn.md) and writes, with
---episodes-csv, one row per environment episode with its score (the sum of its landers'
-returns) and the running 50-episode mean, like examples/dqn's episodes.csv.
+--paper uses the environment of the paper's DQN experiment (docs/dqn.md). --episodes-csv writes
+one row per environment episode with its score (the sum of its landers' returns) and the running
+50-episode mean, like examples/dqn's episodes.csv. After training (or with --evaluate PATH) the
+policy flies --eval-episodes episodes greedily and one JSON line gives its mean score and the
+share of landers that landed, crashed, flew out or were cut off.
 
 The env uses Gymnasium's NEXT_STEP autoreset; the observation returned on the step an episode
 ends is its final observation, so a truncated episode is bootstrapped from it. Rows with
@@ -18,6 +21,8 @@ advantages never reach a real transition (a real episode always ends with done b
 
 from __future__ import annotations
 
+import argparse
+import json
 import time
 
 import gymnasium
@@ -31,51 +36,27 @@ import trainer_common
 
 def parse_args(argv=None):
     parser = ppo_common.add_arguments(trainer_common.parser(__doc__.split("\n\n")[0], "CleanRL's num_steps"))
-    parser.add_argument("--paper", action="store_true", help="the paper's environment options (docs/dqn.md)")
-    parser.add_argument("--episodes-csv", default=None, help="write one row per environment episode: its score")
+    parser.add_argument("--normalize-observations", action=argparse.BooleanOptionalAction, default=False,
+                        help="scale observations by their running mean and variance (Gymnasium's NormalizeObservation)")
     return parser.parse_args(argv)
 
 
-# The environment of the paper's DQN experiment (docs/dqn.md).
-PAPER_OPTIONS = dict(
-    n_landers=3, max_cycles=2000, damage_reward=-300.0, successful_reward=700.0, terminate_reward=-100.0,
-    shared_reward=False, terminate_on_damage=False, remove_on_damage=True,
-)
-
-
-class EnvScores:
-    """Environment episodes' scores (the sum of their landers' returns), from the per-lander
-    episode ends: an env's episode is complete once each of its landers has ended."""
-
-    def __init__(self, envs: int, landers: int):
-        self.shape = (envs, landers)
-        self.sums = np.zeros(envs)
-        self.ended = np.zeros(envs, dtype=int)
-        self.scores: list[float] = []
-
-    def add(self, infos) -> None:
-        if "_episode_return" not in infos:
-            return
-        mask = infos["_episode_return"].reshape(self.shape)
-        self.sums += np.where(mask, infos["episode_return"].reshape(self.shape), 0.0).sum(axis=1)
-        self.ended += mask.sum(axis=1)
-        complete = self.ended == self.shape[1]
-        self.scores.extend(self.sums[complete].tolist())
-        self.sums[complete], self.ended[complete] = 0.0, 0
-
-
-def train(args) -> tuple[list[tuple[int, int, float]], list[tuple[int, float, float, int, float]]]:
-    """Runs PPO; returns (lander steps so far, lander episodes ended so far, mean return of the
-    lander episodes ended in the iteration) per iteration, and (env episode, score, 50-episode
-    mean, env steps so far, wall seconds) per environment episode."""
+def train(args) -> tuple[ppo_common.Agent, ppo_common.ObservationScale | None, list, ppo_common.EnvEpisodes]:
+    """Runs PPO; returns the agent, its observation scaling (None without
+    --normalize-observations), one (lander steps so far, lander episodes ended so far, mean
+    return of the lander episodes ended in the iteration) per iteration, and the environment
+    episodes' scores."""
     torch.manual_seed(args.seed)
     torch.set_num_threads(args.threads)
-    options = PAPER_OPTIONS if args.paper else dict(n_landers=args.landers, max_cycles=args.max_cycles)
-    base = mll.gym_vector_env(args.envs, address=args.address, **options)
-    scores, episode_rows = EnvScores(args.envs, base.n_landers), []
+    base = mll.gym_vector_env(args.envs, address=args.address, **trainer_common.environment_options(args))
+    landers = base.n_landers
+    scores = ppo_common.EnvEpisodes(args.envs, landers)
+    envs = base
+    if args.normalize_observations:
+        envs = observation_normalizer = gymnasium.wrappers.vector.NormalizeObservation(envs)
     # Gymnasium's own wrapper scales the rewards the learner sees (landing +700, damage -300 in
     # the paper's setting); the scores come from the env's infos, unscaled.
-    envs = gymnasium.wrappers.vector.NormalizeReward(base, gamma=args.gamma)
+    envs = gymnasium.wrappers.vector.NormalizeReward(envs, gamma=args.gamma)
     n, steps = envs.num_envs, args.num_steps
     agent = ppo_common.Agent(envs.single_observation_space.shape[0], envs.single_action_space.n)
     optimizer = torch.optim.Adam(agent.parameters(), lr=args.lr, eps=1e-5)
@@ -105,14 +86,11 @@ def train(args) -> tuple[list[tuple[int, int, float]], list[tuple[int, float, fl
             done[step] = torch.from_numpy((term | trunc).astype(np.float32))
             valid[step] = torch.from_numpy(~infos["idle"])
             if "_episode_return" in infos:
-                returns.extend(infos["episode_return"][infos["_episode_return"]].tolist())
-            known = len(scores.scores)
-            scores.add(infos)
-            env_steps = ((iteration - 1) * steps + step + 1) * args.envs
-            for index in range(known, len(scores.scores)):
-                mean50 = float(np.mean(scores.scores[max(0, index - 49) : index + 1]))
-                row = (index + 1, scores.scores[index], mean50, env_steps, time.perf_counter() - started)
-                episode_rows.append(row)
+                ended = infos["_episode_return"]
+                returns.extend(infos["episode_return"][ended].tolist())
+                env_steps = ((iteration - 1) * steps + step + 1) * args.envs
+                scores.add(ended.reshape(-1, landers), infos["episode_return"].reshape(-1, landers), env_steps,
+                           time.perf_counter() - started)
 
         advantages, targets = ppo_common.advantages(  # A truncated episode bootstraps from its final observation.
             agent, next_observations, rewards, values, terminated, done, args.gamma, args.gae_lambda
@@ -127,24 +105,36 @@ def train(args) -> tuple[list[tuple[int, int, float]], list[tuple[int, float, fl
         mean = float(np.mean(returns)) if returns else float("nan")
         done_steps = iteration * steps * n
         curve.append((done_steps, episodes, mean))
+        mean50 = f", 50-episode mean score {scores.rows[-1][2]:.1f}" if scores.rows else ""
         print(
             f"iteration {iteration}/{iterations}: {done_steps} lander steps, {episodes} episodes, "
-            f"mean return {mean:.1f}, {done_steps / (time.perf_counter() - started):.0f} lander steps/s",
+            f"mean return {mean:.1f}{mean50}, {done_steps / (time.perf_counter() - started):.0f} lander steps/s",
             flush=True,
         )
     envs.close()
-    return curve, episode_rows
+    scale = None
+    if args.normalize_observations:
+        rms = observation_normalizer.obs_rms
+        scale = ppo_common.ObservationScale(rms.mean, rms.var)
+    return agent, scale, curve, scores
 
 
 def main(argv=None):
     args = parse_args(argv)
-    curve, episode_rows = train(args)
-    trainer_common.write_csv(args.csv, ["lander_steps", "episodes", "mean_return"], curve)
-    trainer_common.write_csv(
-        args.episodes_csv,
-        ["episode", "score", "mean50", "env_steps", "wall_s"],
-        ((e, f"{s:.3f}", f"{m:.3f}", n, f"{w:.3f}") for e, s, m, n, w in episode_rows),
-    )
+    if args.evaluate:
+        agent, config, scale = ppo_common.load(args.evaluate)
+        options = config["options"]
+    else:
+        agent, scale, curve, scores = train(args)
+        options = trainer_common.environment_options(args)
+        trainer_common.write_csv(args.csv, ["lander_steps", "episodes", "mean_return"], curve)
+        scores.write(args.episodes_csv)
+        if args.save:
+            ppo_common.save(args.save, agent, options, args, scale)
+    if args.eval_episodes > 0:
+        result = ppo_common.evaluate_greedy(ppo_common.greedy(agent, scale), options, args.eval_episodes,
+                                            address=args.address, envs=args.envs, seed=args.seed)
+        print(json.dumps(result), flush=True)
 
 
 if __name__ == "__main__":

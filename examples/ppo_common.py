@@ -1,25 +1,73 @@
-"""What the PPO examples (ppo_cleanrl.py, async_ppo.py) share: their PPO flags, CleanRL's
-actor-critic network, generalised advantage estimation and the clipped PPO update."""
+"""What the PPO examples (ppo_cleanrl.py, async_ppo.py, and ppo_sb3.py for the flags, scores and
+evaluation) share: the recipe's flags, CleanRL's actor-critic network, generalised advantage
+estimation, the clipped PPO update, environment episode scores, saving and greedy evaluation."""
 
 from __future__ import annotations
 
 import argparse
+import math
 
 import numpy as np
 import torch
 from torch import nn
 
+import multi_lunar_lander as mll
+import trainer_common
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """PPO's hyperparameters (CleanRL's defaults), beside trainer_common.parser's flags."""
-    parser.add_argument("--minibatches", type=int, default=4)
-    parser.add_argument("--gamma", type=float, default=0.99)
-    parser.add_argument("--gae-lambda", type=float, default=0.95)
+    """PPO's hyperparameters, beside trainer_common.parser's flags. The defaults are the recipe
+    that lands (docs/training.md "PPO recipes"): RL Zoo's tuned LunarLander PPO (rollouts of
+    1,024 steps, minibatches of 64, 4 epochs, gamma 0.999, GAE 0.98, entropy 0.01, lr 3e-4)
+    over 16 environments of 3 landers."""
+    parser.set_defaults(num_steps=1024, lr=3e-4, total_steps=6_000_000)
+    parser.add_argument("--minibatch-size", type=int, default=64, help="transitions per gradient step")
+    parser.add_argument("--gamma", type=float, default=0.999)
+    parser.add_argument("--gae-lambda", type=float, default=0.98)
     parser.add_argument("--clip", type=float, default=0.2)
     parser.add_argument("--ent-coef", type=float, default=0.01)
     parser.add_argument("--vf-coef", type=float, default=0.5)
     parser.add_argument("--max-grad-norm", type=float, default=0.5)
+    parser.add_argument("--save", default=None, metavar="PATH", help="write the trained policy")
+    parser.add_argument("--evaluate", default=None, metavar="PATH",
+                        help="do not train: reload the policy saved at PATH and evaluate it greedily")
+    parser.add_argument("--eval-episodes", type=int, default=10,
+                        help="environment episodes of greedy evaluation after training or with --evaluate (0: none)")
+    parser.add_argument("--episodes-csv", default=None,
+                        help="write one row per environment episode: its score and the running 50-episode mean")
     return parser
+
+
+class EnvEpisodes:
+    """Environment episodes' scores (the sum of their landers' returns) from the landers'
+    episode ends: an environment's episode is complete once each of its landers has ended.
+    `rows`: (episode, score, running 50-episode mean, environment steps so far, wall seconds),
+    the columns of examples/dqn's episodes.csv."""
+
+    COLUMNS = ["episode", "score", "mean50", "env_steps", "wall_s"]
+
+    def __init__(self, envs: int, landers: int):
+        self.landers = landers
+        self.sums = np.zeros(envs)
+        self.ended = np.zeros(envs, dtype=int)
+        self.scores: list[float] = []
+        self.rows: list[tuple] = []
+
+    def add(self, ended: np.ndarray, returns: np.ndarray, env_steps: int, seconds: float, envs=slice(None)) -> None:
+        """ended, returns: [len(envs), landers], the landers whose episode ended in this step
+        and their returns; `envs` the environments they are (default: all)."""
+        self.sums[envs] += np.where(ended, returns, 0.0).sum(axis=1)
+        self.ended[envs] += np.asarray(ended).sum(axis=1)
+        for env in np.flatnonzero(self.ended == self.landers):
+            self.scores.append(float(self.sums[env]))
+            self.sums[env], self.ended[env] = 0.0, 0
+            mean50 = float(np.mean(self.scores[-50:]))
+            self.rows.append((len(self.scores), self.scores[-1], mean50, env_steps, seconds))
+
+    def write(self, path: str | None) -> None:
+        trainer_common.write_csv(
+            path, self.COLUMNS, ((e, f"{s:.3f}", f"{m:.3f}", n, f"{w:.3f}") for e, s, m, n, w in self.rows)
+        )
 
 
 # CleanRL's orthogonal initialisation gain for hidden layers.
@@ -68,11 +116,11 @@ def advantages(agent: Agent, next_observations, rewards, values, terminated, don
 
 def update(agent: Agent, optimizer, batch, args) -> dict[str, float]:
     """args.epochs epochs of the clipped PPO loss over `batch` = (observations, actions, log
-    probabilities, advantages, value targets) of the real transitions, in args.minibatches
-    minibatches; returns the losses' means over the minibatches."""
+    probabilities, advantages, value targets) of the real transitions, in minibatches of
+    args.minibatch_size; returns the losses' means over the minibatches."""
     b_obs, b_act, b_logp, b_adv, b_ret = batch
     count = len(b_obs)
-    size = max(1, count // args.minibatches)
+    size = max(1, args.minibatch_size)
     sums, minibatches = {"policy_loss": 0.0, "value_loss": 0.0, "entropy": 0.0}, 0
     for _ in range(args.epochs):
         order = torch.randperm(count)
@@ -94,3 +142,73 @@ def update(agent: Agent, optimizer, batch, args) -> dict[str, float]:
             sums["entropy"] += float(entropy.mean())
             minibatches += 1
     return {name: total / max(1, minibatches) for name, total in sums.items()}
+
+
+class ObservationScale:
+    """Gymnasium's NormalizeObservation as a fixed function (the running statistics a training
+    run ended with): (observation - mean) / sqrt(var + 1e-8)."""
+
+    def __init__(self, mean, var):
+        self.mean, self.var = np.asarray(mean, np.float32), np.asarray(var, np.float32)
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        return ((observation - self.mean) / np.sqrt(self.var + 1e-8)).astype(np.float32)
+
+
+def greedy(agent: Agent, scale: ObservationScale | None = None):
+    """The agent's greedy policy as a function of a numpy observation batch [..., features]:
+    the most probable action of each row (observations scaled by `scale` first, as in training)."""
+
+    def act(observation: np.ndarray) -> np.ndarray:
+        observation = np.asarray(observation, np.float32) if scale is None else scale(observation)
+        with torch.no_grad():
+            return agent.actor(torch.from_numpy(observation)).argmax(-1).numpy()
+
+    return act
+
+
+def save(path: str, agent: Agent, options: dict, args, scale: ObservationScale | None = None) -> None:
+    """Writes the policy, the environment options it was trained on, its observation scaling
+    and the training flags (torch.save)."""
+    config = {"observations": agent.actor[0].in_features, "actions": agent.actor[-1].out_features,
+              "options": options, "args": vars(args),
+              "observation_scale": None if scale is None else (scale.mean.tolist(), scale.var.tolist())}
+    torch.save({"state_dict": agent.state_dict(), "config": config}, path)
+
+
+def load(path: str) -> tuple[Agent, dict, ObservationScale | None]:
+    """The policy saved by save(), its config and its observation scaling."""
+    saved = torch.load(path)
+    config = saved["config"]
+    agent = Agent(config["observations"], config["actions"])
+    agent.load_state_dict(saved["state_dict"])
+    scale = config["observation_scale"]
+    return agent, config, None if scale is None else ObservationScale(*scale)
+
+
+# Evaluation seeds start here: far from the training seeds (seed + environment index).
+EVALUATION_SEED_OFFSET = 1_000_000
+
+
+def evaluate_greedy(act, options: dict, episodes: int, address=None, envs: int = 16, seed: int = 1) -> dict:
+    """Runs `act` (observations [envs, landers, features] -> actions [envs, landers]) for
+    `episodes` environment episodes of `options` on min(envs, episodes) environments seeded from
+    seed + EVALUATION_SEED_OFFSET; returns the mean score (an episode's landers' returns summed),
+    the mean lander return and the share of landers per outcome ("landed", "crashed", ...)."""
+    count = min(envs, episodes)
+    scores, lander_returns, outcomes = [], [], []
+    limit = math.ceil(episodes / count) * (options.get("max_cycles", 500) + 1) + 1  # Every env has ended by then.
+    with mll.vector_env(count, address=address, **options) as vector:
+        observation, _ = vector.reset(seed=seed + EVALUATION_SEED_OFFSET)
+        for _ in range(limit):
+            observation, _, _, _, _, infos = vector.step(act(observation))
+            over = infos["episode_over"]
+            scores.extend(infos["episode_return"][over].sum(axis=1).tolist())
+            lander_returns.extend(infos["episode_return"][over].ravel().tolist())
+            outcomes.extend(infos["outcome"][over].ravel().tolist())
+            if len(scores) >= episodes:
+                break
+    landers = len(outcomes) // len(scores) * episodes  # The landers of the first `episodes` episodes.
+    shares = {name: float(np.mean([o == code for o in outcomes[:landers]])) for code, name in enumerate(mll.OUTCOMES) if name}
+    return {"evaluation_episodes": episodes, "mean_score": float(np.mean(scores[:episodes])),
+            "mean_lander_return": float(np.mean(lander_returns[:landers])), **shares}

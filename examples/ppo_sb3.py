@@ -1,66 +1,133 @@
 """Stable-Baselines3 PPO on `mll.sb3_vec_env`: every lander is one SB3 environment and all of
-them share one policy (parameter sharing), stepped with one batched call per server, no
-SuperSuit needed.
+them share one policy (parameter sharing), stepped with one batched call per server. Its defaults
+are the recipe that lands (docs/training.md "PPO recipes"); --supersuit builds the same
+environments the way PettingZoo's SB3 tutorial does (SuperSuit's black_death_v3,
+pettingzoo_env_to_vec_env_v1 and concat_vec_envs_v1 over `mll.parallel_env`; SuperSuit's SB3
+wrapper drops SB3's environment seeds, so there only the policy is seeded).
 
-    python examples/ppo_sb3.py --envs 16 --landers 3 --total-steps 2000000 --save ppo_mll.zip
+    python examples/ppo_sb3.py --seed 1 --save ppo_sb3.zip --episodes-csv ppo_sb3_episodes.csv
+    python examples/ppo_sb3.py --paper --seed 1 --save ppo_sb3_paper.zip
+    python examples/ppo_sb3.py --evaluate ppo_sb3.zip --eval-episodes 100
+
+Rewards are scaled by SB3's VecNormalize (rewards only: the observations are already of unit
+scale); the scores come from the landers' own returns, unscaled. After training (or with
+--evaluate PATH) the policy flies --eval-episodes episodes greedily and one JSON line gives its
+mean score and the share of landers per outcome.
 
 Needs stable-baselines3 (`pip install 'multi_lunar_lander[sb3]'`; this repository's venv has
-2.4.1, which runs on Debian's torch 1.13).
+2.4.1, which runs on Debian's torch 1.13) and, for --supersuit, supersuit.
 """
 
 from __future__ import annotations
+
+import json
+import time
 
 import numpy as np
 import torch
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.utils import set_random_seed
+from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
 import multi_lunar_lander as mll
+import ppo_common
 import trainer_common
 
 
 def parse_args(argv=None):
-    parser = trainer_common.parser(__doc__.split("\n\n")[0], "SB3's n_steps")
-    parser.add_argument("--batch-size", type=int, default=256)
-    parser.add_argument("--save", default=None, help="save the trained model to this .zip")
+    parser = ppo_common.add_arguments(trainer_common.parser(__doc__.split("\n\n")[0], "SB3's n_steps"))
+    parser.add_argument("--supersuit", action="store_true",
+                        help="build the environments with SuperSuit over mll.parallel_env (PettingZoo's SB3 tutorial)")
     return parser.parse_args(argv)
 
 
-class Curve(BaseCallback):
-    """Mean return of the episodes that ended in each rollout (from the env's "episode" infos)."""
+def make_env(args, options: dict):
+    """The landers as an SB3 VecEnv: row k is lander k % n_landers of environment k // n_landers."""
+    if not args.supersuit:
+        return mll.sb3_vec_env(args.envs, address=args.address, **options)
+    import supersuit as ss
 
-    def __init__(self):
+    parallel = mll.parallel_env(address=args.address, **options)
+    # black_death_v3 keeps a done lander's row (zero observation, reward 0) until its environment
+    # ends; VecMonitor reports the episodes SB3's logger and Scores read.
+    markov = ss.pettingzoo_env_to_vec_env_v1(ss.black_death_v3(parallel))
+    return VecMonitor(ss.concat_vec_envs_v1(markov, args.envs, num_cpus=0, base_class="stable_baselines3"))
+
+
+class Scores(BaseCallback):
+    """The learning curve from the landers' episode ends (infos[k]["episode"]): one row per
+    rollout (lander steps, lander episodes so far, mean return of the rollout's lander
+    episodes) and the environment episodes' scores (ppo_common.EnvEpisodes)."""
+
+    def __init__(self, envs: int, landers: int):
         super().__init__()
         self.rows, self._returns, self._episodes = [], [], 0
+        self.landers = landers
+        self.scores = ppo_common.EnvEpisodes(envs, landers)
+        self._started = time.perf_counter()
 
     def _on_step(self) -> bool:
-        for info in self.locals["infos"]:
-            if "episode" in info:
-                self._returns.append(info["episode"]["r"])
+        infos = self.locals["infos"]
+        ended = np.array(["episode" in info for info in infos])
+        if ended.any():
+            returns = np.array([info["episode"]["r"] if "episode" in info else 0.0 for info in infos])
+            self._returns.extend(returns[ended].tolist())
+            env_steps = self.num_timesteps // self.landers
+            self.scores.add(ended.reshape(-1, self.landers), returns.reshape(-1, self.landers), env_steps,
+                            time.perf_counter() - self._started)
         return True
 
     def _on_rollout_end(self) -> None:
         self._episodes += len(self._returns)
         mean = float(np.mean(self._returns)) if self._returns else float("nan")
         self.rows.append((self.num_timesteps, self._episodes, mean))
+        mean50 = f", 50-episode mean score {self.scores.rows[-1][2]:.1f}" if self.scores.rows else ""
+        print(f"{self.num_timesteps} lander steps, {self._episodes} episodes, mean return {mean:.1f}{mean50}",
+              flush=True)
         self._returns = []
+
+
+def greedy(model: PPO):
+    """The model's deterministic policy on observations [envs, landers, features]."""
+
+    def act(observation: np.ndarray) -> np.ndarray:
+        flat = observation.reshape(-1, observation.shape[-1])
+        return model.predict(flat, deterministic=True)[0].reshape(observation.shape[:-1])
+
+    return act
 
 
 def main(argv=None):
     args = parse_args(argv)
     torch.set_num_threads(args.threads)
-    env = mll.sb3_vec_env(args.envs, address=args.address, n_landers=args.landers, max_cycles=args.max_cycles)
-    model = PPO(
-        "MlpPolicy", env, n_steps=args.num_steps, batch_size=args.batch_size, n_epochs=args.epochs,
-        learning_rate=args.lr, ent_coef=0.01, seed=args.seed, device="cpu", verbose=1,
-    )
-    curve = Curve()
-    model.learn(total_timesteps=args.total_steps, callback=curve)
-    env.close()
-    if args.save:
-        model.save(args.save)
-    trainer_common.write_csv(args.csv, ["lander_steps", "episodes", "mean_return"], curve.rows)
-    return curve.rows
+    if args.evaluate:
+        model = PPO.load(args.evaluate, device="cpu")
+        options = model.environment_options  # Saved with the model (below).
+    else:
+        options = trainer_common.environment_options(args)
+        env = make_env(args, options)
+        env = VecNormalize(env, norm_obs=False, norm_reward=True, gamma=args.gamma)
+        model = PPO(
+            "MlpPolicy", env, n_steps=args.num_steps, batch_size=args.minibatch_size, n_epochs=args.epochs,
+            learning_rate=args.lr, gamma=args.gamma, gae_lambda=args.gae_lambda, clip_range=args.clip,
+            ent_coef=args.ent_coef, vf_coef=args.vf_coef, max_grad_norm=args.max_grad_norm,
+            seed=None if args.supersuit else args.seed, device="cpu", verbose=0,
+        )
+        if args.supersuit:  # SuperSuit 3.11's SB3 wrapper cannot take SB3's env.seed(): seed the policy only.
+            set_random_seed(args.seed)
+        scores = Scores(args.envs, options["n_landers"])
+        model.learn(total_timesteps=args.total_steps, callback=scores)
+        env.close()
+        trainer_common.write_csv(args.csv, ["lander_steps", "episodes", "mean_return"], scores.rows)
+        scores.scores.write(args.episodes_csv)
+        if args.save:
+            model.environment_options = options
+            model.save(args.save, include=["environment_options"])
+    if args.eval_episodes > 0:
+        result = ppo_common.evaluate_greedy(greedy(model), options, args.eval_episodes,
+                                            address=args.address, envs=args.envs, seed=args.seed)
+        print(json.dumps(result), flush=True)
 
 
 if __name__ == "__main__":

@@ -22,7 +22,21 @@ def parser(description: str, rollout: str) -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     parser.add_argument("--csv", default=None, help="write one row per rollout: steps, episodes, mean return")
+    parser.add_argument("--paper", action="store_true",
+                        help="the environment of the paper's DQN experiment (docs/dqn.md) instead of --landers/--max-cycles")
     return parser
+
+
+# The environment of the paper's DQN experiment (docs/dqn.md).
+PAPER_OPTIONS = dict(
+    n_landers=3, max_cycles=2000, damage_reward=-300.0, successful_reward=700.0, terminate_reward=-100.0,
+    shared_reward=False, terminate_on_damage=False, remove_on_damage=True,
+)
+
+
+def environment_options(args: argparse.Namespace) -> dict:
+    """The environment options the flags select: the paper's (--paper) or --landers/--max-cycles."""
+    return dict(PAPER_OPTIONS) if args.paper else dict(n_landers=args.landers, max_cycles=args.max_cycles)
 
 
 def write_csv(path: str | None, header: list[str], rows) -> None:

@@ -16,7 +16,7 @@ import multi_lunar_lander as mll
 EXAMPLES = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(EXAMPLES))
 
-import async_ppo  # noqa: E402
+import ppo_common  # noqa: E402
 
 SHORT = ["--envs", "8", "--batch-size", "2", "--landers", "3", "--num-steps", "128", "--max-cycles", "200"]
 
@@ -48,8 +48,8 @@ def test_async_ppo_trains_on_two_servers_saves_and_evaluates(tmp_path):
         with open(curve) as file:
             assert [int(row["lander_steps"]) for row in csv.DictReader(file)] == [3072, 6144]
 
-        agent, config = async_ppo.load(str(model))
-        assert (config["n_landers"], config["max_cycles"], config["args"]["batch_size"]) == (3, 200, 2)
+        agent, config, _ = ppo_common.load(str(model))
+        assert (config["options"]["n_landers"], config["options"]["max_cycles"], config["args"]["batch_size"]) == (3, 200, 2)
         with torch.no_grad():
             logits = agent.actor(torch.zeros(5, 12))
         assert logits.shape == (5, 4) and torch.isfinite(logits).all()

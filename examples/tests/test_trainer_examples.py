@@ -2,6 +2,7 @@
 server: each writes its learning curve, one row per rollout."""
 
 import csv
+import json
 import math
 import pathlib
 import subprocess
@@ -32,26 +33,42 @@ def _run(script, tmp_path, *extra):
     return rows, done.stdout
 
 
-@pytest.mark.parametrize("script", ["ppo_cleanrl.py", "ppo_sb3.py"])
-def test_ppo_example_trains_and_writes_its_curve(script, tmp_path):
-    extra = ("--save", str(tmp_path / "model.zip")) if script == "ppo_sb3.py" else ()
-    rows, _ = _run(script, tmp_path, *extra)
+@pytest.mark.parametrize(
+    "script, extra",
+    [("ppo_cleanrl.py", ()), ("ppo_cleanrl.py", ("--paper",)), ("ppo_sb3.py", ()), ("ppo_sb3.py", ("--supersuit",))],
+)
+def test_ppo_recipe_trains_saves_reloads_and_evaluates(script, extra, tmp_path):
+    """Each PPO recipe briefly: it trains (curve, episode scores), saves, evaluates greedily, and
+    the reloaded policy flies the same evaluation episodes (greedy, same seeds)."""
+    model = tmp_path / ("model.zip" if script == "ppo_sb3.py" else "model.pt")
+    episodes_csv = tmp_path / "episodes.csv"
+    rows, output = _run(script, tmp_path, *extra, "--save", str(model), "--episodes-csv", str(episodes_csv),
+                        "--eval-episodes", "3")
     assert [int(row["lander_steps"]) for row in rows] == [1536, 3072]  # 4 envs x 3 landers x 128 steps.
     # Random landers crash within 200 steps: episodes end in every rollout, with finite returns.
     assert int(rows[-1]["episodes"]) >= 12
     assert all(math.isfinite(float(row["mean_return"])) for row in rows)
-    if script == "ppo_cleanrl.py":  # Per env episode: the sum of its 3 landers' returns.
-        rows, _ = _run(script, tmp_path, "--episodes-csv", str(tmp_path / "episodes.csv"))
-        with open(tmp_path / "episodes.csv") as file:
-            episodes = list(csv.DictReader(file))
-        assert len(episodes) >= 4 and [int(e["episode"]) for e in episodes] == list(range(1, len(episodes) + 1))
-        scores = [float(e["score"]) for e in episodes]
-        assert float(episodes[1]["mean50"]) == pytest.approx((scores[0] + scores[1]) / 2, abs=2e-3)
-        assert all(score < 0 for score in scores)  # Untrained landers crash.
+    with open(episodes_csv) as file:  # Per env episode: the sum of its 3 landers' returns.
+        episodes = list(csv.DictReader(file))
+    assert len(episodes) >= 4 and [int(e["episode"]) for e in episodes] == list(range(1, len(episodes) + 1))
+    scores = [float(e["score"]) for e in episodes]
+    assert float(episodes[1]["mean50"]) == pytest.approx((scores[0] + scores[1]) / 2, abs=2e-3)
+    assert all(score < 0 for score in scores)  # Untrained landers crash.
+    evaluation = json.loads(output.splitlines()[-1])
+    assert evaluation["evaluation_episodes"] == 3 and math.isfinite(evaluation["mean_score"])
+    outcome_shares = [evaluation[name] for name in mll.OUTCOMES if name]
+    assert sum(outcome_shares) == pytest.approx(1.0)  # Every lander of the 3 episodes ended somehow.
+
+    reloaded = subprocess.run(
+        [sys.executable, str(EXAMPLES / script), "--envs", "4", "--evaluate", str(model), "--eval-episodes", "3"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert reloaded.returncode == 0, reloaded.stderr[-3000:]
+    assert json.loads(reloaded.stdout.splitlines()[-1]) == evaluation
     if script == "ppo_sb3.py":
         from stable_baselines3 import PPO
 
-        assert PPO.load(tmp_path / "model.zip", device="cpu").num_timesteps == 3072
+        assert PPO.load(model, device="cpu").num_timesteps == 3072
 
 
 def _env_count(address):
