@@ -264,7 +264,7 @@ class RemoteEnvBase:
         of an env with other options or steps, DATA_LOSS when the replay gives other bits; on any
         error the env is untouched."""
         decoded = _record.decode_state(state, operations)
-        _record.check_config(decoded.config, self._env_config, decoded.row_bytes, decoded.dtype)
+        _record.check_restorable(decoded, self._env_config, self.server_info)
         (env,), (answer,) = _record.replay(
             self._connection, self._env_config, [decoded.record], [f"{self._name} (restored)"],
             self._dtype, self._actions.shape,

@@ -264,6 +264,21 @@ def check_config(state_config: "pb.EnvConfig", config: "pb.EnvConfig", row_bytes
         raise invalid_argument(f"state's actions are {row_bytes} bytes a step; this env's are {expected}")
 
 
+def check_restorable(decoded: DecodedState, config: "pb.EnvConfig", server) -> None:
+    """INVALID_ARGUMENT unless `decoded` can be replayed into an env of `config` on the server
+    `server` (its ServerInfo): the same options (check_config) and the same wire protocol major
+    version (another major may change the physics or the operations). Another release of the same
+    major is tried: the replay's bit check then decides (DATA_LOSS)."""
+    check_config(decoded.config, config, decoded.row_bytes, decoded.dtype)
+    major, minor = decoded.protocol
+    if major != server.protocol[0]:
+        raise invalid_argument(
+            f"state is from a server of wire protocol {major}.{minor} (release {decoded.release or 'unknown'}); "
+            f"this server speaks {server.protocol[0]}.{server.protocol[1]} (release {server.server_version}): "
+            f"restore it on a server of protocol {major}.x"
+        )
+
+
 def observations_of(response) -> bytes:
     """The observations of a ResetEnv, StepEnv or StepAgent answer (StepAgent's in its AecState,
     the others' in its StepData) as float32 little-endian bytes: a record's last_observations."""

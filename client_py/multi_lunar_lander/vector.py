@@ -907,8 +907,8 @@ class VectorEnv:
         self._check_no_step_in_flight()
         index = self._env_index(index)
         decoded = _record.decode_state(state)
-        _record.check_config(decoded.config, self._spec_config, decoded.row_bytes, decoded.dtype)
         connection = self._connection_of(index)
+        _record.check_restorable(decoded, self._spec_config, connection.server_info)
         (env,), _ = _record.replay(
             connection, self._spec_config, [decoded.record], [f"env {index} (restored)"],
             self._action_dtype, self._action_shape,

@@ -4,6 +4,8 @@ its envs when one server dies; its results are the bits of a run without the fau
 import logging
 import os
 import signal
+import struct
+import zlib
 
 import grpc
 import numpy as np
@@ -170,3 +172,33 @@ def test_a_damaged_state_is_refused_and_the_env_untouched(address):
     assert raised.value.code == grpc.StatusCode.FAILED_PRECONDITION
     for e in (env, reference, other_options):
         e.close()
+
+
+def _with_protocol(state: bytes, major: int, minor: int) -> bytes:
+    """`state` as a server of wire protocol major.minor would have written it (CRC-32 renewed)."""
+    body = bytearray(state[:-4])
+    body[6:10] = struct.pack("<HH", major, minor)  # After b"MLLS" and the u16 format version.
+    return bytes(body) + struct.pack("<I", zlib.crc32(body))
+
+
+def test_a_state_from_another_protocol_major_is_refused_naming_both(address):
+    """A state says which wire protocol its server spoke; another major is refused before any
+    replay (the env untouched), the same major with another minor restores."""
+    env = mll.parallel_env(address=address, n_landers=2)
+    env.reset(seed=3)
+    _parallel_steps(env, np.random.default_rng(5), 10)
+    state, name = env.state(), env.name
+    major, minor = env.server_info.protocol
+    with pytest.raises(mll.MLLError, match=rf"wire protocol {major + 1}\.0 .* speaks {major}\.{minor}") as raised:
+        env.restore(_with_protocol(state, major + 1, 0))
+    assert raised.value.code == grpc.StatusCode.INVALID_ARGUMENT and env.name == name
+    vector = mll.vector_env(2, address=address, n_landers=2)
+    vector.reset(seed=1)
+    with pytest.raises(mll.MLLError, match="restore it on a server of protocol") as raised:
+        vector.restore_env(1, _with_protocol(state, major + 1, 0))
+    assert raised.value.code == grpc.StatusCode.INVALID_ARGUMENT
+    same_minor = vector.restore_env(0, state)
+    other_minor = vector.restore_env(1, _with_protocol(state, major, minor + 1))
+    assert same_bits(other_minor, same_minor) and np.abs(same_minor).sum() > 0
+    vector.close()
+    env.close()
