@@ -47,8 +47,7 @@ struct EnvRecord {
   std::string operations;
   std::string actions;
   // Empty while the record recreates the env; else why it cannot (operations
-  // past kMaxRecordSteps, or steps that were not recorded), until the next
-  // seeded reset.
+  // past kMaxRecordSteps), until the next seeded reset.
   std::string gap;
 
   // A new record from a seeded reset.

@@ -6,6 +6,7 @@
 #include <deque>
 #include <functional>
 #include <map>
+#include <set>
 #include <string>
 #include <type_traits>
 #include <utility>
@@ -42,7 +43,13 @@ absl::Status CallPipelined(StreamTransport& transport,
   std::vector<absl::StatusOr<uint64_t>> sequences;
   sequences.reserve(requests.size());
   for (v1::SessionRequest& request : requests) {
-    sequences.push_back(transport.Send(request));
+    // A failed Send ended the stream; another would open a new one, which
+    // forgets the requests lost with this one: the rest fail alike.
+    if (!sequences.empty() && !sequences.back().ok()) {
+      sequences.push_back(sequences.back().status());
+    } else {
+      sequences.push_back(transport.Send(request));
+    }
   }
   absl::Status first = absl::OkStatus();
   for (size_t k = 0; k < requests.size(); ++k) {
@@ -132,11 +139,15 @@ struct ReadyChunk {
   size_t taken = 0;  // Rows already returned.
 };
 
-// An async request in flight: its server, sequence and envs.
+// An async request in flight: its server, its sequence (or the loss of its
+// server that kept it from going out, which the Recv that meets it fails
+// over), its envs and their action rows (row_bytes each, in `envs` order):
+// what their records take, and what failover sends again.
 struct PendingRequest {
   int server = 0;
-  uint64_t sequence = 0;
+  absl::StatusOr<uint64_t> sequence;
   std::vector<int> envs;
+  std::string actions;
 };
 
 // Copies a packed column's rows (`width` elements each) into `out` at rows
@@ -300,10 +311,16 @@ absl::Status ReplayRecords(StreamTransport& transport,
     for (size_t k = 0; k < jobs.size() && status.ok(); ++k) {
       const EnvRecord* record = jobs[k].record;
       if (record == nullptr || round > record->operations.size()) continue;
-      if (in_flight.size() == kReplayWindow) status = receive_oldest();
+      // A failed Receive or Send ended the stream: sending on would open a
+      // new one, which forgets the requests lost with the old one.
+      if (in_flight.size() == kReplayWindow) {
+        status = receive_oldest();
+        if (!status.ok()) break;
+      }
       v1::SessionRequest request =
           ReplayRequest(*record, round, infos[k].name, *jobs[k].config);
       in_flight.emplace_back(transport.Send(request), k);
+      status = in_flight.back().first.status();
     }
   }
   // Every answer is read, so the stream is ready for what follows.
@@ -597,25 +614,32 @@ struct VectorEnv::State {
       } else {
         records[env].Append(internal::kReset, zero_actions);
       }
-      KeepObservations(env, *out);
+      KeepObservations(env, *out, env);
     }
     return first;
   }
 
   // Appends the step of `envs` (their rows of `action_bytes`, env-indexed)
-  // to their records, with its results in `out`.
+  // to their records, with its results in `out` (env-indexed too).
   void RecordSteps(const std::vector<int>& envs, absl::string_view action_bytes,
                    const Columns& out) {
     for (int env : envs) {
-      records[env].Append(
-          out.auto_reset[env] ? internal::kAutoReset : internal::kStep,
-          action_bytes.substr(env * row_bytes(), row_bytes()));
-      KeepObservations(env, out);
+      RecordStep(env, action_bytes.substr(env * row_bytes(), row_bytes()), out,
+                 env);
     }
   }
-  void KeepObservations(int env, const Columns& out) {
+  // Appends one step of env `env` with `action_row` to its record, its
+  // results in row `row` of `out`.
+  void RecordStep(int env, absl::string_view action_row, const Columns& out,
+                  size_t row) {
+    records[env].Append(
+        out.auto_reset[row] ? internal::kAutoReset : internal::kStep,
+        action_row);
+    KeepObservations(env, out, row);
+  }
+  void KeepObservations(int env, const Columns& out, size_t row) {
     const size_t size = static_cast<size_t>(n_landers) * kRemoteObservationSize;
-    std::copy_n(out.observations.begin() + env * size, size,
+    std::copy_n(out.observations.begin() + row * size, size,
                 last_observations.begin() + env * size);
   }
 
@@ -671,9 +695,14 @@ struct VectorEnv::State {
 
   // Recreates the `lost` envs on reachable servers (round robin; an env
   // whose server answers NOT_FOUND stays there) and replays their records
-  // to the bits the client last saw: one failover event, logged.
+  // to the bits the client last saw: one failover event, logged. A target
+  // that turns out unreachable during the replay (it began to drain, or
+  // died) is passed over for the next one; UNAVAILABLE naming the servers
+  // tried when none is left.
   absl::Status FailOver(const EnvErrors& lost, bool fresh) {
     const absl::Time began = absl::Now();
+    std::map<int, int> targets;  // Env -> the server it is replayed on.
+    std::vector<int> homeless;   // Envs that need a server still.
     for (const auto& [env, error] : lost) {
       if (absl::IsUnavailable(error)) down[placement[env]] = true;
       if (!fresh) {
@@ -682,53 +711,93 @@ struct VectorEnv::State {
         }
       }
     }
-    const absl::Status& first = lost.begin()->second;
-    const std::vector<int> targets = UsableServers();
-    if (targets.empty()) {
-      std::vector<std::string> addresses;
-      for (int server = 0; server < server_count(); ++server) {
-        addresses.push_back(session.address(server));
-      }
-      return absl::UnavailableError(absl::StrCat(
-          "failover of ", lost.size(), " envs found no reachable server of ",
-          absl::StrJoin(addresses, ", "), ": ", first.message()));
-    }
-    std::map<int, std::vector<int>> moves;  // Target server -> envs.
-    size_t spread = 0;
     for (const auto& [env, error] : lost) {
-      int target = placement[env];
-      if (absl::IsUnavailable(error) || down[target]) {
-        target = targets[spread++ % targets.size()];
+      if (down[placement[env]]) {
+        homeless.push_back(env);
+      } else {
+        targets[env] = placement[env];
       }
-      moves[target].push_back(env);
     }
+    // Server -> why the replay there failed, as "passed over" clauses.
+    std::map<int, absl::Status> refused;
     size_t replayed = 0;
-    std::vector<std::string> where;
-    for (const auto& [target, envs] : moves) {
-      std::vector<ReplayJob> jobs;
-      for (int env : envs) {
-        jobs.push_back({&configs[env], fresh ? nullptr : &records[env],
-                        LastObservations(env), Label(env)});
-        replayed += records[env].operations.size();
+    std::set<std::string> where;
+    // Each round either places every env or refuses one more server.
+    while (!targets.empty() || !homeless.empty()) {
+      if (!homeless.empty()) {
+        std::vector<int> usable;
+        for (int server : UsableServers()) {
+          if (refused.count(server) == 0) usable.push_back(server);
+        }
+        if (usable.empty()) return NoServerLeft(lost, refused);
+        for (size_t k = 0; k < homeless.size(); ++k) {
+          targets[homeless[k]] = usable[k % usable.size()];
+        }
+        homeless.clear();
       }
-      absl::StatusOr<std::vector<EnvInfo>> created =
-          Replay(TransportOf(target), jobs);
-      if (!created.ok()) return created.status();
-      for (size_t k = 0; k < envs.size(); ++k) {
-        Replace(envs[k], target, (*created)[k]);
+      std::map<int, std::vector<int>> moves;  // Target server -> envs.
+      for (const auto& [env, target] : targets) moves[target].push_back(env);
+      targets.clear();
+      for (const auto& [target, envs] : moves) {
+        std::vector<ReplayJob> jobs;
+        for (int env : envs) {
+          jobs.push_back({&configs[env], fresh ? nullptr : &records[env],
+                          LastObservations(env), Label(env)});
+        }
+        absl::StatusOr<std::vector<EnvInfo>> created =
+            Replay(TransportOf(target), jobs);
+        if (!created.ok()) {
+          if (!absl::IsUnavailable(created.status())) return created.status();
+          refused.emplace(target, created.status());
+          down[target] = true;
+          SettleRequestsOf(target, created.status());
+          homeless.insert(homeless.end(), envs.begin(), envs.end());
+          continue;
+        }
+        for (size_t k = 0; k < envs.size(); ++k) {
+          Replace(envs[k], target, (*created)[k]);
+          if (!fresh) replayed += records[envs[k]].operations.size();
+        }
+        where.insert(session.address(target));
       }
-      where.push_back(session.address(target));
     }
     shards = ShardsOf(AllEnvs(), {});
     ++failovers;
+    const absl::Status& first = lost.begin()->second;
     std::fprintf(stderr,
                  "mll_client: VectorEnv failover: %zu env(s) lost (%s: %s); "
-                 "recreated on %s and replayed (%zu steps) in %.3f s\n",
+                 "recreated on %s and replayed (%zu steps) in %.3f s%s\n",
                  lost.size(), absl::StatusCodeToString(first.code()).c_str(),
                  std::string(first.message()).c_str(),
-                 absl::StrJoin(where, ", ").c_str(), fresh ? 0 : replayed,
-                 absl::ToDoubleSeconds(absl::Now() - began));
+                 absl::StrJoin(where, ", ").c_str(), replayed,
+                 absl::ToDoubleSeconds(absl::Now() - began),
+                 Refusals(refused).c_str());
     return absl::OkStatus();
+  }
+
+  // "; passed over {address} ({code}: {message})" for each server whose
+  // replay failed, or "".
+  std::string Refusals(const std::map<int, absl::Status>& refused) const {
+    std::string out;
+    for (const auto& [server, error] : refused) {
+      absl::StrAppend(&out, "; passed over ", session.address(server), " (",
+                      absl::StatusCodeToString(error.code()), ": ",
+                      error.message(), ")");
+    }
+    return out;
+  }
+
+  // UNAVAILABLE: no server is left to fail the `lost` envs over to.
+  absl::Status NoServerLeft(const EnvErrors& lost,
+                            const std::map<int, absl::Status>& refused) const {
+    std::vector<std::string> addresses;
+    for (int server = 0; server < server_count(); ++server) {
+      addresses.push_back(session.address(server));
+    }
+    return absl::UnavailableError(absl::StrCat(
+        "failover of ", lost.size(), " envs found no reachable server of ",
+        absl::StrJoin(addresses, ", "), ": ", lost.begin()->second.message(),
+        Refusals(refused)));
   }
 
   // Env `env` is now `info`, on server `server`: the lease moves with it.
@@ -737,6 +806,93 @@ struct VectorEnv::State {
     names[env] = info.name;
     placement[env] = server;
     TransportOf(server).Hold(info.name, info.idle_timeout_s);
+  }
+
+  // ------------------------------------------- EnvPool's async API in flight
+
+  // Sends one step of `envs` with `action_rows` (one per env, in `envs`
+  // order): one packed StepBatch per server, in flight (with its envs) until
+  // Recv receives it. A request that cannot go out because its server is
+  // lost stays in flight too: the Recv that meets it fails its envs over.
+  // Another failure is returned at once; the servers before it were sent.
+  absl::Status SendSteps(const std::vector<int>& envs,
+                         const std::vector<absl::string_view>& action_rows) {
+    for (Shard& shard : ShardsOf(envs, action_rows)) {
+      absl::StatusOr<uint64_t> sequence = shard.transport->Send(shard.request);
+      if (!sequence.ok()) {
+        if (!failover || !absl::IsUnavailable(sequence.status())) {
+          return sequence.status();
+        }
+        SettleRequestsOf(shard.server, sequence.status());
+      }
+      for (int env : shard.rows) in_flight[env] = true;
+      in_flight_count += static_cast<int>(shard.rows.size());
+      pending.push_back({shard.server, std::move(sequence),
+                         std::move(shard.rows),
+                         std::move(*shard.request.mutable_step_batch()
+                                        ->mutable_packed()
+                                        ->mutable_actions()
+                                        ->mutable_data())});
+    }
+    return absl::OkStatus();
+  }
+
+  // The envs `envs` have no step in flight any more (their results are lost,
+  // or about to be sent again).
+  void Release(const std::vector<int>& envs) {
+    for (int env : envs) {
+      if (!in_flight[env]) continue;
+      in_flight[env] = false;
+      --in_flight_count;
+    }
+  }
+
+  // Settles the requests in flight on the lost server `server`: each is
+  // read off its stream (its answer, or the loss), because the stream counts
+  // the requests it lost only until it is opened again, and takes `loss` as
+  // its status, so that the Recv that meets it fails its envs over.
+  void SettleRequestsOf(int server, const absl::Status& loss) {
+    for (PendingRequest& request : pending) {
+      if (request.server != server || !request.sequence.ok()) continue;
+      v1::SessionResponse unused;
+      (void)TransportOf(server).Receive(*request.sequence, &unused);
+      request.sequence = loss;
+    }
+  }
+
+  // Moves the (settled) requests in flight on the lost server `server` from
+  // `pending` to `requests`, oldest first.
+  void TakeRequestsOf(int server, std::vector<PendingRequest>* requests) {
+    std::deque<PendingRequest> others;
+    for (PendingRequest& request : pending) {
+      if (request.server == server) {
+        requests->push_back(std::move(request));
+      } else {
+        others.push_back(std::move(request));
+      }
+    }
+    pending = std::move(others);
+  }
+
+  // Fails the `lost` envs over (replayed to the last results received),
+  // then sends `requests` (their steps in flight where they were lost,
+  // oldest first) again on the envs' new servers, so that Recv returns the
+  // results it would have. If that fails, those envs are no longer in
+  // flight.
+  absl::Status FailOverAndResend(const EnvErrors& lost,
+                                 std::vector<PendingRequest>& requests) {
+    absl::Status status = FailOver(lost, /*fresh=*/false);
+    for (PendingRequest& request : requests) {
+      Release(request.envs);
+      if (!status.ok()) continue;
+      std::vector<absl::string_view> action_rows;
+      for (size_t k = 0; k < request.envs.size(); ++k) {
+        action_rows.push_back(absl::string_view(request.actions)
+                                  .substr(k * row_bytes(), row_bytes()));
+      }
+      status = SendSteps(request.envs, action_rows);
+    }
+    return status;
   }
 };
 
@@ -1077,28 +1233,7 @@ absl::Status VectorEnv::SendWith(absl::string_view action_bytes, size_t count,
   for (size_t k = 0; k < envs.size(); ++k) {
     rows.push_back(action_bytes.substr(k * env_bytes, env_bytes));
   }
-  for (Shard& shard : state.ShardsOf(envs, rows)) {
-    absl::StatusOr<uint64_t> sequence = shard.transport->Send(shard.request);
-    if (!sequence.ok()) return SendRecvFailure(sequence.status());
-    for (int env : shard.rows) {
-      state.in_flight[env] = true;
-      // Send/Recv steps are not recorded: failover covers Step and Reset.
-      if (state.records[env].gap.empty()) {
-        state.records[env].gap =
-            "it was stepped with Send/Recv since its last seeded reset, "
-            "which are not recorded";
-      }
-    }
-    state.in_flight_count += static_cast<int>(shard.rows.size());
-    state.pending.push_back({shard.server, *sequence, std::move(shard.rows)});
-  }
-  return absl::OkStatus();
-}
-
-absl::Status VectorEnv::SendRecvFailure(absl::Status status) const {
-  if (!state_->failover || !absl::IsUnavailable(status)) return status;
-  return absl::UnavailableError(absl::StrCat(
-      status.message(), " (failover covers Step and Reset, not Send/Recv)"));
+  return state.SendSteps(envs, rows);
 }
 
 absl::Status VectorEnv::ReceiveOne() {
@@ -1107,29 +1242,83 @@ absl::Status VectorEnv::ReceiveOne() {
   state.pending.pop_front();
   StreamTransport& transport = state.TransportOf(request.server);
   v1::SessionResponse response;
-  absl::Status status = transport.Receive(request.sequence, &response);
-  ReadyChunk chunk;
-  EnvErrors failed;
-  if (status.ok()) {
-    chunk.columns.Resize(request.envs.size(), state.n_landers);
-    std::vector<int> rows(request.envs.size());
-    for (size_t k = 0; k < rows.size(); ++k) rows[k] = static_cast<int>(k);
-    status = state.CollectPacked(response, request.envs, rows,
-                                 transport.address(), &chunk.columns,
-                                 /*lost=*/nullptr, &failed);
-  }
-  if (status.ok() && !failed.empty()) status = failed.begin()->second;
+  absl::Status status = request.sequence.status();
+  if (status.ok()) status = transport.Receive(*request.sequence, &response);
   if (!status.ok()) {
-    // This request's envs are no longer in flight: their results are lost.
-    for (int env : request.envs) state.in_flight[env] = false;
-    state.in_flight_count -= static_cast<int>(request.envs.size());
-    return SendRecvFailure(status);
+    if (!state.Lost(status, request.envs[0])) {
+      state.Release(request.envs);
+      return status;
+    }
+    EnvErrors lost;
+    std::vector<PendingRequest> requests;
+    if (absl::IsUnavailable(status)) {
+      // The server is lost with every request in flight on it: all its envs
+      // move, and those requests go again.
+      for (int env = 0; env < state.num_envs(); ++env) {
+        if (state.placement[env] == request.server) lost.emplace(env, status);
+      }
+      state.SettleRequestsOf(request.server, status);
+      requests.push_back(std::move(request));
+      state.TakeRequestsOf(requests[0].server, &requests);
+    } else {
+      for (int env : request.envs) lost.emplace(env, status);
+      requests.push_back(std::move(request));
+    }
+    return state.FailOverAndResend(lost, requests);
   }
-  chunk.columns.MaskAutoResetRows(state.n_landers);
-  chunk.envs = std::move(request.envs);
+  const int n = state.n_landers;
+  Columns columns;
+  columns.Resize(request.envs.size(), n);
+  std::vector<int> rows(request.envs.size());
+  for (size_t k = 0; k < rows.size(); ++k) rows[k] = static_cast<int>(k);
+  EnvErrors lost;
+  EnvErrors failed;
+  status = state.CollectPacked(response, request.envs, rows,
+                               transport.address(), &columns, &lost, &failed);
+  if (!status.ok()) {
+    state.Release(request.envs);
+    return status;
+  }
+  // The envs that stepped go into their records (what their server did,
+  // even when another env's error is returned); those lost go again.
+  std::vector<size_t> stepped;
+  PendingRequest retry;
+  retry.server = request.server;
+  const size_t row_bytes = state.row_bytes();
+  for (size_t k = 0; k < request.envs.size(); ++k) {
+    const int env = request.envs[k];
+    const absl::string_view action_row =
+        absl::string_view(request.actions).substr(k * row_bytes, row_bytes);
+    if (lost.count(env) != 0) {
+      retry.envs.push_back(env);
+      retry.actions.append(action_row.data(), action_row.size());
+    } else if (failed.count(env) == 0) {
+      state.RecordStep(env, action_row, columns, k);
+      stepped.push_back(k);
+    }
+  }
+  if (!failed.empty()) {
+    state.Release(request.envs);
+    return failed.begin()->second;
+  }
+  columns.MaskAutoResetRows(n);
+  ReadyChunk chunk;
+  if (lost.empty()) {
+    chunk.envs = std::move(request.envs);
+    chunk.columns = std::move(columns);
+  } else {
+    chunk.columns.Resize(stepped.size(), n);
+    for (size_t row = 0; row < stepped.size(); ++row) {
+      chunk.columns.CopyRow(columns, stepped[row], row, n);
+      chunk.envs.push_back(request.envs[stepped[row]]);
+    }
+  }
   state.ready_rows += chunk.envs.size();
-  state.ready.push_back(std::move(chunk));
-  return absl::OkStatus();
+  if (!chunk.envs.empty()) state.ready.push_back(std::move(chunk));
+  if (lost.empty()) return absl::OkStatus();
+  std::vector<PendingRequest> requests;
+  requests.push_back(std::move(retry));
+  return state.FailOverAndResend(lost, requests);
 }
 
 // ------------------------------------------------------------ env state

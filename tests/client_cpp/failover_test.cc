@@ -1,7 +1,9 @@
 // VectorEnv's failover and env state, against real mll_server processes: a
-// server killed (kill -9) mid-run costs no episode and no bit; failover off
-// reports the loss; a state restores on another server to the same bits, and
-// a damaged or foreign state is refused with the env untouched.
+// server killed (kill -9) mid-run, in Step or in a Send/Recv loop, costs no
+// episode and no bit; a dead failover target is passed over; failover off
+// reports the loss; a state (after Step or Send/Recv steps) restores on
+// another server to the same bits, and a damaged or foreign state is refused
+// with the env untouched.
 #include <zlib.h>
 
 #include <algorithm>
@@ -113,17 +115,28 @@ Trajectory Fly(VectorEnv& envs, int kill_at,
   return trajectory;
 }
 
+using Servers = std::vector<std::unique_ptr<ServerProcess>>;
+
+// `body` once per transport (shared memory, then the stream), each time with
+// three new servers and a client of them.
+void OnThreeServersPerTransport(
+    const std::function<void(Servers&, Client&)>& body) {
+  for (SessionTransport transport :
+       {SessionTransport::kSharedMemory, SessionTransport::kNative}) {
+    SCOPED_TRACE(SessionTransportName(transport));
+    Servers servers = StartServers(3);
+    ASSERT_EQ(servers.size(), 3u);
+    Client client = ClientOf(servers, transport);
+    body(servers, client);
+  }
+}
+
 // kill -9 of one of three servers mid-run: the run finishes, every
 // observation and reward equal to an uninterrupted run's, on both
 // transports.
 TEST(FailoverTest, AServerKilledMidRunCostsNoBit) {
   constexpr int kEnvs = 9;
-  for (SessionTransport transport :
-       {SessionTransport::kSharedMemory, SessionTransport::kNative}) {
-    SCOPED_TRACE(SessionTransportName(transport));
-    std::vector<std::unique_ptr<ServerProcess>> servers = StartServers(3);
-    ASSERT_EQ(servers.size(), 3u);
-    Client client = ClientOf(servers, transport);
+  OnThreeServersPerTransport([&](Servers& servers, Client& client) {
     absl::StatusOr<VectorEnv> reference =
         VectorEnv::Create(client, kEnvs, SmallConfig());
     ASSERT_TRUE(reference.ok()) << reference.status();
@@ -146,7 +159,7 @@ TEST(FailoverTest, AServerKilledMidRunCostsNoBit) {
     for (int env = 0; env < kEnvs; ++env) {
       EXPECT_NE(envs->address(env), killed) << "env " << env;
     }
-  }
+  });
 }
 
 TEST(FailoverTest, AnEnvDeletedBehindItsBackIsRecreatedWhereItWas) {
@@ -166,19 +179,44 @@ TEST(FailoverTest, AnEnvDeletedBehindItsBackIsRecreatedWhereItWas) {
   EXPECT_TRUE(SameBits(got.rewards, expected.rewards));
 }
 
+// Up to 10 rounds of Recv, then Send of zero actions to the envs received
+// (batch_size 2); the first error.
+absl::Status RecvAndSendUntilAnError(VectorEnv& envs) {
+  absl::Status status = absl::OkStatus();
+  for (int count = 0; count < 10 && status.ok(); ++count) {
+    status = envs.Recv();
+    if (status.ok()) {
+      const std::vector<int> ids(envs.env_ids().begin(), envs.env_ids().end());
+      status = envs.Send(
+          absl::MakeConstSpan(std::vector<int32_t>(2 * kLanders, 0)), ids);
+    }
+  }
+  return status;
+}
+
+// Failover off: Step, and a Send/Recv loop, report the loss of a server.
 TEST(FailoverTest, OffTheLossReachesTheCaller) {
   std::vector<std::unique_ptr<ServerProcess>> servers = StartServers(2);
   ASSERT_EQ(servers.size(), 2u);
   Client client = ClientOf(servers);
   absl::StatusOr<VectorEnv> envs = VectorEnv::Create(
       client, 4, SmallConfig(), /*batch_size=*/0, /*failover=*/false);
+  absl::StatusOr<VectorEnv> async_envs = VectorEnv::Create(
+      client, 4, SmallConfig(), /*batch_size=*/2, /*failover=*/false);
   ASSERT_TRUE(envs.ok()) << envs.status();
+  ASSERT_TRUE(async_envs.ok()) << async_envs.status();
   EXPECT_FALSE(envs->failover());
   ASSERT_TRUE(envs->Reset(uint64_t{1}).ok());
+  ASSERT_TRUE(async_envs->AsyncReset(uint64_t{1}).ok());
   servers[1]->Kill();
   const absl::Status status = envs->Step(absl::MakeConstSpan(ActionsOf(0, 4)));
   EXPECT_EQ(status.code(), absl::StatusCode::kUnavailable) << status;
   EXPECT_EQ(envs->failovers(), 0);
+  // Both envs of the killed server are met within a few Recvs.
+  const absl::Status async_status = RecvAndSendUntilAnError(*async_envs);
+  EXPECT_EQ(async_status.code(), absl::StatusCode::kUnavailable)
+      << async_status;
+  EXPECT_EQ(async_envs->failovers(), 0);
 }
 
 // Failover on with one address: with its server gone and none other, the
@@ -199,6 +237,188 @@ TEST(FailoverTest, OnWithOneAddressReportsThatNoServerAnswers) {
   EXPECT_EQ(status.code(), absl::StatusCode::kUnavailable) << status;
   EXPECT_THAT(std::string(status.message()),
               HasSubstr("found no reachable server of"));
+}
+
+// ------------------------------------------------ EnvPool's Send/Recv loop
+
+constexpr int kAsyncEnvs = 24;
+constexpr int kBatch = 8;
+constexpr int kRecvs = 150;
+// About 50 steps per env: each crosses an episode end (max_cycles 40).
+// Every Send/Recv loop's time bound.
+constexpr auto kLoopTime = std::chrono::seconds(120);
+
+// Env `env`'s actions for its step `step`, the same for every run whatever
+// the order in which Recv returns the envs.
+std::vector<int32_t> ActionsOfEnv(int env, int step) {
+  std::mt19937_64 rng(100000 * static_cast<uint64_t>(env) + step);
+  std::vector<int32_t> actions(kLanders);
+  for (int32_t& a : actions) a = static_cast<int32_t>(rng() % 4);
+  return actions;
+}
+
+// One row of Recv's results as the caller saw it: its observations, rewards,
+// terminations and truncations as bytes, and whether it was an auto-reset.
+struct Row {
+  std::string bits;
+  bool auto_reset = false;
+  bool operator==(const Row& other) const {
+    return bits == other.bits && auto_reset == other.auto_reset;
+  }
+};
+
+Row RowOf(const VectorEnv& envs, int row) {
+  const StepData data = envs.Result(row);
+  Row out;
+  const auto append = [&](const auto& column) {
+    out.bits.append(reinterpret_cast<const char*>(column.data()),
+                    column.size() * sizeof(column[0]));
+  };
+  append(data.observations);
+  append(data.rewards);
+  append(data.terminations);
+  append(data.truncations);
+  out.auto_reset = data.auto_reset;
+  return out;
+}
+
+// Each env's rows in the order Recv returned them, over kRecvs Recvs after
+// AsyncReset, each env sent its next actions as soon as Recv returned it;
+// `fault` runs before the Send that follows Recv number `fault_at` (so the
+// fault meets the steps sent from then on, whatever the server had answered
+// before).
+std::vector<std::vector<Row>> SendRecvRun(VectorEnv& envs, int fault_at,
+                                          const std::function<void()>& fault) {
+  const auto deadline = std::chrono::steady_clock::now() + kLoopTime;
+  std::vector<std::vector<Row>> rows(envs.num_envs());
+  std::vector<int> steps(envs.num_envs(), 0);
+  absl::Status status = envs.AsyncReset(uint64_t{7});
+  EXPECT_TRUE(status.ok()) << status;
+  for (int count = 0; count < kRecvs && status.ok(); ++count) {
+    if (std::chrono::steady_clock::now() > deadline) {
+      ADD_FAILURE() << "recv " << count << " of " << kRecvs << " after "
+                    << kLoopTime.count() << " s";
+      break;
+    }
+    status = envs.Recv();
+    EXPECT_TRUE(status.ok()) << "recv " << count << ": " << status;
+    if (!status.ok()) break;
+    const std::vector<int> ids(envs.env_ids().begin(), envs.env_ids().end());
+    std::vector<int32_t> actions;
+    for (size_t row = 0; row < ids.size(); ++row) {
+      rows[ids[row]].push_back(RowOf(envs, static_cast<int>(row)));
+      const std::vector<int32_t> mine =
+          ActionsOfEnv(ids[row], steps[ids[row]]++);
+      actions.insert(actions.end(), mine.begin(), mine.end());
+    }
+    if (count == fault_at) fault();
+    status = envs.Send(absl::MakeConstSpan(actions), ids);
+    EXPECT_TRUE(status.ok()) << "send " << count << ": " << status;
+  }
+  return rows;
+}
+
+// Each env's rows in `got` are those in `expected` as far as both went
+// (which envs each Recv returns depends on timing), at least `least` each,
+// and both runs returned kRecvs * kBatch rows.
+void ExpectSameRows(const std::vector<std::vector<Row>>& got,
+                    const std::vector<std::vector<Row>>& expected,
+                    size_t least) {
+  ASSERT_EQ(got.size(), expected.size());
+  size_t got_rows = 0;
+  size_t expected_rows = 0;
+  for (size_t env = 0; env < got.size(); ++env) {
+    got_rows += got[env].size();
+    expected_rows += expected[env].size();
+    const size_t common = std::min(got[env].size(), expected[env].size());
+    EXPECT_GE(common, least) << "env " << env << ": " << got[env].size()
+                             << " and " << expected[env].size() << " rows";
+    for (size_t k = 0; k < common; ++k) {
+      ASSERT_TRUE(got[env][k] == expected[env][k])
+          << "env " << env << ", row " << k;
+    }
+  }
+  EXPECT_EQ(got_rows, static_cast<size_t>(kRecvs * kBatch));
+  EXPECT_EQ(expected_rows, static_cast<size_t>(kRecvs * kBatch));
+}
+
+bool AnyAutoReset(const std::vector<std::vector<Row>>& rows) {
+  for (const std::vector<Row>& env_rows : rows) {
+    // The first row is AsyncReset's: an auto-reset flag after it is an
+    // episode that ended (and was replayed across the failover).
+    for (size_t k = 1; k < env_rows.size(); ++k) {
+      if (env_rows[k].auto_reset) return true;
+    }
+  }
+  return false;
+}
+
+// `killed` of the three servers killed (kill -9) mid-way through a Send/Recv
+// loop: each env's results equal an uninterrupted run's, on both
+// transports, and no env is left on a killed server.
+void ExpectSendRecvSurvives(const std::vector<int>& killed, int failovers) {
+  OnThreeServersPerTransport([&](Servers& servers, Client& client) {
+    absl::StatusOr<VectorEnv> reference =
+        VectorEnv::Create(client, kAsyncEnvs, SmallConfig(), kBatch);
+    ASSERT_TRUE(reference.ok()) << reference.status();
+    const std::vector<std::vector<Row>> expected =
+        SendRecvRun(*reference, -1, [] {});
+    EXPECT_EQ(reference->failovers(), 0);
+
+    absl::StatusOr<VectorEnv> envs =
+        VectorEnv::Create(client, kAsyncEnvs, SmallConfig(), kBatch);
+    ASSERT_TRUE(envs.ok()) << envs.status();
+    std::vector<std::string> killed_addresses;
+    for (int server : killed) {
+      killed_addresses.push_back(servers[server]->address());
+    }
+    const std::vector<std::vector<Row>> got =
+        SendRecvRun(*envs, kRecvs / 2, [&] {
+          for (int server : killed) servers[server]->Kill();
+        });
+    EXPECT_EQ(envs->failovers(), failovers);
+    ExpectSameRows(got, expected, kRecvs * kBatch / kAsyncEnvs / 2);
+    EXPECT_TRUE(AnyAutoReset(expected));
+    for (int env = 0; env < kAsyncEnvs; ++env) {
+      EXPECT_THAT(killed_addresses,
+                  ::testing::Not(::testing::Contains(envs->address(env))))
+          << "env " << env;
+    }
+  });
+}
+
+TEST(FailoverTest, AServerKilledDuringSendRecvCostsNoBit) {
+  ExpectSendRecvSurvives({1}, 1);
+}
+
+// Two of three servers killed at once: the first failover's round robin
+// targets the other dead one too, whose replay fails; it is passed over for
+// the live server. Its own envs fail over when their Recv meets the loss.
+TEST(FailoverTest, ADeadTargetIsPassedOverDuringSendRecv) {
+  ExpectSendRecvSurvives({1, 2}, 2);
+}
+
+// A Send/Recv loop on two servers both killed: Recv says no server is left,
+// naming the servers and the one passed over.
+TEST(FailoverTest, SendRecvWithNoServerLeftNamesTheServersTried) {
+  std::vector<std::unique_ptr<ServerProcess>> servers = StartServers(2);
+  ASSERT_EQ(servers.size(), 2u);
+  Client client = ClientOf(servers);
+  absl::StatusOr<VectorEnv> envs =
+      VectorEnv::Create(client, 4, SmallConfig(), /*batch_size=*/2);
+  ASSERT_TRUE(envs.ok()) << envs.status();
+  ASSERT_TRUE(envs->AsyncReset(uint64_t{1}).ok());
+  servers[0]->Kill();
+  servers[1]->Kill();
+  // Both servers' envs are met within a few Recvs.
+  const absl::Status status = RecvAndSendUntilAnError(*envs);
+  EXPECT_EQ(status.code(), absl::StatusCode::kUnavailable) << status;
+  const std::string message(status.message());
+  EXPECT_THAT(message, HasSubstr("found no reachable server of"));
+  EXPECT_THAT(message, HasSubstr("; passed over "));
+  EXPECT_THAT(message, HasSubstr(servers[0]->address()));
+  EXPECT_THAT(message, HasSubstr(servers[1]->address()));
+  EXPECT_EQ(envs->failovers(), 0);
 }
 
 // The state's bytes with `edit` applied and a valid CRC again.
@@ -270,6 +490,69 @@ TEST_F(EnvStateTest, RestoresOnAnotherServerToTheSameBits) {
   }
 }
 
+// Send/Recv steps are recorded: states taken after them restore on another
+// server to the same bits, and the restored envs go on as the originals.
+TEST_F(EnvStateTest, StatesAfterSendRecvStepsRestoreToTheSameBits) {
+  constexpr int kEnvs = 4;
+  Client first = ClientOn(0);
+  Client second = ClientOn(1);
+  absl::StatusOr<VectorEnv> source =
+      VectorEnv::Create(first, kEnvs, SmallConfig(), /*batch_size=*/2);
+  absl::StatusOr<VectorEnv> target =
+      VectorEnv::Create(second, kEnvs, SmallConfig());
+  ASSERT_TRUE(source.ok() && target.ok());
+  ASSERT_TRUE(source->AsyncReset(uint64_t{9}).ok());
+  ASSERT_TRUE(target->Reset(uint64_t{900}).ok());
+  std::vector<int> steps(kEnvs, 0);
+  std::vector<std::vector<float>> last(kEnvs);
+  const auto receive = [&]() -> std::vector<int> {
+    const absl::Status status = source->Recv();
+    EXPECT_TRUE(status.ok()) << status;
+    const std::vector<int> ids(source->env_ids().begin(),
+                               source->env_ids().end());
+    for (size_t row = 0; row < ids.size(); ++row) {
+      last[ids[row]] = source->Result(static_cast<int>(row)).observations;
+    }
+    return ids;
+  };
+  // About 50 steps per env: each crosses an episode end (max_cycles 40).
+  const auto deadline =
+      std::chrono::steady_clock::now() + std::chrono::seconds(60);
+  for (int round = 0; round < 100; ++round) {
+    ASSERT_LT(std::chrono::steady_clock::now(), deadline) << "round " << round;
+    const std::vector<int> ids = receive();
+    std::vector<int32_t> actions;
+    for (int env : ids) {
+      const std::vector<int32_t> mine = ActionsOfEnv(env, steps[env]++);
+      actions.insert(actions.end(), mine.begin(), mine.end());
+    }
+    ASSERT_TRUE(source->Send(absl::MakeConstSpan(actions), ids).ok());
+  }
+  // Nothing left in flight: two Recvs without Sends return the four envs.
+  receive();
+  receive();
+  for (int env = 0; env < kEnvs; ++env) {
+    SCOPED_TRACE(env);
+    absl::StatusOr<std::string> state = source->EnvState(env);
+    ASSERT_TRUE(state.ok()) << state.status();
+    absl::StatusOr<std::vector<float>> observations =
+        target->RestoreEnv(env, *state);
+    ASSERT_TRUE(observations.ok()) << observations.status();
+    EXPECT_EQ(*observations, last[env]);
+    EXPECT_EQ(*target->EnvState(env), *state);
+  }
+  for (int step = 0; step < 20; ++step) {
+    const std::vector<int32_t> actions = ActionsOf(step, kEnvs);
+    ASSERT_TRUE(source->Step(absl::MakeConstSpan(actions)).ok());
+    ASSERT_TRUE(target->Step(absl::MakeConstSpan(actions)).ok());
+    ASSERT_TRUE(SameBits(std::vector<float>(target->observations().begin(),
+                                            target->observations().end()),
+                         std::vector<float>(source->observations().begin(),
+                                            source->observations().end())))
+        << "step " << step;
+  }
+}
+
 TEST_F(EnvStateTest, DamagedOrForeignStatesAreRefusedAndTheEnvIsUntouched) {
   Client client = ClientOn(0);
   absl::StatusOr<VectorEnv> envs = VectorEnv::Create(client, 2, SmallConfig());
@@ -337,17 +620,18 @@ TEST_F(EnvStateTest, RecordsThatCannotRecreateTheirEnvSaySo) {
   EXPECT_THAT(std::string(state.status().message()), HasSubstr("env 0 (envs/"));
   EXPECT_THAT(std::string(state.status().message()),
               HasSubstr("never reset (no known seed)"));
-  // Send/Recv steps are not recorded.
+  // Not while any env is in flight; Send/Recv steps are recorded.
   ASSERT_TRUE(envs->AsyncReset(uint64_t{2}).ok());
+  state = envs->EnvState(0);
+  EXPECT_EQ(state.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(std::string(state.status().message()), HasSubstr("Recv them"));
   ASSERT_TRUE(envs->Recv().ok());
   ASSERT_TRUE(envs->Recv().ok());
   ASSERT_TRUE(
       envs->Send(absl::MakeConstSpan(std::vector<int32_t>{1}), {1}).ok());
   ASSERT_TRUE(envs->Recv().ok());
   EXPECT_TRUE(envs->EnvState(0).ok());
-  state = envs->EnvState(1);
-  EXPECT_EQ(state.status().code(), absl::StatusCode::kFailedPrecondition);
-  EXPECT_THAT(std::string(state.status().message()), HasSubstr("Send/Recv"));
+  EXPECT_TRUE(envs->EnvState(1).ok());
   // Past 100,000 operations since the seeded reset.
   ASSERT_TRUE(envs->Reset(uint64_t{3}).ok());
   const std::vector<int32_t> actions(2, 0);

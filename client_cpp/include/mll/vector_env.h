@@ -35,18 +35,22 @@
 // its last seeded reset, and every operation since: each step's actions,
 // auto-reset steps, unseeded resets). When a server becomes unreachable
 // (UNAVAILABLE, a draining server's "draining: ..." included) or loses an env
-// (NOT_FOUND naming it) during Reset or Step, the VectorEnv recreates each
-// lost env on a reachable server (round robin over the servers not found
+// (NOT_FOUND naming it) during Reset, Step or Recv, the VectorEnv recreates
+// each lost env on a reachable server (round robin over the servers not found
 // down; when none is left, those that answer a health check again), replays
 // its record, checks that the replayed observations equal the last ones seen
 // (else DATA_LOSS naming the env), and retries the operation: the caller
 // sees the same observations, rewards and episode boundaries as without the
-// fault. Each event counts in failovers() and is logged once on stderr with
-// its cause. EnvPool's Send/Recv are not recorded: an unreachable server there
-// returns UNAVAILABLE saying so, and failover (and EnvState) of the envs sent
-// waits for their next seeded reset. A record holds at most 100,000
-// operations since its seeded reset; past it failover and EnvState of that env
-// fail FAILED_PRECONDITION naming it, until its next seeded reset.
+// fault. A target that turns out unreachable during the replay (draining, or
+// dead) is passed over for the next; when none is left, UNAVAILABLE names the
+// servers tried. EnvPool's Send/Recv steps are recorded per env as their
+// results come: a server lost during Recv has every env on it recreated and
+// replayed to the last results received, and the steps that were in flight
+// on it sent again on the envs' new servers, so Recv returns the same
+// per-env results as without the fault. Each event counts in failovers() and
+// is logged once on stderr with its cause. A record holds at most 100,000
+// operations since its seeded reset; past it failover and EnvState of that
+// env fail FAILED_PRECONDITION naming it, until its next seeded reset.
 //
 // Env state: EnvState(i) gives env i's record as bytes in the Python client's
 // format (multi_lunar_lander/_record.py: "MLLS", format version, the server's
@@ -130,6 +134,10 @@ class VectorEnv {
   // Step for the same actions. Errors: INVALID_ARGUMENT for bad env_ids or
   // actions; FAILED_PRECONDITION for a Send to an env in flight, a Recv with
   // fewer than batch_size envs in flight, and Reset or Step while any is.
+  // With failover on, a Send that finds its server lost stays in flight and
+  // the Recv that meets it fails over (above); an error that Recv returns
+  // ends the steps in flight of the envs it concerns (their results are
+  // lost).
   int batch_size() const;
   absl::Status AsyncReset(std::optional<uint64_t> seed = std::nullopt);
   absl::Status Send(absl::Span<const int32_t> discrete_actions,
@@ -171,8 +179,8 @@ class VectorEnv {
   // Env `env`'s state: bytes that recreate it at this point to the same bits
   // on any server of the same release (RestoreEnv here, restore_env or
   // parallel_env's restore in Python). FAILED_PRECONDITION naming the env
-  // when its record cannot (never reset, stepped with Send, or past 100,000
-  // operations), or while any env is in flight.
+  // when its record cannot (never reset, or past 100,000 operations), or
+  // while any env is in flight.
   absl::StatusOr<std::string> EnvState(int env) const;
   // Puts env `env` at the point `state` describes: a new env on the same
   // server replays it, checked to the bits, then replaces the old one (a new
@@ -199,9 +207,6 @@ class VectorEnv {
   absl::Status SendWith(absl::string_view action_bytes, size_t count,
                         bool continuous_actions, absl::Span<const int> env_ids);
   absl::Status ReceiveOne();
-  // `status` of a Send or Recv, saying when failover is on that it does not
-  // cover them.
-  absl::Status SendRecvFailure(absl::Status status) const;
   absl::Status CheckEnvIndex(int env) const;
 
   std::unique_ptr<State> state_;
