@@ -180,39 +180,46 @@ absl::Status Scatter(const v1::Array& column, absl::string_view field,
 absl::Status DecodePacked(const v1::PackedStepData& packed,
                           const std::vector<int>& rows, int n, Columns* out) {
   const int count = static_cast<int>(rows.size());
-  absl::Status status =
-      Scatter(packed.observations(), "observations", v1::DTYPE_FLOAT32, rows,
-              {count, n, kRemoteObservationSize}, n * kRemoteObservationSize,
-              out->observations.data());
-  const auto agent_column = [&](const v1::Array& column,
-                                absl::string_view field, v1::DType dtype,
-                                auto* into) {
+  const size_t agents = static_cast<size_t>(n);
+  absl::Status status = absl::OkStatus();
+  // Each column in turn, until one is wrong.
+  const auto column = [&](const v1::Array& array, absl::string_view field,
+                          v1::DType dtype, std::vector<int> shape, size_t width,
+                          auto* into) {
     if (status.ok()) {
-      status = Scatter(column, field, dtype, rows, {count, n},
-                       static_cast<size_t>(n), into);
+      status =
+          Scatter(array, field, dtype, rows, std::move(shape), width, into);
     }
   };
-  agent_column(packed.rewards(), "rewards", v1::DTYPE_FLOAT32,
-               out->rewards.data());
-  agent_column(packed.terminations(), "terminations", v1::DTYPE_UINT8,
-               out->terminations.data());
-  agent_column(packed.truncations(), "truncations", v1::DTYPE_UINT8,
-               out->truncations.data());
-  agent_column(packed.stepped(), "stepped", v1::DTYPE_UINT8,
-               out->active.data());
-  agent_column(packed.outcomes(), "outcomes", v1::DTYPE_UINT8,
-               out->outcomes.data());
-  agent_column(packed.episode_returns(), "episode_returns", v1::DTYPE_FLOAT32,
-               out->episode_returns.data());
-  agent_column(packed.episode_lengths(), "episode_lengths", v1::DTYPE_INT32,
-               out->episode_lengths.data());
-  if (status.ok()) {
-    status = Scatter(packed.auto_reset(), "auto_reset", v1::DTYPE_UINT8, rows,
-                     {count}, 1, out->auto_reset.data());
-  }
-  if (status.ok()) {
-    status = Scatter(packed.episode_over(), "episode_over", v1::DTYPE_UINT8,
-                     rows, {count}, 1, out->episode_over.data());
+  column(packed.observations(), "observations", v1::DTYPE_FLOAT32,
+         {count, n, kRemoteObservationSize}, agents * kRemoteObservationSize,
+         out->observations.data());
+  column(packed.rewards(), "rewards", v1::DTYPE_FLOAT32, {count, n}, agents,
+         out->rewards.data());
+  column(packed.episode_returns(), "episode_returns", v1::DTYPE_FLOAT32,
+         {count, n}, agents, out->episode_returns.data());
+  column(packed.episode_lengths(), "episode_lengths", v1::DTYPE_INT32,
+         {count, n}, agents, out->episode_lengths.data());
+  // The uint8 columns: one byte per agent, or per env.
+  struct ByteColumn {
+    const v1::Array& array;
+    absl::string_view field;
+    std::vector<uint8_t>& into;
+    bool per_agent;
+  };
+  const ByteColumn byte_columns[] = {
+      {packed.terminations(), "terminations", out->terminations, true},
+      {packed.truncations(), "truncations", out->truncations, true},
+      {packed.stepped(), "stepped", out->active, true},
+      {packed.outcomes(), "outcomes", out->outcomes, true},
+      {packed.auto_reset(), "auto_reset", out->auto_reset, false},
+      {packed.episode_over(), "episode_over", out->episode_over, false},
+  };
+  for (const ByteColumn& byte_column : byte_columns) {
+    column(byte_column.array, byte_column.field, v1::DTYPE_UINT8,
+           byte_column.per_agent ? std::vector<int>{count, n}
+                                 : std::vector<int>{count},
+           byte_column.per_agent ? agents : 1, byte_column.into.data());
   }
   return status;
 }
