@@ -727,6 +727,12 @@ struct VectorEnv::State {
     }
     // Server -> why the replay there failed, as "passed over" clauses.
     std::map<int, absl::Status> refused;
+    // Envs replaced before a failure stay where they are now: the shards
+    // follow them.
+    const auto fail = [&](absl::Status error) {
+      shards = ShardsOf(AllEnvs(), {});
+      return error;
+    };
     size_t replayed = 0;
     std::set<std::string> where;
     // Each round either places every env or refuses one more server.
@@ -736,7 +742,7 @@ struct VectorEnv::State {
         for (int server : UsableServers()) {
           if (refused.count(server) == 0) usable.push_back(server);
         }
-        if (usable.empty()) return NoServerLeft(lost, refused);
+        if (usable.empty()) return fail(NoServerLeft(lost, refused));
         for (size_t k = 0; k < homeless.size(); ++k) {
           targets[homeless[k]] = usable[k % usable.size()];
         }
@@ -754,7 +760,9 @@ struct VectorEnv::State {
         absl::StatusOr<std::vector<EnvInfo>> created =
             Replay(TransportOf(target), jobs);
         if (!created.ok()) {
-          if (!absl::IsUnavailable(created.status())) return created.status();
+          if (!absl::IsUnavailable(created.status())) {
+            return fail(created.status());
+          }
           refused.emplace(target, created.status());
           down[target] = true;
           SettleRequestsOf(target, created.status());
