@@ -245,5 +245,23 @@ absl::Status CheckStateConfig(const DecodedState& state,
   return absl::OkStatus();
 }
 
+absl::Status CheckRestorable(const DecodedState& state,
+                             const v1::EnvConfig& config,
+                             const v1::ServerInfo& server) {
+  if (absl::Status status = CheckStateConfig(state, config); !status.ok()) {
+    return status;
+  }
+  if (state.protocol_major != static_cast<int>(server.protocol_major())) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "state is from a server of wire protocol ", state.protocol_major, ".",
+        state.protocol_minor, " (release ",
+        state.release.empty() ? "unknown" : state.release,
+        "); this server speaks ", server.protocol_major(), ".",
+        server.protocol_minor(), " (release ", server.server_version(),
+        "): restore it on a server of protocol ", state.protocol_major, ".x"));
+  }
+  return absl::OkStatus();
+}
+
 }  // namespace internal
 }  // namespace mll::client

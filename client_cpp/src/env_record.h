@@ -84,6 +84,14 @@ absl::StatusOr<DecodedState> DecodeState(absl::string_view state);
 absl::Status CheckStateConfig(const DecodedState& state,
                               const v1::EnvConfig& config);
 
+// INVALID_ARGUMENT unless the state can be replayed into an env of `config`
+// on the server `server`: CheckStateConfig, and the same wire protocol major
+// version (another major may change the physics or the operations). Another
+// release of the same major is tried: the replay's bit check decides.
+absl::Status CheckRestorable(const DecodedState& state,
+                             const v1::EnvConfig& config,
+                             const v1::ServerInfo& server);
+
 }  // namespace internal
 }  // namespace mll::client
 

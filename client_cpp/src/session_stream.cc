@@ -102,9 +102,13 @@ absl::Status SessionStream::OpenStream() {
 absl::Status SessionStream::NegotiateSharedMemory() {
   v1::SessionRequest attach;
   attach.mutable_attach_shared_memory();
+  // The attach answer is this stream's first: requests lost with an earlier
+  // stream are owed their errors after it, not given it.
+  const uint64_t lost_before = std::exchange(lost_, 0);
   absl::Status status = SendBytes(attach.SerializeAsString());
   absl::string_view bytes;
   if (status.ok()) status = *ReceiveBytes(&bytes, absl::InfiniteDuration());
+  lost_ += lost_before;
   if (!status.ok()) return status;
   v1::SessionResponse answer;
   if (!answer.ParseFromArray(bytes.data(), static_cast<int>(bytes.size()))) {
@@ -435,7 +439,9 @@ absl::Status SessionStream::EndStream() {
   write_outstanding_ = false;
   read_outstanding_ = false;
   DropRegion();
-  lost_ = sent_ - received_;
+  // Added: requests lost with an earlier stream stay lost (their Receives
+  // still owe them an error) when a reopened stream fails too.
+  lost_ += sent_ - received_;
   sent_ = received_ = 0;
   if (final_status.ok()) {
     return absl::UnavailableError(

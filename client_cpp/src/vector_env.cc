@@ -1374,13 +1374,15 @@ absl::StatusOr<std::vector<float>> VectorEnv::RestoreEnv(
   absl::StatusOr<internal::DecodedState> decoded =
       internal::DecodeState(env_state);
   if (!decoded.ok()) return decoded.status();
+  const int server = state.placement[env];
+  StreamTransport& transport = state.TransportOf(server);
+  absl::StatusOr<v1::ServerInfo> server_info = transport.ServerInfo();
+  if (!server_info.ok()) return server_info.status();
   if (absl::Status status =
-          internal::CheckStateConfig(*decoded, state.configs[env]);
+          internal::CheckRestorable(*decoded, state.configs[env], *server_info);
       !status.ok()) {
     return status;
   }
-  const int server = state.placement[env];
-  StreamTransport& transport = state.TransportOf(server);
   absl::StatusOr<std::vector<EnvInfo>> created = Replay(
       transport,
       {{&state.configs[env], &decoded->record, decoded->last_observations,

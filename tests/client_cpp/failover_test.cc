@@ -590,6 +590,11 @@ TEST_F(EnvStateTest, DamagedOrForeignStatesAreRefusedAndTheEnvIsUntouched) {
        absl::StatusCode::kInvalidArgument, "state is truncated in its"},
       {"other options", *foreign, absl::StatusCode::kInvalidArgument,
        "other options (n_landers: 3"},
+      // Bytes 6-7 after the magic and format version: the protocol major.
+      {"other protocol major",
+       Edited(*state, [](std::string* s) { (*s)[6] += 1; }),
+       absl::StatusCode::kInvalidArgument,
+       "restore it on a server of protocol "},
       {"other bits",
        Edited(*state, [](std::string* s) { (*s)[s->size() - 1] ^= 0x01; }),
        absl::StatusCode::kDataLoss, "env 1 (restored): replaying its 10"},

@@ -145,6 +145,8 @@ int ServerProcess::Signal(int signal_number, int grace_seconds) {
 
 void ServerProcess::Kill() { Signal(SIGKILL, 10); }
 
+void ServerProcess::Pause() { kill(pid_, SIGSTOP); }
+
 int ServerProcess::Terminate() { return Signal(SIGTERM, 10); }
 
 absl::StatusOr<CommandResult> RunCommand(const std::vector<std::string>& argv,

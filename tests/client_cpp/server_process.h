@@ -30,6 +30,9 @@ class ServerProcess {
 
   // SIGKILL and reap: the server is gone at once, as after a crash.
   void Kill();
+  // SIGSTOP: the server answers nothing until killed (requests sent meanwhile
+  // stay in flight).
+  void Pause();
   // SIGTERM and reap; the exit status as waitpid reports it.
   int Terminate();
 

@@ -200,6 +200,41 @@ TEST_F(VectorEnvTest, SeveralRequestsAreInFlightOnOneStream) {
   }
 }
 
+// Requests in flight when the server dies each get its UNAVAILABLE, also
+// after a send has tried to reopen the stream and failed (the server is gone).
+TEST(SessionStreamTest, RequestsLostWithTheServerStayLostAfterAFailedReopen) {
+  for (SessionTransport transport :
+       {SessionTransport::kSharedMemory, SessionTransport::kNative}) {
+    SCOPED_TRACE(SessionTransportName(transport));
+    absl::StatusOr<std::unique_ptr<ServerProcess>> server =
+        ServerProcess::Start(MLL_SERVER_PATH, {"--threads=1"});
+    ASSERT_TRUE(server.ok()) << server.status();
+    internal::SessionStream stream(
+        internal::OpenChannel((*server)->address(), ClientOptions()), "",
+        "server under test", transport);
+    v1::SessionRequest create;
+    create.mutable_create_env()->mutable_config()->set_n_landers(1);
+    const absl::StatusOr<uint64_t> created = stream.Send(create);
+    ASSERT_TRUE(created.ok()) << created.status();
+    v1::SessionResponse env;
+    ASSERT_TRUE(stream.Receive(*created, &env).ok());
+    v1::SessionRequest get;
+    get.mutable_get_env()->set_name(env.env().name());
+
+    (*server)->Pause();
+    const absl::StatusOr<uint64_t> first = stream.Send(get);
+    const absl::StatusOr<uint64_t> second = stream.Send(get);
+    ASSERT_TRUE(first.ok() && second.ok());
+    (*server)->Kill();
+    v1::SessionResponse answer;
+    EXPECT_EQ(stream.Receive(*first, &answer).code(),
+              absl::StatusCode::kUnavailable);
+    EXPECT_FALSE(stream.Send(get).ok());  // No server to reopen the stream on.
+    EXPECT_EQ(stream.Receive(*second, &answer).code(),
+              absl::StatusCode::kUnavailable);
+  }
+}
+
 // EnvPool's async API: with batch_size 3 of 7 envs over two servers, every
 // env's results equal those of Step for the same actions, through auto-resets.
 TEST_F(VectorEnvTest, AsyncApiGivesEachEnvTheSynchronousTrajectory) {
