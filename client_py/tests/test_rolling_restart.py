@@ -1,7 +1,9 @@
 """A rolling restart under load (issue 29): each of three servers in turn gets SIGTERM (it
-drains, --drain_s) and is started again on the same port, while a trainer steps a vector env
-over the three. The trainer sees no error, and its results are the bits of an uninterrupted
-run."""
+drains, --drain_s) and is replaced by a new process on the same port, while a trainer steps a
+vector env over the three; the StatefulSet case of docs/deployment.md, where a replaced pod comes
+back under its name. The trainer sees no error, its results are the bits of an uninterrupted
+run, and by the end its environments live on the replacements: the vector env has moved them
+back onto servers it had found down."""
 
 import logging
 import re
@@ -13,7 +15,7 @@ import pytest
 import multi_lunar_lander as mll
 from multi_lunar_lander import _native
 
-from mll_test_helpers import random_actions, same_bits
+from mll_test_helpers import listed_names, random_actions, same_bits
 
 NUM_ENVS, STEPS = 12, 600
 TERMINATE_AT = {100: 0, 250: 1, 400: 2}  # Step -> index of the server that gets SIGTERM.
@@ -28,9 +30,18 @@ def _port(server):
     return int(re.fullmatch(r"127\.0\.0\.1:(\d+)", server.address).group(1))
 
 
+def _name(server):
+    """The server's address as a host name that gRPC resolves, as a trainer gives a StatefulSet
+    pod's DNS name (localhost stays 127.0.0.1: the name is covered, not a pod's new IP)."""
+    return f"localhost:{_port(server)}"
+
+
 def _run(addresses, transport, servers=None, seed=3):
-    """Every array of a STEPS-step seeded random run; with `servers`, the rolling restart: at each
-    TERMINATE_AT step that server gets SIGTERM; once it has exited, a new one starts on its port."""
+    """Every array of a STEPS-step seeded random run and the number of failovers; with `servers`
+    (addresses[i] is servers[i]'s), the rolling restart: at each TERMINATE_AT step that server
+    gets SIGTERM; once it has exited, a new one starts on its port. Third, at the end of a
+    rolling restart: for each address, the names of the envs the vector env places there and
+    the names its server lists (before the vector env's close deletes them); else None."""
     vector = mll.vector_env(NUM_ENVS, address=addresses, n_landers=2, transport=transport)
     assert transport == "grpc" or vector.transport == transport
     rng = np.random.default_rng(seed)
@@ -52,26 +63,44 @@ def _run(addresses, transport, servers=None, seed=3):
         result = vector.step(random_actions(rng, (NUM_ENVS, 2), False))
         record.extend(result[:-1])
         record.extend(result[-1][key] for key in sorted(result[-1]))
+    assert draining is None, "the last server to get SIGTERM was still running at the last step"
+    placement = None
+    if servers is not None:
+        placement = {address: (set(), listed_names(server.address)) for address, server in zip(addresses, servers)}
+        for name, address in zip(vector.names, vector.env_addresses):
+            placement[address][0].add(name)
     failovers = vector.failovers
     vector.close()
-    return record, failovers
+    return record, failovers, placement
 
 
 # Sessions on grpcio's stream, and on shared memory (the native library's; Sessions attached to
-# it are ended by the drain as well).
-@pytest.mark.parametrize("transport", ["grpc", "shared_memory"])
-def test_rolling_restart_of_three_servers_under_load_loses_nothing(caplog, transport):
+# it are ended by the drain as well); servers given by IP address, and by host name.
+@pytest.mark.parametrize(
+    "transport, address_of",
+    [("grpc", lambda server: server.address), ("shared_memory", lambda server: server.address), ("grpc", _name)],
+    ids=["grpc", "shared_memory", "grpc-host-names"],
+)
+def test_rolling_restart_of_three_servers_under_load_loses_nothing(caplog, transport, address_of):
     if transport == "shared_memory" and not _native.available():
         pytest.skip("the native library is not built")
     servers = [_server(), _server(), _server()]
+    originals = list(servers)
     try:
-        addresses = [server.address for server in servers]
+        addresses = [address_of(server) for server in servers]
         with caplog.at_level(logging.WARNING, logger="multi_lunar_lander"):
-            got, failovers = _run(addresses, transport, servers)
+            got, failovers, placement = _run(addresses, transport, servers)
         assert failovers == len(TERMINATE_AT)
         moved = [r.getMessage() for r in caplog.records if "failover" in r.getMessage()]
         assert len(moved) == len(TERMINATE_AT) and all("draining: " in m for m in moved), moved
-        expected, failovers = _run(addresses, transport)
+        # Every original process is gone, and the replacements hold exactly the envs the vector
+        # env places on their addresses: all of them, moved there by the last server's drain
+        # (the vector env goes back to addresses it found down once no other one answers).
+        assert not any(server.running for server in originals)
+        assert not set(servers) & set(originals)
+        assert all(held == listed for held, listed in placement.values()), placement
+        assert sum(len(held) for held, _ in placement.values()) == NUM_ENVS
+        expected, failovers, _ = _run(addresses, transport)
         assert failovers == 0
         assert len(got) == len(expected)
         for index, (x, y) in enumerate(zip(got, expected)):
