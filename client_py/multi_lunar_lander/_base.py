@@ -190,7 +190,7 @@ class RemoteEnvBase:
             for _ in range(len(connections) + 1):
                 if unreachable:
                     self._down.add(target)
-                    usable = _record.usable_servers(connections, self._down, self._security, not self._addresses)
+                    usable = _record.usable_servers(connections, self._down)
                     if not usable:
                         raise MLLError(
                             grpc.StatusCode.UNAVAILABLE,

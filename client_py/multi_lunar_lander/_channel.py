@@ -30,6 +30,9 @@ CHANNEL_OPTIONS = (
     ("grpc.max_send_message_length", 64 * 1024 * 1024),
     ("grpc.http2.bdp_probe", 1),
     ("grpc.http2.lookahead_bytes", 8 * 1024 * 1024),
+    # Each channel its own subchannels: a new connection to a server found down (failover's
+    # probe) must not inherit the reconnection backoff of the old channel's subchannel.
+    ("grpc.use_local_subchannel_pool", 1),
 )
 
 

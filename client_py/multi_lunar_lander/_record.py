@@ -45,7 +45,6 @@ import grpc
 import numpy as np
 
 from . import _arrays
-from ._channel import Security
 from ._errors import MLLError, invalid_argument
 from ._remote import Connection, encode_agent_action
 from ._stubs import pb
@@ -404,25 +403,22 @@ def gave_up(tries: int) -> MLLError:
     return MLLError(grpc.StatusCode.UNAVAILABLE, f"failover gave up after {tries} tries")
 
 
-def usable_servers(connections: list[Connection], down: set[int], security: Security, embedded: bool) -> list[int]:
-    """Indices of `connections` not in `down` (found unreachable); when none is left, those that
-    answer GetServerInfo again (taken out of `down`), or with the embedded server (`embedded`:
-    one connection, address=None) connections[0] replaced by a new connection, which restarts
-    the server if it died."""
-    alive = [index for index in range(len(connections)) if index not in down]
-    if alive:
-        return alive
-    if embedded:
-        old = connections[0]
-        connections[0] = Connection(None, security)
-        old.close()
-        down.clear()
-        return [0]
-    for index, connection in enumerate(connections):
+def usable_servers(connections: list[Connection], down: set[int]) -> list[int]:
+    """Indices of `connections` a failover may move envs to: those not in `down` (found
+    unreachable or draining), and those in `down` whose server answers GetServerInfo again on a
+    renewed connection (Connection.renewed: a host name resolved again, the embedded server
+    restarted if it died), which then replaces the old one in `connections` and leaves `down`. So
+    a server replaced at the same address (a StatefulSet pod in a rolling update) takes envs again
+    at the next failover, rather than only after every other server is lost."""
+    for index in sorted(down):
+        fresh = connections[index].renewed()
         try:
-            connection.call("GetServerInfo", pb.GetServerInfoRequest(), timeout=2.0)
-        except MLLError:
+            fresh.call("GetServerInfo", pb.GetServerInfoRequest(), timeout=2.0)
+        except MLLError:  # Still unreachable, or draining (it refuses GetServerInfo).
+            fresh.close()
             continue
+        connections[index].close()
+        connections[index] = fresh
         down.discard(index)
     return [index for index in range(len(connections)) if index not in down]
 

@@ -227,6 +227,7 @@ class Connection:
             )
         self.address = address
         self.security = security
+        self._peers = tuple(peers)
         self.channel = open_channel(address, security)
         self.stub = pb_grpc.MultiLunarLanderStub(self.channel)
         self._metadata = security.metadata
@@ -235,6 +236,12 @@ class Connection:
         self._server_info_lock = threading.Lock()
         # Closing on garbage collection too, without referencing self.
         self._finalizer = weakref.finalize(self, Connection._close, self.channel, self._lease, self._pid)
+
+    def renewed(self) -> "Connection":
+        """A new connection made as this one was: a new channel to the same address (which
+        resolves a host name again and keeps none of this channel's reconnection backoff), or for
+        the embedded server a new lease, which restarts the server if it died."""
+        return Connection(None if self._lease is not None else self.address, self.security, self._peers)
 
     def check_process(self) -> None:
         """A forked child inherits its parent's objects but must not use their connections: the

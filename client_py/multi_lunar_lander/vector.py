@@ -787,13 +787,15 @@ class VectorEnv:
         return _record.EnvRecord(self._seeds[index], kinds, actions, self._last_observations[index].tobytes())
 
     def _usable_connections(self) -> list[int]:
-        """Connections not found unreachable; when none is left, those that answer again (the
-        embedded server restarted if it died)."""
-        before = self._connections[0]
-        usable = _record.usable_servers(self._connections, self._down, self._security, self._embedded)
-        if self._connections[0] is not before:  # The embedded server restarted: a new stream to it.
-            self._streams[0].close()
-            self._streams[0] = self._stream_type(self._connections[0])
+        """Connections a failover may use (_record.usable_servers: those not found down, and those
+        found down that answer again on a renewed connection; the embedded server restarted if it
+        died)."""
+        before = list(self._connections)
+        usable = _record.usable_servers(self._connections, self._down)
+        for index, (old, new) in enumerate(zip(before, self._connections)):
+            if new is not old:  # Renewed (a server back, the embedded one restarted): a new stream.
+                self._streams[index].close()
+                self._streams[index] = self._stream_type(new)
         return usable
 
     def _fail_over(self, lost: dict) -> None:

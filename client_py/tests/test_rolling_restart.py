@@ -2,8 +2,8 @@
 drains, --drain_s) and is replaced by a new process on the same port, while a trainer steps a
 vector env over the three; the StatefulSet case of docs/deployment.md, where a replaced pod comes
 back under its name. The trainer sees no error, its results are the bits of an uninterrupted
-run, and by the end its environments live on the replacements: the vector env has moved them
-back onto servers it had found down."""
+run, and its environments move back onto replaced servers at the next failover: they never all
+pile onto one server, and end spread over the replacements."""
 
 import logging
 import re
@@ -41,13 +41,15 @@ def _run(addresses, transport, servers=None, seed=3):
     (addresses[i] is servers[i]'s), the rolling restart: at each TERMINATE_AT step that server
     gets SIGTERM; once it has exited, a new one starts on its port. Third, at the end of a
     rolling restart: for each address, the names of the envs the vector env places there and
-    the names its server lists (before the vector env's close deletes them); else None."""
+    the names its server lists (before the vector env's close deletes them); else None. Fourth,
+    the most envs any one address held after a step."""
     vector = mll.vector_env(NUM_ENVS, address=addresses, n_landers=2, transport=transport)
     assert transport == "grpc" or vector.transport == transport
     rng = np.random.default_rng(seed)
     observations, infos = vector.reset(seed=seed)
     record = [observations, infos["episode_length"]]
     draining = None  # The index of the server draining now.
+    most_on_one = 0  # The most envs any one address held at a step.
     for step in range(STEPS):
         if servers is not None:
             if draining is not None and (step in TERMINATE_AT or not servers[draining].running):
@@ -61,6 +63,7 @@ def _run(addresses, transport, servers=None, seed=3):
                 draining = TERMINATE_AT[step]
                 servers[draining]._process.send_signal(signal.SIGTERM)
         result = vector.step(random_actions(rng, (NUM_ENVS, 2), False))
+        most_on_one = max(most_on_one, max(vector.env_addresses.count(a) for a in set(vector.env_addresses)))
         record.extend(result[:-1])
         record.extend(result[-1][key] for key in sorted(result[-1]))
     assert draining is None, "the last server to get SIGTERM was still running at the last step"
@@ -71,7 +74,7 @@ def _run(addresses, transport, servers=None, seed=3):
             placement[address][0].add(name)
     failovers = vector.failovers
     vector.close()
-    return record, failovers, placement
+    return record, failovers, placement, most_on_one
 
 
 # Sessions on grpcio's stream, and on shared memory (the native library's; Sessions attached to
@@ -89,18 +92,21 @@ def test_rolling_restart_of_three_servers_under_load_loses_nothing(caplog, trans
     try:
         addresses = [address_of(server) for server in servers]
         with caplog.at_level(logging.WARNING, logger="multi_lunar_lander"):
-            got, failovers, placement = _run(addresses, transport, servers)
+            got, failovers, placement, most_on_one = _run(addresses, transport, servers)
         assert failovers == len(TERMINATE_AT)
         moved = [r.getMessage() for r in caplog.records if "failover" in r.getMessage()]
         assert len(moved) == len(TERMINATE_AT) and all("draining: " in m for m in moved), moved
         # Every original process is gone, and the replacements hold exactly the envs the vector
-        # env places on their addresses: all of them, moved there by the last server's drain
-        # (the vector env goes back to addresses it found down once no other one answers).
+        # env places on their addresses. A server replaced at its address takes envs again at the
+        # next failover (the vector env probes the addresses it found down), so the envs never
+        # pile onto the one server not yet restarted, and end spread over replacements.
         assert not any(server.running for server in originals)
         assert not set(servers) & set(originals)
         assert all(held == listed for held, listed in placement.values()), placement
         assert sum(len(held) for held, _ in placement.values()) == NUM_ENVS
-        expected, failovers, _ = _run(addresses, transport)
+        assert most_on_one < NUM_ENVS
+        assert sum(1 for held, _ in placement.values() if held) >= 2, placement
+        expected, failovers, _, _ = _run(addresses, transport)
         assert failovers == 0
         assert len(got) == len(expected)
         for index, (x, y) in enumerate(zip(got, expected)):
