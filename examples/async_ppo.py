@@ -66,7 +66,7 @@ class RewardScale:
         return reward / np.sqrt(self.rms.var + 1e-8)
 
 
-def train(args) -> ppo_common.Agent:
+def train(args) -> tuple[ppo_common.Agent, ppo_common.ObservationScale | None]:
     torch.manual_seed(args.seed)
     torch.set_num_threads(args.threads)
     steps, count, size = args.num_steps, args.envs, args.batch_size
@@ -76,6 +76,7 @@ def train(args) -> ppo_common.Agent:
     agent = ppo_common.Agent(features, envs.single_action_space.n)
     optimizer = torch.optim.Adam(agent.parameters(), lr=args.lr, eps=1e-5)
     scale = RewardScale((count, landers), args.gamma)
+    observations_seen = RunningMeanStd(shape=(features,)) if args.normalize_observations else None
 
     # The rollout, per environment: [step of that environment, environment, lander].
     shape = (steps, count, landers)
@@ -112,6 +113,11 @@ def train(args) -> ppo_common.Agent:
         returns = []
         while in_flight.any():
             observation, reward, term, trunc, active, infos = envs.recv()
+            if observations_seen is not None:  # Gymnasium's NormalizeObservation, per recv.
+                observations_seen.update(observation.reshape(-1, features))
+                observation = ppo_common.ObservationScale(observations_seen.mean, observations_seen.var)(observation)
+            if args.clip_rewards:
+                reward = np.clip(reward, -args.clip_rewards, args.clip_rewards)
             ids = infos["env_id"]
             in_flight[ids] = False
             closes = sent[ids]  # These rows end a transition (else they are async_reset's).
@@ -155,20 +161,23 @@ def train(args) -> ppo_common.Agent:
     envs.close()
     trainer_common.write_csv(args.csv, ["lander_steps", "episodes", "mean_return"], curve)
     scores.write(args.episodes_csv)
+    observation_scale = None
+    if observations_seen is not None:
+        observation_scale = ppo_common.ObservationScale(observations_seen.mean, observations_seen.var)
     if args.save:
-        ppo_common.save(args.save, agent, options, args)
-    return agent
+        ppo_common.save(args.save, agent, options, args, observation_scale)
+    return agent, observation_scale
 
 
 def main(argv=None):
     args = parse_args(argv)
     if args.evaluate:
-        agent, config, _ = ppo_common.load(args.evaluate)
+        agent, config, observation_scale = ppo_common.load(args.evaluate)
         options = config["options"]
     else:
-        agent, options = train(args), trainer_common.environment_options(args)
+        (agent, observation_scale), options = train(args), trainer_common.environment_options(args)
     if args.eval_episodes > 0:
-        result = ppo_common.evaluate_greedy(ppo_common.greedy(agent), options, args.eval_episodes,
+        result = ppo_common.evaluate_greedy(ppo_common.greedy(agent, observation_scale), options, args.eval_episodes,
                                             address=args.address, envs=args.envs, seed=args.seed)
         print(json.dumps(result), flush=True)
 

@@ -21,7 +21,6 @@ advantages never reach a real transition (a real episode always ends with done b
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
 
@@ -36,8 +35,6 @@ import trainer_common
 
 def parse_args(argv=None):
     parser = ppo_common.add_arguments(trainer_common.parser(__doc__.split("\n\n")[0], "CleanRL's num_steps"))
-    parser.add_argument("--normalize-observations", action=argparse.BooleanOptionalAction, default=False,
-                        help="scale observations by their running mean and variance (Gymnasium's NormalizeObservation)")
     return parser.parse_args(argv)
 
 
@@ -54,6 +51,8 @@ def train(args) -> tuple[ppo_common.Agent, ppo_common.ObservationScale | None, l
     envs = base
     if args.normalize_observations:
         envs = observation_normalizer = gymnasium.wrappers.vector.NormalizeObservation(envs)
+    if args.clip_rewards:  # Before scaling: the paper's +700 / -400 become Gymnasium's +-100.
+        envs = gymnasium.wrappers.vector.ClipReward(envs, -args.clip_rewards, args.clip_rewards)
     # Gymnasium's own wrapper scales the rewards the learner sees (landing +700, damage -300 in
     # the paper's setting); the scores come from the env's infos, unscaled.
     envs = gymnasium.wrappers.vector.NormalizeReward(envs, gamma=args.gamma)

@@ -17,9 +17,10 @@ import trainer_common
 
 def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """PPO's hyperparameters, beside trainer_common.parser's flags. The defaults are the recipe
-    that lands (docs/training.md "PPO recipes"): RL Zoo's tuned LunarLander PPO (rollouts of
-    1,024 steps, minibatches of 64, 4 epochs, gamma 0.999, GAE 0.98, entropy 0.01, lr 3e-4)
-    over 16 environments of 3 landers."""
+    of docs/training.md "PPO recipes": RL Zoo's tuned LunarLander PPO (rollouts of 1,024 steps,
+    minibatches of 64, 4 epochs, gamma 0.999, GAE 0.98, entropy 0.01, lr 3e-4) over 16
+    environments of 3 landers, with observations normalised and rewards clipped to +-100 (the
+    paper's landing +700 and crash -400 at Gymnasium's scale) before they are scaled."""
     parser.set_defaults(num_steps=1024, lr=3e-4, total_steps=6_000_000)
     parser.add_argument("--minibatch-size", type=int, default=64, help="transitions per gradient step")
     parser.add_argument("--gamma", type=float, default=0.999)
@@ -28,6 +29,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("--ent-coef", type=float, default=0.01)
     parser.add_argument("--vf-coef", type=float, default=0.5)
     parser.add_argument("--max-grad-norm", type=float, default=0.5)
+    parser.add_argument("--normalize-observations", action=argparse.BooleanOptionalAction, default=True,
+                        help="scale observations by their running mean and variance")
+    parser.add_argument("--clip-rewards", type=float, default=100.0, metavar="C",
+                        help="clip each reward the learner sees to [-C, C] before scaling it (0: no clipping)")
     parser.add_argument("--save", default=None, metavar="PATH", help="write the trained policy")
     parser.add_argument("--evaluate", default=None, metavar="PATH",
                         help="do not train: reload the policy saved at PATH and evaluate it greedily")
@@ -145,14 +150,18 @@ def update(agent: Agent, optimizer, batch, args) -> dict[str, float]:
 
 
 class ObservationScale:
-    """Gymnasium's NormalizeObservation as a fixed function (the running statistics a training
-    run ended with): (observation - mean) / sqrt(var + 1e-8)."""
+    """Observation normalisation as a fixed function (the running statistics a training run ended
+    with): (observation - mean) / sqrt(var + 1e-8), clipped to [-clip, clip] when `clip` is set
+    (Gymnasium's NormalizeObservation does not clip; SB3's VecNormalize clips at 10)."""
 
-    def __init__(self, mean, var):
-        self.mean, self.var = np.asarray(mean, np.float32), np.asarray(var, np.float32)
+    def __init__(self, mean, var, clip: float | None = None):
+        self.mean, self.var, self.clip = np.asarray(mean, np.float32), np.asarray(var, np.float32), clip
 
     def __call__(self, observation: np.ndarray) -> np.ndarray:
-        return ((observation - self.mean) / np.sqrt(self.var + 1e-8)).astype(np.float32)
+        scaled = (observation - self.mean) / np.sqrt(self.var + 1e-8)
+        if self.clip is not None:
+            scaled = np.clip(scaled, -self.clip, self.clip)
+        return scaled.astype(np.float32)
 
 
 def greedy(agent: Agent, scale: ObservationScale | None = None):

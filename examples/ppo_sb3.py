@@ -9,8 +9,8 @@ wrapper drops SB3's environment seeds, so there only the policy is seeded).
     python examples/ppo_sb3.py --paper --seed 1 --save ppo_sb3_paper.zip
     python examples/ppo_sb3.py --evaluate ppo_sb3.zip --eval-episodes 100
 
-Rewards are scaled by SB3's VecNormalize (rewards only: the observations are already of unit
-scale); the scores come from the landers' own returns, unscaled. After training (or with
+Rewards are clipped to +-100 (--clip-rewards) and scaled, and observations normalised, by SB3's
+VecNormalize; the scores come from the landers' own returns, unscaled. After training (or with
 --evaluate PATH) the policy flies --eval-episodes episodes greedily and one JSON line gives its
 mean score and the share of landers per outcome.
 
@@ -28,7 +28,7 @@ import torch
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.utils import set_random_seed
-from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
+from stable_baselines3.common.vec_env import VecEnvWrapper, VecMonitor, VecNormalize
 
 import multi_lunar_lander as mll
 import ppo_common
@@ -53,6 +53,22 @@ def make_env(args, options: dict):
     # ends; VecMonitor reports the episodes SB3's logger and Scores read.
     markov = ss.pettingzoo_env_to_vec_env_v1(ss.black_death_v3(parallel))
     return VecMonitor(ss.concat_vec_envs_v1(markov, args.envs, num_cpus=0, base_class="stable_baselines3"))
+
+
+class ClipRewards(VecEnvWrapper):
+    """Each reward clipped to [-limit, limit] (before VecNormalize scales it); the landers'
+    episode returns in the infos stay unclipped."""
+
+    def __init__(self, venv, limit: float):
+        super().__init__(venv)
+        self.limit = limit
+
+    def reset(self):
+        return self.venv.reset()
+
+    def step_wait(self):
+        observations, rewards, dones, infos = self.venv.step_wait()
+        return observations, np.clip(rewards, -self.limit, self.limit), dones, infos
 
 
 class Scores(BaseCallback):
@@ -88,11 +104,14 @@ class Scores(BaseCallback):
         self._returns = []
 
 
-def greedy(model: PPO):
-    """The model's deterministic policy on observations [envs, landers, features]."""
+def greedy(model: PPO, scale: ppo_common.ObservationScale | None):
+    """The model's deterministic policy on observations [envs, landers, features] (scaled by
+    `scale` first, as VecNormalize did in training)."""
 
     def act(observation: np.ndarray) -> np.ndarray:
         flat = observation.reshape(-1, observation.shape[-1])
+        if scale is not None:
+            flat = scale(flat)
         return model.predict(flat, deterministic=True)[0].reshape(observation.shape[:-1])
 
     return act
@@ -104,10 +123,13 @@ def main(argv=None):
     if args.evaluate:
         model = PPO.load(args.evaluate, device="cpu")
         options = model.environment_options  # Saved with the model (below).
+        scale = model.observation_scale
     else:
         options = trainer_common.environment_options(args)
         env = make_env(args, options)
-        env = VecNormalize(env, norm_obs=False, norm_reward=True, gamma=args.gamma)
+        if args.clip_rewards:
+            env = ClipRewards(env, args.clip_rewards)
+        env = VecNormalize(env, norm_obs=args.normalize_observations, norm_reward=True, gamma=args.gamma)
         model = PPO(
             "MlpPolicy", env, n_steps=args.num_steps, batch_size=args.minibatch_size, n_epochs=args.epochs,
             learning_rate=args.lr, gamma=args.gamma, gae_lambda=args.gae_lambda, clip_range=args.clip,
@@ -121,11 +143,16 @@ def main(argv=None):
         env.close()
         trainer_common.write_csv(args.csv, ["lander_steps", "episodes", "mean_return"], scores.rows)
         scores.scores.write(args.episodes_csv)
+        scale = None
+        if args.normalize_observations:
+            scale = ppo_common.ObservationScale(env.obs_rms.mean, env.obs_rms.var, clip=env.clip_obs)
         if args.save:
+            # What evaluation needs, saved in the .zip beside the policy.
             model.environment_options = options
-            model.save(args.save, include=["environment_options"])
+            model.observation_scale = scale
+            model.save(args.save, include=["environment_options", "observation_scale"])
     if args.eval_episodes > 0:
-        result = ppo_common.evaluate_greedy(greedy(model), options, args.eval_episodes,
+        result = ppo_common.evaluate_greedy(greedy(model, scale), options, args.eval_episodes,
                                             address=args.address, envs=args.envs, seed=args.seed)
         print(json.dumps(result), flush=True)
 
