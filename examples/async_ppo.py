@@ -113,6 +113,8 @@ def train(args) -> tuple[ppo_common.Agent, ppo_common.ObservationScale | None]:
         returns = []
         while in_flight.any():
             observation, reward, term, trunc, active, infos = envs.recv()
+            if args.neighbor_closeness:
+                observation = mll.neighbor_closeness(observation)
             if observations_seen is not None:  # Gymnasium's NormalizeObservation, per recv.
                 observations_seen.update(observation.reshape(-1, features))
                 observation = ppo_common.ObservationScale(observations_seen.mean, observations_seen.var)(observation)
@@ -172,12 +174,13 @@ def train(args) -> tuple[ppo_common.Agent, ppo_common.ObservationScale | None]:
 def main(argv=None):
     args = parse_args(argv)
     if args.evaluate:
-        agent, config, observation_scale = ppo_common.load(args.evaluate)
+        act, config = ppo_common.load(args.evaluate)
         options = config["options"]
     else:
         (agent, observation_scale), options = train(args), trainer_common.environment_options(args)
+        act = ppo_common.greedy(agent, observation_scale, args.neighbor_closeness)
     if args.eval_episodes > 0:
-        result = ppo_common.evaluate_greedy(ppo_common.greedy(agent, observation_scale), options, args.eval_episodes,
+        result = ppo_common.evaluate_greedy(act, options, args.eval_episodes,
                                             address=args.address, envs=args.envs, seed=args.seed)
         print(json.dumps(result), flush=True)
 

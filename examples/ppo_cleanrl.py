@@ -49,6 +49,8 @@ def train(args) -> tuple[ppo_common.Agent, ppo_common.ObservationScale | None, l
     landers = base.n_landers
     scores = ppo_common.EnvEpisodes(args.envs, landers)
     envs = base
+    if args.neighbor_closeness:
+        envs = gymnasium.wrappers.vector.TransformObservation(envs, mll.neighbor_closeness)
     if args.normalize_observations:
         envs = observation_normalizer = gymnasium.wrappers.vector.NormalizeObservation(envs)
     if args.clip_rewards:  # Before scaling: the paper's +700 / -400 become Gymnasium's +-100.
@@ -121,7 +123,7 @@ def train(args) -> tuple[ppo_common.Agent, ppo_common.ObservationScale | None, l
 def main(argv=None):
     args = parse_args(argv)
     if args.evaluate:
-        agent, config, scale = ppo_common.load(args.evaluate)
+        act, config = ppo_common.load(args.evaluate)
         options = config["options"]
     else:
         agent, scale, curve, scores = train(args)
@@ -130,8 +132,9 @@ def main(argv=None):
         scores.write(args.episodes_csv)
         if args.save:
             ppo_common.save(args.save, agent, options, args, scale)
+        act = ppo_common.greedy(agent, scale, args.neighbor_closeness)
     if args.eval_episodes > 0:
-        result = ppo_common.evaluate_greedy(ppo_common.greedy(agent, scale), options, args.eval_episodes,
+        result = ppo_common.evaluate_greedy(act, options, args.eval_episodes,
                                             address=args.address, envs=args.envs, seed=args.seed)
         print(json.dumps(result), flush=True)
 

@@ -19,7 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """PPO's hyperparameters, beside trainer_common.parser's flags. The defaults are the recipe
     of docs/training.md "PPO recipes": RL Zoo's tuned LunarLander PPO (rollouts of 1,024 steps,
     minibatches of 64, 4 epochs, gamma 0.999, GAE 0.98, entropy 0.01, lr 3e-4) over 16
-    environments of 3 landers, with observations normalised and rewards clipped to +-100 (the
+    environments of 3 landers, observations normalised, and rewards clipped to +-100 (the
     paper's landing +700 and crash -400 at Gymnasium's scale) before they are scaled."""
     parser.set_defaults(num_steps=1024, lr=3e-4, total_steps=6_000_000)
     parser.add_argument("--minibatch-size", type=int, default=64, help="transitions per gradient step")
@@ -31,6 +31,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("--max-grad-norm", type=float, default=0.5)
     parser.add_argument("--normalize-observations", action=argparse.BooleanOptionalAction, default=True,
                         help="scale observations by their running mean and variance")
+    parser.add_argument("--neighbor-closeness", action=argparse.BooleanOptionalAction, default=False,
+                        help="the policy sees the neighbours by closeness (mll.neighbor_closeness)")
     parser.add_argument("--clip-rewards", type=float, default=100.0, metavar="C",
                         help="clip each reward the learner sees to [-C, C] before scaling it (0: no clipping)")
     parser.add_argument("--save", default=None, metavar="PATH", help="write the trained policy")
@@ -164,12 +166,17 @@ class ObservationScale:
         return scaled.astype(np.float32)
 
 
-def greedy(agent: Agent, scale: ObservationScale | None = None):
+def greedy(agent: Agent, scale: ObservationScale | None = None, closeness: bool = False):
     """The agent's greedy policy as a function of a numpy observation batch [..., features]:
-    the most probable action of each row (observations scaled by `scale` first, as in training)."""
+    the most probable action of each row, the observations seen as in training (neighbours by
+    closeness when `closeness`, then scaled by `scale`)."""
 
     def act(observation: np.ndarray) -> np.ndarray:
-        observation = np.asarray(observation, np.float32) if scale is None else scale(observation)
+        observation = np.asarray(observation, np.float32)
+        if closeness:
+            observation = mll.neighbor_closeness(observation)
+        if scale is not None:
+            observation = scale(observation)
         with torch.no_grad():
             return agent.actor(torch.from_numpy(observation)).argmax(-1).numpy()
 
@@ -185,14 +192,16 @@ def save(path: str, agent: Agent, options: dict, args, scale: ObservationScale |
     torch.save({"state_dict": agent.state_dict(), "config": config}, path)
 
 
-def load(path: str) -> tuple[Agent, dict, ObservationScale | None]:
-    """The policy saved by save(), its config and its observation scaling."""
+def load(path: str):
+    """The policy saved by save() as a greedy policy (greedy()) on plain observations, and its
+    config."""
     saved = torch.load(path)
     config = saved["config"]
     agent = Agent(config["observations"], config["actions"])
     agent.load_state_dict(saved["state_dict"])
     scale = config["observation_scale"]
-    return agent, config, None if scale is None else ObservationScale(*scale)
+    scale = None if scale is None else ObservationScale(*scale)
+    return greedy(agent, scale, config["args"].get("neighbor_closeness", False)), config
 
 
 # Evaluation seeds start here: far from the training seeds (seed + environment index).

@@ -10,7 +10,8 @@ wrapper drops SB3's environment seeds, so there only the policy is seeded).
     python examples/ppo_sb3.py --evaluate ppo_sb3.zip --eval-episodes 100
 
 Rewards are clipped to +-100 (--clip-rewards) and scaled, and observations normalised, by SB3's
-VecNormalize; the scores come from the landers' own returns, unscaled. After training (or with
+VecNormalize (--neighbor-closeness: the policy sees the neighbours by mll.neighbor_closeness); the
+scores come from the landers' own returns, unscaled. After training (or with
 --evaluate PATH) the policy flies --eval-episodes episodes greedily and one JSON line gives its
 mean score and the share of landers per outcome.
 
@@ -71,6 +72,21 @@ class ClipRewards(VecEnvWrapper):
         return observations, np.clip(rewards, -self.limit, self.limit), dones, infos
 
 
+class NeighborCloseness(VecEnvWrapper):
+    """The observations, the final ones in infos["terminal_observation"] included, with the
+    neighbours seen by closeness (mll.neighbor_closeness)."""
+
+    def reset(self):
+        return mll.neighbor_closeness(self.venv.reset())
+
+    def step_wait(self):
+        observations, rewards, dones, infos = self.venv.step_wait()
+        for info in infos:
+            if "terminal_observation" in info:
+                info["terminal_observation"] = mll.neighbor_closeness(info["terminal_observation"])
+        return mll.neighbor_closeness(observations), rewards, dones, infos
+
+
 class Scores(BaseCallback):
     """The learning curve from the landers' episode ends (infos[k]["episode"]): one row per
     rollout (lander steps, lander episodes so far, mean return of the rollout's lander
@@ -104,12 +120,15 @@ class Scores(BaseCallback):
         self._returns = []
 
 
-def greedy(model: PPO, scale: ppo_common.ObservationScale | None):
-    """The model's deterministic policy on observations [envs, landers, features] (scaled by
-    `scale` first, as VecNormalize did in training)."""
+def greedy(model: PPO, scale: ppo_common.ObservationScale | None, closeness: bool):
+    """The model's deterministic policy on observations [envs, landers, features], seen as in
+    training (neighbours by closeness when `closeness`, then scaled by `scale`, as VecNormalize
+    did)."""
 
     def act(observation: np.ndarray) -> np.ndarray:
         flat = observation.reshape(-1, observation.shape[-1])
+        if closeness:
+            flat = mll.neighbor_closeness(flat)
         if scale is not None:
             flat = scale(flat)
         return model.predict(flat, deterministic=True)[0].reshape(observation.shape[:-1])
@@ -123,10 +142,13 @@ def main(argv=None):
     if args.evaluate:
         model = PPO.load(args.evaluate, device="cpu")
         options = model.environment_options  # Saved with the model (below).
-        scale = model.observation_scale
+        scale, closeness = model.observation_scale, model.neighbor_closeness
     else:
         options = trainer_common.environment_options(args)
         env = make_env(args, options)
+        closeness = args.neighbor_closeness
+        if closeness:
+            env = NeighborCloseness(env)
         if args.clip_rewards:
             env = ClipRewards(env, args.clip_rewards)
         env = VecNormalize(env, norm_obs=args.normalize_observations, norm_reward=True, gamma=args.gamma)
@@ -149,10 +171,10 @@ def main(argv=None):
         if args.save:
             # What evaluation needs, saved in the .zip beside the policy.
             model.environment_options = options
-            model.observation_scale = scale
-            model.save(args.save, include=["environment_options", "observation_scale"])
+            model.observation_scale, model.neighbor_closeness = scale, closeness
+            model.save(args.save, include=["environment_options", "observation_scale", "neighbor_closeness"])
     if args.eval_episodes > 0:
-        result = ppo_common.evaluate_greedy(greedy(model, scale), options, args.eval_episodes,
+        result = ppo_common.evaluate_greedy(greedy(model, scale, closeness), options, args.eval_episodes,
                                             address=args.address, envs=args.envs, seed=args.seed)
         print(json.dumps(result), flush=True)
 

@@ -54,6 +54,7 @@ from ._server_info import PROTOCOL, ServerInfo, ServerLimits
 from .aec import MultiLunarLanderEnv
 from .gym_vector import GymVectorEnv
 from .heuristic import heuristic
+from .neighbors import neighbor_closeness
 from .parallel import MultiLunarLanderParallelEnv
 from .vector import VectorEnv
 
@@ -75,6 +76,7 @@ __all__ = [
     "find_server_binary",
     "gym_vector_env",
     "heuristic",
+    "neighbor_closeness",
     "parallel_env",
     "raw_env",
     "sb3_vec_env",

@@ -28,14 +28,13 @@ from typing import List, Sequence, Tuple
 
 import numpy as np
 
+from multi_lunar_lander.neighbors import (  # noqa: F401  (mll_dqn's names)
+    NEIGHBOR_REACH, NEIGHBOR_SCALE, neighbor_closeness)
+
 from mll_dqn.config import NEIGHBOR_INPUTS
 
 MAGIC = b"MLLQ"
 VERSION = 2
-# World units per observation unit of a neighbor's offset (x: W/2, y: H/2),
-# and the distance over which closeness falls by e (agent.py's, in numpy).
-NEIGHBOR_SCALE = np.array([10.0, 20.0 / 3.0], np.float32)
-NEIGHBOR_REACH = 2.0
 # Larger than any network worth shipping; bounds what a corrupt header asks.
 MAX_LAYER_SIZE = 1 << 16
 MAX_LAYERS = 16
@@ -123,23 +122,6 @@ def load(path: str) -> QNet:
         layers.append((w.reshape(n_out, n_in).astype(np.float32),
                        b.astype(np.float32)))
     return QNet(layers, NEIGHBOR_INPUTS[neighbor_input])
-
-
-def neighbor_closeness(obs: np.ndarray) -> np.ndarray:
-    """numpy's mll_dqn.agent.neighbor_closeness: observations [B, 12] with
-    each neighbor's offset replaced by its direction times
-    exp(-distance / NEIGHBOR_REACH), an absent one (zero offset) by 0."""
-    obs = np.asarray(obs, np.float32)
-    offsets = obs[:, 8:12].reshape(-1, 2, 2) * NEIGHBOR_SCALE
-    distance = np.sqrt((offsets * offsets).sum(axis=2, keepdims=True))
-    present = distance > 0
-    closeness = np.where(
-        present,
-        np.exp(-distance / np.float32(NEIGHBOR_REACH))
-        / np.where(present, distance, np.float32(1)),
-        np.float32(0))
-    return np.concatenate((obs[:, :8], (offsets * closeness).reshape(-1, 4)),
-                          axis=1)
 
 
 def q_values(net: QNet, obs: np.ndarray) -> np.ndarray:
