@@ -7,6 +7,7 @@
 #include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "grpc/grpc.h"
 #include "grpcpp/create_channel.h"
 #include "grpcpp/security/credentials.h"
 #include "grpcpp/support/channel_arguments.h"
@@ -98,6 +99,10 @@ absl::StatusOr<std::shared_ptr<grpc::Channel>> OpenChannel(
   SetHttp2FlowControl([&arguments](const char* name, int value) {
     arguments.SetInt(name, value);
   });
+  // Each channel its own subchannels (connections): a new channel to a server
+  // found down (VectorEnv failover's probe) must not inherit the reconnect
+  // backoff of an older channel's subchannel to the same address.
+  arguments.SetInt(GRPC_ARG_USE_LOCAL_SUBCHANNEL_POOL, 1);
   return grpc::CreateCustomChannel(std::string(address), credentials,
                                    arguments);
 }

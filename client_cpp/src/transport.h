@@ -59,6 +59,8 @@ class Transport {
 
   // The address the transport was made for (the same for its sessions).
   const std::string& address() const { return address_; }
+  // The options it was made with (for a new channel to the same address).
+  const ClientOptions& options() const { return options_; }
 
   // Operations that exist only as unary RPCs, whatever the mode.
   absl::Status ListEnvs(const v1::ListEnvsRequest& request,

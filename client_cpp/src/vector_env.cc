@@ -17,7 +17,9 @@
 #include "absl/strings/str_join.h"
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
+#include "channel.h"
 #include "env_record.h"
+#include "grpcpp/client_context.h"
 #include "transport.h"
 #include "wire.h"
 
@@ -32,6 +34,8 @@ constexpr int kMaxVectorEnvs = 65536;
 // Replay requests in flight on one stream at once: enough to keep the server
 // busy, few enough that a long record does not queue all its requests.
 constexpr size_t kReplayWindow = 64;
+// How long failover waits for a server found down to answer its probe.
+constexpr absl::Duration kProbeDeadline = absl::Seconds(2);
 
 // Every request of `requests` sent on `transport` before any answer is
 // awaited (pipelined), then the answers in order; the first failure, with the
@@ -683,21 +687,56 @@ struct VectorEnv::State {
         absl::StrCat("failover gave up after ", tries, " tries"));
   }
 
-  // Servers not found unreachable; when none is left, those that answer a
-  // health check again.
-  std::vector<int> UsableServers() {
+  // Servers not found unreachable, and those found unreachable (but not in
+  // `skip`) that answer a probe again (Rejoin): so a server replaced at its
+  // address (a StatefulSet pod in a rolling update) takes envs again at the
+  // next failover, not only once every other server is lost.
+  std::vector<int> UsableServers(const std::map<int, absl::Status>& skip) {
     std::vector<int> usable;
     for (int server = 0; server < server_count(); ++server) {
+      if (down[server] && skip.count(server) == 0) Rejoin(server);
       if (!down[server]) usable.push_back(server);
     }
-    if (!usable.empty()) return usable;
-    for (int server = 0; server < server_count(); ++server) {
-      if (TransportOf(server).CheckHealth("").ok()) {
-        down[server] = false;
-        usable.push_back(server);
-      }
-    }
     return usable;
+  }
+
+  // Probes server `server`, found down, on a new channel (its name resolved
+  // again; subchannels of its own, so none of the old channel's reconnect
+  // backoff): when it answers GetServerInfo within kProbeDeadline (a
+  // draining server refuses it with UNAVAILABLE; one from before the RPC
+  // answers UNIMPLEMENTED), a session stream on the new channel replaces the
+  // old one and the server is no longer down. The old stream goes, and with
+  // it the envs bound to it there (an env still placed on the server meets
+  // NOT_FOUND and is recreated there).
+  void Rejoin(int server) {
+    const StreamTransport& old = TransportOf(server);
+    const ClientOptions& options = old.options();
+    absl::StatusOr<std::shared_ptr<grpc::Channel>> channel =
+        internal::OpenChannel(old.address(), options);
+    if (!channel.ok()) return;
+    grpc::ClientContext context;
+    internal::AddToken(&context, options.token);
+    context.set_deadline(absl::ToChronoTime(absl::Now() + kProbeDeadline));
+    v1::ServerInfo info;
+    const grpc::Status answer =
+        v1::MultiLunarLander::NewStub(*channel)->GetServerInfo(
+            &context, v1::GetServerInfoRequest(), &info);
+    if (!answer.ok() &&
+        answer.error_code() != grpc::StatusCode::UNIMPLEMENTED) {
+      return;
+    }
+    auto fresh =
+        std::make_shared<StreamTransport>(old.address(), *channel, options);
+    if (options.session_transport == SessionTransport::kSharedMemory &&
+        !fresh->Open().ok()) {
+      return;
+    }
+    // Requests still in flight on the old stream are read off it first.
+    SettleRequestsOf(server,
+                     absl::UnavailableError(absl::StrCat(
+                         old.address(), ": stream replaced by a new one")));
+    session.transports_[server] = std::move(fresh);
+    down[server] = false;
   }
 
   // Recreates the `lost` envs on reachable servers (round robin; an env
@@ -738,10 +777,8 @@ struct VectorEnv::State {
     // Each round either places every env or refuses one more server.
     while (!targets.empty() || !homeless.empty()) {
       if (!homeless.empty()) {
-        std::vector<int> usable;
-        for (int server : UsableServers()) {
-          if (refused.count(server) == 0) usable.push_back(server);
-        }
+        // Those passed over are down, and not probed again in this event.
+        const std::vector<int> usable = UsableServers(refused);
         if (usable.empty()) return fail(NoServerLeft(lost, refused));
         for (size_t k = 0; k < homeless.size(); ++k) {
           targets[homeless[k]] = usable[k % usable.size()];

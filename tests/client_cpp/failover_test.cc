@@ -16,6 +16,7 @@
 #include <string>
 #include <vector>
 
+#include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "mll/client.h"
@@ -91,16 +92,16 @@ bool SameBits(const std::vector<T>& a, const std::vector<T>& b) {
          std::memcmp(a.data(), b.data(), a.size() * sizeof(T)) == 0;
 }
 
-// Seeded reset, then kSteps steps with an unseeded reset at step 20; before
-// step `kill_at` (if any) `kill` runs.
+// Seeded reset, then kSteps steps with an unseeded reset at step 20;
+// `before_step` runs before each step.
 constexpr int kSteps = 120;
-Trajectory Fly(VectorEnv& envs, int kill_at,
-               const std::function<void()>& kill) {
+Trajectory FlyWith(VectorEnv& envs,
+                   const std::function<void(int)>& before_step) {
   Trajectory trajectory;
   EXPECT_TRUE(envs.Reset(uint64_t{77}).ok());
   Keep(envs, &trajectory);
   for (int step = 0; step < kSteps; ++step) {
-    if (step == kill_at) kill();
+    before_step(step);
     if (step == 20) {
       const absl::Status status = envs.Reset();
       EXPECT_TRUE(status.ok()) << status;
@@ -113,6 +114,14 @@ Trajectory Fly(VectorEnv& envs, int kill_at,
     Keep(envs, &trajectory);
   }
   return trajectory;
+}
+
+// As FlyWith, with `kill` before step `kill_at` (if any).
+Trajectory Fly(VectorEnv& envs, int kill_at,
+               const std::function<void()>& kill) {
+  return FlyWith(envs, [&](int step) {
+    if (step == kill_at) kill();
+  });
 }
 
 using Servers = std::vector<std::unique_ptr<ServerProcess>>;
@@ -131,34 +140,87 @@ void OnThreeServersPerTransport(
   }
 }
 
+// A VectorEnv of `num_envs` envs of `client`, after an uninterrupted Fly of
+// another such VectorEnv, whose trajectory goes to `expected`.
+absl::StatusOr<VectorEnv> WithReferenceRun(const Client& client, int num_envs,
+                                           Trajectory* expected) {
+  absl::StatusOr<VectorEnv> reference =
+      VectorEnv::Create(client, num_envs, SmallConfig());
+  if (!reference.ok()) return reference.status();
+  *expected = Fly(*reference, -1, [] {});
+  EXPECT_EQ(reference->failovers(), 0);
+  return VectorEnv::Create(client, num_envs, SmallConfig());
+}
+
+// Every observation, reward and auto-reset of `got` is `expected`'s.
+void ExpectSameRun(const Trajectory& got, const Trajectory& expected) {
+  EXPECT_TRUE(SameBits(got.observations, expected.observations));
+  EXPECT_TRUE(SameBits(got.rewards, expected.rewards));
+  EXPECT_EQ(got.auto_resets, expected.auto_resets);
+}
+
 // kill -9 of one of three servers mid-run: the run finishes, every
 // observation and reward equal to an uninterrupted run's, on both
 // transports.
 TEST(FailoverTest, AServerKilledMidRunCostsNoBit) {
   constexpr int kEnvs = 9;
   OnThreeServersPerTransport([&](Servers& servers, Client& client) {
-    absl::StatusOr<VectorEnv> reference =
-        VectorEnv::Create(client, kEnvs, SmallConfig());
-    ASSERT_TRUE(reference.ok()) << reference.status();
-    const Trajectory expected = Fly(*reference, -1, [] {});
-    EXPECT_EQ(reference->failovers(), 0);
-
-    absl::StatusOr<VectorEnv> envs =
-        VectorEnv::Create(client, kEnvs, SmallConfig());
+    Trajectory expected;
+    absl::StatusOr<VectorEnv> envs = WithReferenceRun(client, kEnvs, &expected);
     ASSERT_TRUE(envs.ok()) << envs.status();
     EXPECT_TRUE(envs->failover());
     const std::string killed = servers[1]->address();
     const Trajectory got = Fly(*envs, 70, [&] { servers[1]->Kill(); });
     EXPECT_EQ(envs->failovers(), 1);
-    EXPECT_TRUE(SameBits(got.observations, expected.observations));
-    EXPECT_TRUE(SameBits(got.rewards, expected.rewards));
-    EXPECT_EQ(got.auto_resets, expected.auto_resets);
+    ExpectSameRun(got, expected);
     EXPECT_GT(
         std::count(expected.auto_resets.begin(), expected.auto_resets.end(), 1),
         kEnvs);
     for (int env = 0; env < kEnvs; ++env) {
       EXPECT_NE(envs->address(env), killed) << "env " << env;
     }
+  });
+}
+
+// A rolling restart (a StatefulSet's: each pod replaced at its address):
+// server A is killed (its envs move to B and C), a new server starts at A's
+// address, then B is killed: B's envs are spread over the new A and C, since
+// every failover probes the servers found down on a new connection, rather
+// than all piling onto C. No bit differs from an uninterrupted run.
+TEST(FailoverTest, AServerBackAtItsAddressTakesEnvsAtTheNextFailover) {
+  constexpr int kEnvs = 9;
+  OnThreeServersPerTransport([&](Servers& servers, Client& client) {
+    Trajectory expected;
+    absl::StatusOr<VectorEnv> envs = WithReferenceRun(client, kEnvs, &expected);
+    ASSERT_TRUE(envs.ok()) << envs.status();
+    const std::string a = servers[0]->address();
+    const std::string b = servers[1]->address();
+    const auto envs_on = [&](const std::string& address) {
+      int count = 0;
+      for (int env = 0; env < kEnvs; ++env)
+        count += envs->address(env) == address;
+      return count;
+    };
+    const Trajectory got = FlyWith(*envs, [&](int step) {
+      if (step == 30) servers[0]->Kill();
+      if (step == 50) {
+        EXPECT_EQ(envs->failovers(), 1);
+        EXPECT_EQ(envs_on(a), 0);
+        absl::StatusOr<std::unique_ptr<ServerProcess>> replacement =
+            ServerProcess::Start(
+                MLL_SERVER_PATH,
+                {"--threads=1", absl::StrCat("--address=", a)});
+        ASSERT_TRUE(replacement.ok()) << replacement.status();
+        ASSERT_EQ((*replacement)->address(), a);
+        servers[0] = *std::move(replacement);
+      }
+      if (step == 70) servers[1]->Kill();
+    });
+    EXPECT_EQ(envs->failovers(), 2);
+    ExpectSameRun(got, expected);
+    EXPECT_GE(envs_on(a), 1);
+    EXPECT_EQ(envs_on(b), 0);
+    EXPECT_LT(envs_on(servers[2]->address()), kEnvs);
   });
 }
 
