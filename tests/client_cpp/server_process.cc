@@ -8,6 +8,7 @@
 
 #include <chrono>
 #include <cstdlib>
+#include <filesystem>
 #include <fstream>
 #include <regex>
 #include <sstream>
@@ -145,7 +146,29 @@ int ServerProcess::Signal(int signal_number, int grace_seconds) {
 
 void ServerProcess::Kill() { Signal(SIGKILL, 10); }
 
-void ServerProcess::Pause() { kill(pid_, SIGSTOP); }
+void ServerProcess::Pause() {
+  kill(pid_, SIGSTOP);
+  // SIGSTOP stops each thread when it next runs kernel code: wait (at most
+  // 10 s) until every thread of the server reads as stopped, so that nothing
+  // sent from now on is answered.
+  const std::string tasks = absl::StrCat("/proc/", pid_, "/task");
+  const auto deadline =
+      std::chrono::steady_clock::now() + std::chrono::seconds(10);
+  while (std::chrono::steady_clock::now() < deadline) {
+    bool all_stopped = true;
+    for (const auto& task : std::filesystem::directory_iterator(tasks)) {
+      std::ifstream stat(task.path() / "stat");
+      std::string line;
+      std::getline(stat, line);
+      const size_t end_of_name = line.rfind(')');
+      const char state =
+          end_of_name + 2 < line.size() ? line[end_of_name + 2] : '?';
+      if (state != 'T' && state != 't') all_stopped = false;
+    }
+    if (all_stopped) return;
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
+  }
+}
 
 int ServerProcess::Terminate() { return Signal(SIGTERM, 10); }
 
