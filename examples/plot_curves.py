@@ -3,7 +3,7 @@
 episodes CSVs of examples/dqn (`episodes.csv`) and of `examples/ppo_cleanrl.py --episodes-csv`.
 
     python examples/plot_curves.py examples/dqn/runs/Q2/episodes.csv:DQN out/ppo_paper_episodes.csv:PPO \
-        --out docs/training/ppo_vs_dqn.png
+        --out ppo_vs_dqn.png
 """
 
 from __future__ import annotations
