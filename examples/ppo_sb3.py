@@ -142,7 +142,8 @@ def main(argv=None):
     if args.evaluate:
         model = PPO.load(args.evaluate, device="cpu")
         options = model.environment_options  # Saved with the model (below).
-        scale, closeness = model.observation_scale, model.neighbor_closeness
+        statistics, closeness = model.observation_statistics, model.neighbor_closeness
+        scale = None if statistics is None else ppo_common.ObservationScale(*statistics)
     else:
         options = trainer_common.environment_options(args)
         env = make_env(args, options)
@@ -171,8 +172,11 @@ def main(argv=None):
         if args.save:
             # What evaluation needs, saved in the .zip beside the policy.
             model.environment_options = options
-            model.observation_scale, model.neighbor_closeness = scale, closeness
-            model.save(args.save, include=["environment_options", "observation_scale", "neighbor_closeness"])
+            # Plain values (mean, var, clip), so that loading the .zip needs no module of ours.
+            model.observation_statistics = None if scale is None else (
+                scale.mean.tolist(), scale.var.tolist(), scale.clip)
+            model.neighbor_closeness = closeness
+            model.save(args.save, include=["environment_options", "observation_statistics", "neighbor_closeness"])
     if args.eval_episodes > 0:
         result = ppo_common.evaluate_greedy(greedy(model, scale, closeness), options, args.eval_episodes,
                                             address=args.address, envs=args.envs, seed=args.seed)
