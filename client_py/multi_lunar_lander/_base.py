@@ -77,7 +77,7 @@ class RemoteEnvBase:
         self.failovers = 0  # Failover events so far.
         self._security, self._addresses = security, addresses
         self._server_index = server_index  # Into addresses (0 for the embedded server).
-        self._down: set[int] = set()  # Servers found unreachable (tried again when none is left).
+        self._down: set[int] = set()  # Servers found unreachable or draining (probed again at each failover).
         try:
             connection.check_server()  # GetServerInfo, once per connection.
             env = connection.call("CreateEnv", pb.CreateEnvRequest(config=config))

@@ -170,7 +170,7 @@ class VectorEnv:
         self.failover = _record.failover_on(failover, addresses)
         self.failovers = 0  # Failover events so far.
         self._embedded = not addresses
-        self._down: set[int] = set()  # Connections found unreachable (tried again when none is left).
+        self._down: set[int] = set()  # Connections found unreachable or draining (probed again at each failover).
         self._names: list[str | None] = [None] * self.num_envs  # None: not created.
         self._step_in_flight = False  # From step_async until step_wait reads the answers.
         # The async API (send/recv): envs whose step (or async_reset) was sent and whose result

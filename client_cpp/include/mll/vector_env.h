@@ -37,7 +37,8 @@
 // (UNAVAILABLE, a draining server's "draining: ..." included) or loses an env
 // (NOT_FOUND naming it) during Reset, Step or Recv, the VectorEnv recreates
 // each lost env on a reachable server (round robin over the servers not found
-// down; when none is left, those that answer a health check again), replays
+// down and those found down that answer again on a new channel, asked at each
+// failover), replays
 // its record, checks that the replayed observations equal the last ones seen
 // (else DATA_LOSS naming the env), and retries the operation: the caller
 // sees the same observations, rewards and episode boundaries as without the
