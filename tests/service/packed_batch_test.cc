@@ -3,6 +3,7 @@
 // the same on 1 and 2 threads, every request-level error and every per-env
 // error with the code and message a StepEnv would give, failing envs leaving
 // the other rows intact, and the form carried by a Session stream.
+#include <algorithm>
 #include <cstring>
 #include <random>
 #include <string>
@@ -535,6 +536,86 @@ TEST(PackedSessionTest, SessionCarriesAPackedBatch) {
   ASSERT_TRUE(stream->Write(bad) && stream->Read(&response));
   EXPECT_EQ(response.error().code(), grpc::StatusCode::INVALID_ARGUMENT);
   EXPECT_THAT(response.error().message(), HasSubstr("packed.actions: dtype"));
+  stream->WritesDone();
+  EXPECT_TRUE(stream->Finish().ok());
+}
+
+// A Session keeps its request and response messages from one request to the
+// next (their storage reused): each answer must still be what that request
+// alone gets, whatever the stream carried before: a batch of other envs or
+// sizes, item errors, the other form, a request without an op.
+TEST(PackedSessionTest, EachAnswerIsItsRequestsAloneWhateverCameBefore) {
+  InProcess s;
+  grpc::ClientContext context;
+  auto stream = s.stub->Session(&context);
+  uint64_t sequence = 0;
+  const auto call = [&](v1::SessionRequest request) {
+    request.set_sequence(++sequence);
+    v1::SessionResponse response;
+    EXPECT_TRUE(stream->Write(request) && stream->Read(&response));
+    EXPECT_EQ(response.sequence(), sequence);
+    return response;
+  };
+  // Envs a and b on the stream, twins stepped by unary StepBatch calls.
+  std::vector<std::string> on_stream, twins;
+  for (int e = 0; e < 2; ++e) {
+    v1::SessionRequest create;
+    *create.mutable_create_env() = Config(false);
+    on_stream.push_back(call(create).env().name());
+    twins.push_back(CreateEnv(*s.stub, Config(false)));
+    ASSERT_TRUE(Reset(*s.stub, on_stream[e], 5 + e).ok());
+    ASSERT_TRUE(Reset(*s.stub, twins[e], 5 + e).ok());
+  }
+  const std::string missing = "envs/00000000000000000000000000000000";
+  ActionSource source(false, kLanders);
+  // Env indices per batch (-1: a name no env has).
+  const std::vector<std::vector<int>> batches = {{0, 1}, {1}, {0, -1},
+                                                 {1, 0}, {0}, {0, 1}};
+  for (size_t b = 0; b < batches.size(); ++b) {
+    SCOPED_TRACE(b);
+    const std::vector<int>& envs = batches[b];
+    const CycleActions actions = Draw(source, static_cast<int>(envs.size()));
+    std::vector<std::string> stream_names, twin_names;
+    for (int e : envs) {
+      stream_names.push_back(e < 0 ? missing : on_stream[e]);
+      twin_names.push_back(e < 0 ? missing : twins[e]);
+    }
+    v1::SessionRequest step;
+    *step.mutable_step_batch() =
+        PackedRequest(stream_names, actions.Packed(kLanders));
+    const v1::SessionResponse answer = call(step);
+    ASSERT_TRUE(answer.has_step_batch()) << answer.error().message();
+
+    grpc::ClientContext unary_context;
+    v1::StepBatchResponse alone;
+    ASSERT_TRUE(
+        s.stub
+            ->StepBatch(&unary_context,
+                        PackedRequest(twin_names, actions.Packed(kLanders)),
+                        &alone)
+            .ok());
+    EXPECT_EQ(answer.step_batch().SerializeAsString(),
+              alone.SerializeAsString());
+    const bool has_missing =
+        std::find(envs.begin(), envs.end(), -1) != envs.end();
+    EXPECT_EQ(answer.step_batch().packed().errors_size(), has_missing ? 1 : 0);
+
+    if (b == 2) {  // Between packed batches: a request without an op ...
+      const v1::SessionResponse empty = call(v1::SessionRequest());
+      EXPECT_EQ(empty.error().code(), grpc::StatusCode::INVALID_ARGUMENT);
+      EXPECT_THAT(empty.error().message(), HasSubstr("op: not set"));
+      // ... and the `steps` form, answered in its own form.
+      v1::SessionRequest steps;
+      v1::StepEnvRequest* item = steps.mutable_step_batch()->add_steps();
+      item->set_name(missing);
+      *item->mutable_actions() = DiscreteActions(source.Discrete());
+      const v1::SessionResponse steps_answer = call(steps);
+      EXPECT_FALSE(steps_answer.step_batch().has_packed());
+      ASSERT_EQ(steps_answer.step_batch().results_size(), 1);
+      EXPECT_EQ(steps_answer.step_batch().results(0).error().code(),
+                grpc::StatusCode::NOT_FOUND);
+    }
+  }
   stream->WritesDone();
   EXPECT_TRUE(stream->Finish().ok());
 }

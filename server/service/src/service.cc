@@ -16,6 +16,9 @@
 #include "absl/strings/str_join.h"
 #include "absl/synchronization/mutex.h"
 #include "absl/synchronization/notification.h"
+#include "google/protobuf/io/coded_stream.h"
+#include "google/protobuf/wire_format_lite.h"
+#include "grpcpp/support/byte_buffer.h"
 #include "mll/service/convert.h"
 #include "mll/service/server_info.h"
 #include "mll/session_ops.h"
@@ -233,6 +236,133 @@ class SessionTracker {
 
 namespace {
 
+// The bytes of the last occurrence of length-delimited field `field_number`
+// at the top level of the serialized message `bytes`; nullopt if it has none
+// (or the bytes do not parse that far).
+std::optional<absl::string_view> FindSubmessage(absl::string_view bytes,
+                                                int field_number) {
+  using google::protobuf::internal::WireFormatLite;
+  google::protobuf::io::CodedInputStream in(
+      reinterpret_cast<const uint8_t*>(bytes.data()),
+      static_cast<int>(bytes.size()));
+  std::optional<absl::string_view> found;
+  for (uint32_t tag = in.ReadTag(); tag != 0; tag = in.ReadTag()) {
+    if (WireFormatLite::GetTagFieldNumber(tag) != field_number ||
+        WireFormatLite::GetTagWireType(tag) !=
+            WireFormatLite::WIRETYPE_LENGTH_DELIMITED) {
+      if (!WireFormatLite::SkipField(&in, tag)) break;
+      continue;
+    }
+    uint32_t size;
+    if (!in.ReadVarint32(&size)) break;
+    const int offset = in.CurrentPosition();
+    if (!in.Skip(static_cast<int>(size))) break;
+    found = bytes.substr(static_cast<size_t>(offset), size);
+  }
+  return found;
+}
+
+// Takes `message`'s `field` sub-message out of it (null if unset), so that
+// clearing `message` does not free it. A proto3 message's Clear frees its
+// sub-messages, and a oneof's case change frees the old member.
+template <typename Message, typename Sub>
+std::unique_ptr<Sub> Keep(Message& message, bool (Message::*has)() const,
+                          Sub* (Message::*release)()) {
+  return std::unique_ptr<Sub>((message.*has)() ? (message.*release)()
+                                               : nullptr);
+}
+
+// A Session's request and response, kept from one request to the next
+// together with the storage of a packed StepBatch: parsed into last
+// request's emptied messages, the env names reuse their strings and the
+// actions their bytes, and the results reuse their columns, where fresh
+// messages (what a typed stream reads into) would allocate and free each of
+// them on every request. A kept sub-message is put back, empty, only where
+// the new request's bytes hold it, so a request parses to exactly what it
+// would parse to in a fresh message.
+class SessionMessages {
+ public:
+  const v1::SessionRequest& request() const { return request_; }
+  v1::SessionResponse& response() { return response_; }
+
+  // Parses a serialized SessionRequest into request(); false if the bytes
+  // are not one.
+  bool ParseRequest(absl::string_view bytes) {
+    std::unique_ptr<v1::StepBatchRequest> batch =
+        Keep(request_, &v1::SessionRequest::has_step_batch,
+             &v1::SessionRequest::release_step_batch);
+    request_.Clear();
+    if (batch != nullptr) {
+      const std::optional<absl::string_view> batch_bytes =
+          FindSubmessage(bytes, v1::SessionRequest::kStepBatchFieldNumber);
+      if (batch_bytes.has_value()) {
+        EmptyForParse(*batch_bytes, *batch);
+        request_.set_allocated_step_batch(batch.release());
+      }
+    }
+    google::protobuf::io::CodedInputStream in(
+        reinterpret_cast<const uint8_t*>(bytes.data()),
+        static_cast<int>(bytes.size()));
+    return request_.MergeFromCodedStream(&in) && in.ConsumedEntireMessage();
+  }
+
+  // Clears response(), keeping its step_batch for StepBatchResponse().
+  void ClearResponse() {
+    if (response_.has_step_batch()) {
+      kept_response_batch_.reset(response_.release_step_batch());
+    }
+    response_.Clear();
+  }
+
+  // response()'s step_batch for the answer to `request`, empty but for the
+  // columns of a packed answer, which StepPacked rewrites whole (each one
+  // sized and zeroed: PackedColumns).
+  v1::StepBatchResponse* StepBatchResponse(
+      const v1::StepBatchRequest& request) {
+    if (kept_response_batch_ != nullptr) {
+      std::unique_ptr<v1::PackedStepData> packed =
+          Keep(*kept_response_batch_, &v1::StepBatchResponse::has_packed,
+               &v1::StepBatchResponse::release_packed);
+      kept_response_batch_->Clear();
+      if (packed != nullptr && request.has_packed()) {
+        packed->clear_errors();
+        kept_response_batch_->set_allocated_packed(packed.release());
+      }
+      response_.set_allocated_step_batch(kept_response_batch_.release());
+    }
+    return response_.mutable_step_batch();
+  }
+
+ private:
+  // Empties `batch` for parsing `bytes` (a serialized StepBatchRequest) into
+  // it, keeping its packed names and actions where the bytes hold them.
+  static void EmptyForParse(absl::string_view bytes,
+                            v1::StepBatchRequest& batch) {
+    std::unique_ptr<v1::PackedSteps> packed =
+        Keep(batch, &v1::StepBatchRequest::has_packed,
+             &v1::StepBatchRequest::release_packed);
+    batch.Clear();
+    if (packed == nullptr) return;
+    const std::optional<absl::string_view> packed_bytes =
+        FindSubmessage(bytes, v1::StepBatchRequest::kPackedFieldNumber);
+    if (!packed_bytes.has_value()) return;
+    std::unique_ptr<v1::Array> actions =
+        Keep(*packed, &v1::PackedSteps::has_actions,
+             &v1::PackedSteps::release_actions);
+    packed->Clear();  // The names' strings stay, for the parser to reuse.
+    if (actions != nullptr &&
+        FindSubmessage(*packed_bytes, v1::PackedSteps::kActionsFieldNumber)) {
+      actions->Clear();
+      packed->set_allocated_actions(actions.release());
+    }
+    batch.set_allocated_packed(packed.release());
+  }
+
+  v1::SessionRequest request_;
+  v1::SessionResponse response_;
+  std::unique_ptr<v1::StepBatchResponse> kept_response_batch_;
+};
+
 // One Session stream: reads a request, runs it, writes its response, reads
 // the next; so responses come in request order and at most one operation of
 // the stream is in flight. Envs it created (not detached) are deleted when
@@ -250,7 +380,7 @@ namespace {
 // gRPC runs no read or write reaction inline, so the stream's operations
 // are started under mu_.
 class SessionReactor final
-    : public grpc::ServerBidiReactor<v1::SessionRequest, v1::SessionResponse>,
+    : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc::ByteBuffer>,
       public DrainableSession {
  public:
   SessionReactor(Operations* operations, Registry* registry, Metrics* metrics,
@@ -278,7 +408,7 @@ class SessionReactor final
     }
     tracker_->Add(this);  // Drains this stream at once while draining.
     absl::MutexLock lock(&mu_);
-    if (!finished_) StartRead(&request_);
+    if (!finished_) StartRead(&read_buffer_);
   }
 
   void Drain() override {
@@ -299,21 +429,29 @@ class SessionReactor final
       }
     }
     timer_.Restart();
-    response_.Clear();
-    response_.set_sequence(request_.sequence());
+    messages_.ClearResponse();
+    grpc::Slice bytes;
+    if (!read_buffer_.DumpToSingleSlice(&bytes).ok() ||
+        !messages_.ParseRequest(absl::string_view(
+            reinterpret_cast<const char*>(bytes.begin()), bytes.size()))) {
+      Respond(absl::InvalidArgumentError(
+          "request: not a serialized SessionRequest"));
+      return;
+    }
+    const v1::SessionRequest& request = messages_.request();
+    messages_.response().set_sequence(request.sequence());
     if (region_ != nullptr) {
       Respond(absl::FailedPreconditionError(absl::StrCat(
-          "op: sent on the stream (sequence ", request_.sequence(),
+          "op: sent on the stream (sequence ", request.sequence(),
           ") of a session attached to shared memory; allowed: requests "
           "through the shared-memory region")));
       return;
     }
-    if (request_.op_case() == v1::SessionRequest::kAttachSharedMemory) {
+    if (request.op_case() == v1::SessionRequest::kAttachSharedMemory) {
       Respond(AttachSharedMemory());
       return;
     }
-    Execute(request_, &response_,
-            [this](absl::Status status) { Respond(status); });
+    Execute(messages_, [this](absl::Status status) { Respond(status); });
   }
 
   void OnWriteDone(bool ok) override {
@@ -327,7 +465,7 @@ class SessionReactor final
       return;
     }
     reading_ = true;
-    StartRead(&request_);
+    StartRead(&read_buffer_);
   }
 
   // Also covers a stream that ended without EndStream (e.g. cancelled while a
@@ -374,16 +512,18 @@ class SessionReactor final
     return Dispatch(operations_, metrics_, Method::kSession, owner_);
   }
 
-  // Runs `request` into `response`, then done(status): at once, or on the
-  // worker pool once a StepBatch's items are done.
-  void Execute(const v1::SessionRequest& request, v1::SessionResponse* response,
+  // Runs messages.request() into messages.response(), then done(status): at
+  // once, or on the worker pool once a StepBatch's items are done.
+  void Execute(SessionMessages& messages,
                std::function<void(absl::Status)> done) {
+    const v1::SessionRequest& request = messages.request();
     if (request.op_case() == v1::SessionRequest::kStepBatch) {
-      dispatch().StepBatch(request.step_batch(), response->mutable_step_batch(),
+      dispatch().StepBatch(request.step_batch(),
+                           messages.StepBatchResponse(request.step_batch()),
                            std::move(done));
       return;
     }
-    done(Run(request, response));
+    done(Run(request, &messages.response()));
   }
 
   // Runs a request that completes in the call: its RPC's Dispatch method
@@ -425,11 +565,28 @@ class SessionReactor final
 
   void Respond(const absl::Status& status) {
     timer_.Record(status);
+    v1::SessionResponse& response = messages_.response();
     if (!status.ok()) {
-      response_.clear_result();
-      FillItemError(status, response_.mutable_error());
+      response.clear_result();
+      FillItemError(status, response.mutable_error());
     }
-    StartWrite(&response_);
+    bool own_buffer;
+    write_buffer_.Clear();  // The last write is done: no read is started
+                            // before it is.
+    const grpc::Status serialized =
+        grpc::SerializationTraits<v1::SessionResponse>::Serialize(
+            response, &write_buffer_, &own_buffer);
+    if (!serialized.ok()) {
+      response.clear_result();
+      FillItemError(
+          absl::InternalError(absl::StrCat("response: cannot be serialized (",
+                                           serialized.error_message(), ")")),
+          response.mutable_error());
+      write_buffer_.Clear();
+      (void)grpc::SerializationTraits<v1::SessionResponse>::Serialize(
+          response, &write_buffer_, &own_buffer);
+    }
+    StartWrite(&write_buffer_);
   }
 
   // Creates the session's region and starts the thread that serves it.
@@ -448,7 +605,7 @@ class SessionReactor final
     slot_ = *std::move(slot);
     region_ = *std::move(region);
     v1::AttachSharedMemoryResponse* attached =
-        response_.mutable_attach_shared_memory();
+        messages_.response().mutable_attach_shared_memory();
     attached->set_path(region_->path());
     attached->set_size(region_->bytes());
     attached->set_nonce(region_->nonce());
@@ -466,8 +623,8 @@ class SessionReactor final
     // before this thread starts).
     uint32_t seen = 0;
     std::string bytes;
-    v1::SessionRequest request;
-    v1::SessionResponse response;
+    SessionMessages messages;
+    v1::SessionResponse& response = messages.response();
     while (!stop_serving_.load(std::memory_order_acquire)) {
       if (!shared_memory::WaitWhileEqual(header.request_seq, seen,
                                          std::chrono::microseconds(100),
@@ -478,7 +635,7 @@ class SessionReactor final
       seen = header.request_seq.load(std::memory_order_acquire);
       CallTimer timer(metrics_, Method::kSession);
       const uint64_t size = header.request_size.load(std::memory_order_acquire);
-      response.Clear();
+      messages.ClearResponse();
       absl::Status status;
       // Copied before parsing: the client can write the region at any time.
       if (size > region_->capacity()) {
@@ -487,13 +644,13 @@ class SessionReactor final
                          region_->capacity(), " (the region's capacity)"));
       } else {
         bytes.assign(region_->request(), size);
-        if (!request.ParseFromString(bytes)) {
+        if (!messages.ParseRequest(bytes)) {
           status = absl::InvalidArgumentError(
               "request: not a serialized SessionRequest");
         } else {
-          response.set_sequence(request.sequence());
+          response.set_sequence(messages.request().sequence());
           absl::Notification finished;
-          Execute(request, &response, [&](absl::Status done) {
+          Execute(messages, [&](absl::Status done) {
             status = std::move(done);
             finished.Notify();
           });
@@ -551,8 +708,9 @@ class SessionReactor final
   // Points into the Authenticator, which outlives every call.
   absl::string_view owner_;
   CallTimer timer_;
-  v1::SessionRequest request_;
-  v1::SessionResponse response_;
+  grpc::ByteBuffer read_buffer_;
+  SessionMessages messages_;
+  grpc::ByteBuffer write_buffer_;
   absl::flat_hash_set<std::string> bound_envs_;
   // Set while the session is attached to shared memory.
   SharedMemorySessions::Slot slot_;
@@ -627,6 +785,19 @@ MultiLunarLanderService::MultiLunarLanderService(const ServiceOptions& options)
       shared_memory_sessions_(options.shared_memory_sessions),
       server_info_(MakeServerInfo(options)) {
   SetMessageAllocatorFor_StepBatch(&step_batch_arenas_);
+  // Session as a raw method: its stream parses requests itself
+  // (SessionMessages), in place of the typed handler CallbackService set.
+  const int session_method = v1::SessionRequest::descriptor()
+                                 ->file()
+                                 ->FindServiceByName("MultiLunarLander")
+                                 ->FindMethodByName("Session")
+                                 ->index();
+  MarkMethodRawCallback(
+      session_method, new grpc::internal::CallbackBidiHandler<grpc::ByteBuffer,
+                                                              grpc::ByteBuffer>(
+                          [this](grpc::CallbackServerContext* context) {
+                            return OpenSession(context);
+                          }));
 }
 
 MultiLunarLanderService::~MultiLunarLanderService() = default;
@@ -760,8 +931,8 @@ grpc::ServerUnaryReactor* MultiLunarLanderService::GetServerInfo(
                   });
 }
 
-grpc::ServerBidiReactor<v1::SessionRequest, v1::SessionResponse>*
-MultiLunarLanderService::Session(grpc::CallbackServerContext* context) {
+grpc::ServerBidiReactor<grpc::ByteBuffer, grpc::ByteBuffer>*
+MultiLunarLanderService::OpenSession(grpc::CallbackServerContext* context) {
   return new SessionReactor(
       &operations_, &registry_, &metrics_, &shared_memory_sessions_,
       sessions_.get(), &draining_, IsLocalPeer(context->peer()),

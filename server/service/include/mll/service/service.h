@@ -148,8 +148,6 @@ class MultiLunarLanderService final
   grpc::ServerUnaryReactor* RenderEnv(grpc::CallbackServerContext* context,
                                       const v1::RenderEnvRequest* request,
                                       v1::Frame* response) override;
-  grpc::ServerBidiReactor<v1::SessionRequest, v1::SessionResponse>* Session(
-      grpc::CallbackServerContext* context) override;
   grpc::ServerUnaryReactor* KeepAlive(grpc::CallbackServerContext* context,
                                       const v1::KeepAliveRequest* request,
                                       v1::KeepAliveResponse* response) override;
@@ -167,6 +165,12 @@ class MultiLunarLanderService final
   // a Session stream): also UNAVAILABLE while draining.
   absl::StatusOr<absl::string_view> AdmitNewWork(
       const grpc::CallbackServerContext& context, absl::string_view what) const;
+
+  // A Session stream (registered as a raw method in the constructor: the
+  // stream parses its requests itself, reusing their storage; see
+  // SessionMessages in service.cc).
+  grpc::ServerBidiReactor<grpc::ByteBuffer, grpc::ByteBuffer>* OpenSession(
+      grpc::CallbackServerContext* context);
 
   // Puts each StepBatch call's request and response on one protobuf arena:
   // a `steps` batch of 64 envs is ~2,000 sub-messages and strings, which
