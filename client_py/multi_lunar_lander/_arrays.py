@@ -126,7 +126,7 @@ def stack_bytes(chunks: Sequence[bytes], dtype: int, shape: Sequence[int], as_dt
     return from_bytes(b"".join(chunks), dtype, shape, as_dtype)
 
 
-def to_bytes(values: np.ndarray, dtype: int) -> bytes:
-    """The little-endian, row-major bytes of `values` as the wire dtype `dtype`: the `data` of an
-    Array whose dtype and shape are already set (e.g. a reused request's actions)."""
-    return np.ascontiguousarray(values, dtype=_WIRE_TO_NUMPY[dtype]).tobytes()
+def to_rows(values: np.ndarray, dtype: int) -> np.ndarray:
+    """A copy of `values` as the little-endian bytes of the wire dtype `dtype`, one uint8 row per
+    item of the first dimension (e.g. each env's actions)."""
+    return np.array(values, dtype=_WIRE_TO_NUMPY[dtype]).view(np.uint8).reshape(len(values), -1)

@@ -470,12 +470,12 @@ class VectorEnv:
         if self._step_in_flight:
             self._check_no_step_in_flight()
         ids = np.asarray(env_id)
-        if ids.ndim != 1 or ids.size == 0 or not np.issubdtype(ids.dtype, np.integer):
+        if ids.ndim != 1 or ids.size == 0 or ids.dtype.kind not in "iu":
             raise invalid_argument(
                 f"env_id is {_short(env_id)}; expected a non-empty 1-D array of env indices in 0..{self.num_envs - 1}"
             )
-        bad = ids[(ids < 0) | (ids >= self.num_envs)]
-        if bad.size:
+        if ids.min() < 0 or ids.max() >= self.num_envs:
+            bad = ids[(ids < 0) | (ids >= self.num_envs)]
             raise invalid_argument(f"env_id holds {int(bad[0])}; allowed: 0..{self.num_envs - 1}")
         if np.count_nonzero(np.bincount(ids, minlength=self.num_envs) > 1):
             values, counts = np.unique(ids, return_counts=True)
@@ -488,18 +488,20 @@ class VectorEnv:
                 "before sending it another",
             )
         block = check_actions(actions, self.continuous, (ids.size, self.n_landers), "actions")
-        rows = np.frombuffer(_arrays.to_bytes(block, self._action_dtype), np.uint8).reshape(ids.size, self._row_bytes)
-        self._send_steps(ids, rows)
+        self._send_steps(ids, _arrays.to_rows(block, self._action_dtype))
         self._env_in_flight[ids] = True
 
     def _send_steps(self, ids: np.ndarray, rows: np.ndarray) -> None:
         """Sends one step of the envs `ids` with action rows `rows` (uint8 (len(ids), row bytes)):
         one packed StepBatch per server concerned, kept in flight until _receive_one."""
         for server in self._servers:
-            mine = self._placement[ids] == server.index
-            if not mine.any():
-                continue
-            envs, actions = ids[mine], rows[mine]
+            if len(self._servers) == 1:
+                envs, actions = ids, rows
+            else:
+                mine = self._placement[ids] == server.index
+                if not mine.any():
+                    continue
+                envs, actions = ids[mine], rows[mine]
             message = self._async_request(server, envs)
             message.step_batch.packed.actions.data = actions.tobytes()
             server.stream.send(message)
@@ -531,7 +533,7 @@ class VectorEnv:
         answers came), as step() returns them, with infos["env_id"] (int, (batch_size,)) naming
         the envs of each row. Waits for answers as needed; FAILED_PRECONDITION when fewer than
         batch_size envs have a step in flight."""
-        waiting = int(self._env_in_flight.sum())
+        waiting = np.count_nonzero(self._env_in_flight)
         if waiting < self.batch_size:
             raise MLLError(
                 grpc.StatusCode.FAILED_PRECONDITION,
@@ -549,11 +551,12 @@ class VectorEnv:
             taken.append(ids)
             parts.append(columns)
             left -= ids.size
-        env_id = np.concatenate(taken)
+        if len(parts) == 1:
+            env_id, merged = taken[0], parts[0]
+        else:
+            env_id = np.concatenate(taken)
+            merged = {name: np.concatenate([part[name] for part in parts]) for name in parts[0]}
         self._env_in_flight[env_id] = False
-        merged = parts[0] if len(parts) == 1 else {
-            name: np.concatenate([part[name] for part in parts]) for name in parts[0]
-        }
         result = self._result(dict(merged))
         result[-1]["env_id"] = env_id
         return result
@@ -640,9 +643,7 @@ class VectorEnv:
         """Checks `actions` and puts each server's rows into its reused StepBatch request."""
         self._check_no_step_in_flight()
         block = check_actions(actions, self.continuous, (self.num_envs, self.n_landers), "actions")
-        self._pending = np.frombuffer(_arrays.to_bytes(block, self._action_dtype), np.uint8).reshape(
-            self.num_envs, self._row_bytes
-        )
+        self._pending = _arrays.to_rows(block, self._action_dtype)
         if len(self._servers) == 1:
             self._servers[0].actions.data = self._pending.tobytes()
             return
