@@ -60,9 +60,13 @@ def test_stack_bytes_joins_many_messages_in_order():
     np.testing.assert_array_equal(stacked, np.stack(parts))
 
 
-def test_to_bytes_is_little_endian_row_major_in_the_wire_dtype():
+def test_to_rows_are_a_copy_in_the_wire_dtype_little_endian_one_row_per_item():
     block = np.arange(12, dtype=">i8").reshape(3, 4)
-    assert _arrays.to_bytes(block[::2], pb.DTYPE_INT32) == np.array([[0, 1, 2, 3], [8, 9, 10, 11]], "<i4").tobytes()
+    rows = _arrays.to_rows(block[::2], pb.DTYPE_INT32)
+    assert rows.dtype == np.uint8 and rows.shape == (2, 16)
+    assert rows.tobytes() == np.array([[0, 1, 2, 3], [8, 9, 10, 11]], "<i4").tobytes()
+    block[0, 0] = 7  # The rows are the values when sent, whatever the caller does next.
+    assert rows[0, 0] == 0
 
 
 def test_column_checks_dtype_and_shape_and_converts_once():
