@@ -262,9 +262,9 @@ std::optional<absl::string_view> FindSubmessage(absl::string_view bytes,
   return found;
 }
 
-// Takes `message`'s `field` sub-message out of it (null if unset), so that
-// clearing `message` does not free it. A proto3 message's Clear frees its
-// sub-messages, and a oneof's case change frees the old member.
+// Takes the sub-message that `has` and `release` name out of `message` (null
+// if unset), so that clearing `message` does not free it: a proto3 message's
+// Clear frees its sub-messages, and a oneof's Clear frees its member.
 template <typename Message, typename Sub>
 std::unique_ptr<Sub> Keep(Message& message, bool (Message::*has)() const,
                           Sub* (Message::*release)()) {
