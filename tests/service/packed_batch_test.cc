@@ -2,11 +2,14 @@
 // and to the in-process core (discrete and continuous, across auto-resets),
 // the same on 1 and 2 threads, every request-level error and every per-env
 // error with the code and message a StepEnv would give, failing envs leaving
-// the other rows intact, and the form carried by a Session stream.
+// the other rows intact, and the form carried by a Session stream (which
+// keeps its recent batches' envs: leases renewed, gone envs not found).
 #include <algorithm>
+#include <chrono>
 #include <cstring>
 #include <random>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "gmock/gmock.h"
@@ -616,6 +619,72 @@ TEST(PackedSessionTest, EachAnswerIsItsRequestsAloneWhateverCameBefore) {
                 grpc::StatusCode::NOT_FOUND);
     }
   }
+  stream->WritesDone();
+  EXPECT_TRUE(stream->Finish().ok());
+}
+
+// A Session steps a batch naming the same envs as a recent one through the
+// envs it found then: each such step must still renew the envs' leases, and
+// an env deleted or reclaimed since must be NOT_FOUND, as to a fresh call.
+TEST(PackedSessionTest, RepeatedBatchesRenewLeasesAndMissGoneEnvs) {
+  ServiceOptions options;
+  options.idle_timeout = absl::Milliseconds(800);
+  InProcess s(options);
+  grpc::ClientContext context;
+  auto stream = s.stub->Session(&context);
+  uint64_t sequence = 0;
+  ActionSource source(false, kLanders);
+  // The packed answer to stepping `names` on the stream.
+  const auto step = [&](const std::vector<std::string>& names) {
+    v1::SessionRequest request;
+    request.set_sequence(++sequence);
+    *request.mutable_step_batch() = PackedRequest(
+        names, Draw(source, static_cast<int>(names.size())).Packed(kLanders));
+    v1::SessionResponse response;
+    EXPECT_TRUE(stream->Write(request) && stream->Read(&response));
+    EXPECT_FALSE(response.has_error()) << response.error().message();
+    return response.step_batch().packed();
+  };
+  const auto not_found = [](const v1::PackedStepData& packed) {
+    std::vector<int> indices;
+    for (const v1::IndexedItemError& error : packed.errors()) {
+      EXPECT_EQ(error.error().code(), grpc::StatusCode::NOT_FOUND)
+          << error.error().message();
+      indices.push_back(error.index());
+    }
+    return indices;
+  };
+  std::vector<std::string> names;
+  for (int e = 0; e < 3; ++e) {
+    names.push_back(CreateEnv(*s.stub, Config(false)));
+    ASSERT_TRUE(Reset(*s.stub, names[e], 20 + e).ok());
+  }
+  const std::string& a = names[0];
+  const std::string& b = names[1];
+  const std::string& c = names[2];
+  EXPECT_THAT(not_found(step({a, b, c})), ::testing::IsEmpty());
+  // Only a and b are stepped (the first batch's list but for c, then that
+  // list over and over) for 2.5 idle timeouts: c is reclaimed, a and b stay.
+  const auto start = std::chrono::steady_clock::now();
+  while (std::chrono::steady_clock::now() - start <
+         std::chrono::milliseconds(2000)) {
+    ASSERT_THAT(not_found(step({a, b})), ::testing::IsEmpty());
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+  // The first list again: c was reclaimed meanwhile.
+  const v1::PackedStepData reclaimed = step({a, b, c});
+  EXPECT_THAT(not_found(reclaimed), ::testing::ElementsAre(2));
+  EXPECT_THAT(reclaimed.errors(0).error().message(),
+              HasSubstr("packed.names[2]: " + c + " was reclaimed"));
+  // b deleted by another call: the next [a, b] misses it.
+  grpc::ClientContext delete_context;
+  v1::DeleteEnvRequest remove;
+  remove.set_name(b);
+  v1::DeleteEnvResponse removed;
+  ASSERT_TRUE(s.stub->DeleteEnv(&delete_context, remove, &removed).ok());
+  EXPECT_THAT(not_found(step({a, b})), ::testing::ElementsAre(1));
+  EXPECT_THAT(not_found(step({a, b})), ::testing::ElementsAre(1));
+  EXPECT_THAT(not_found(step({a})), ::testing::IsEmpty());
   stream->WritesDone();
   EXPECT_TRUE(stream->Finish().ok());
 }

@@ -317,7 +317,7 @@ absl::Status Operations::RenderEnv(const v1::RenderEnvRequest& request,
 void Operations::StepBatch(const v1::StepBatchRequest& request,
                            v1::StepBatchResponse* out,
                            std::function<void(absl::Status)> done,
-                           absl::string_view owner) {
+                           absl::string_view owner, RecentBatches* recent) {
   if (request.has_packed()) {
     if (request.steps_size() > 0) {
       done(absl::InvalidArgumentError(absl::StrCat(
@@ -326,7 +326,8 @@ void Operations::StepBatch(const v1::StepBatchRequest& request,
           " envs); a StepBatchRequest carries exactly one of the two forms")));
       return;
     }
-    StepPacked(request.packed(), out->mutable_packed(), std::move(done), owner);
+    StepPacked(request.packed(), out->mutable_packed(), std::move(done), owner,
+               recent);
     return;
   }
   absl::Status status = CheckDistinctNames(
@@ -355,58 +356,78 @@ void Operations::StepBatch(const v1::StepBatchRequest& request,
 void Operations::StepPacked(const v1::PackedSteps& request,
                             v1::PackedStepData* out,
                             std::function<void(absl::Status)> done,
-                            absl::string_view owner) {
+                            absl::string_view owner, RecentBatches* recent) {
   absl::StatusOr<PackedActions> actions = PackedActions::Parse(request);
   if (!actions.ok()) {
     done(actions.status());
     return;
   }
-  absl::Status status = CheckDistinctNames(
-      request.names_size(),
-      [&request](int e) -> absl::string_view { return request.names(e); },
-      [](int e) { return ItemField("packed.names[", e, "]"); }, "");
-  if (!status.ok()) {
-    done(status);
-    return;
+  // The same envs as a recent batch: distinct, and their slots at hand.
+  const RecentBatches::Batch* kept =
+      recent != nullptr ? recent->Match(request.names()) : nullptr;
+  if (kept == nullptr) {
+    absl::Status status = CheckDistinctNames(
+        request.names_size(),
+        [&request](int e) -> absl::string_view { return request.names(e); },
+        [](int e) { return ItemField("packed.names[", e, "]"); }, "");
+    if (!status.ok()) {
+      done(status);
+      return;
+    }
   }
   const int num_envs = request.names_size();
   // Lives until the last item is done; workers write disjoint rows of the
-  // columns (sized here, once) and their own entry of `statuses`.
+  // columns (sized here, once) and their own entries of `statuses` and
+  // `slots`.
   struct Batch {
-    Batch(PackedActions actions, int num_envs, v1::PackedStepData* out)
+    Batch(PackedActions actions, int num_envs, v1::PackedStepData* out,
+          bool keep)
         : actions(std::move(actions)),
           columns(num_envs, this->actions.n_landers(), out),
-          statuses(num_envs) {}
+          statuses(num_envs),
+          slots(keep ? num_envs : 0) {}
     const PackedActions actions;
     const PackedColumns columns;
     std::vector<absl::Status> statuses;
+    // The slots found, for RecentBatches::Keep (empty: not kept).
+    std::vector<std::weak_ptr<EnvSlot>> slots;
   };
-  auto batch = std::make_shared<Batch>(*std::move(actions), num_envs, out);
+  auto batch = std::make_shared<Batch>(*std::move(actions), num_envs, out,
+                                       recent != nullptr && kept == nullptr);
   pool_->ParallelFor(
       num_envs,
-      [this, &request, batch, owner](int e) {
+      [this, &request, batch, owner, kept](int e) {
         batch->statuses[e] = [&]() -> absl::Status {
-          absl::StatusOr<std::shared_ptr<EnvSlot>> found =
-              registry_->Find(request.names(e),
-                              ItemField("packed.names[", e, "]").view(), owner);
-          if (!found.ok()) return found.status();
-          EnvSlot& slot = **found;
-          absl::Status status = batch->actions.CheckFits(e, slot.config);
+          std::shared_ptr<EnvSlot> slot =
+              kept != nullptr ? RecentBatches::Find(*kept, e, owner) : nullptr;
+          if (slot == nullptr) {
+            absl::StatusOr<std::shared_ptr<EnvSlot>> found = registry_->Find(
+                request.names(e), ItemField("packed.names[", e, "]").view(),
+                owner);
+            if (!found.ok()) return found.status();
+            slot = *std::move(found);
+            if (!batch->slots.empty()) batch->slots[e] = slot;
+          }
+          absl::Status status = batch->actions.CheckFits(e, slot->config);
           if (!status.ok()) return status;
-          return StepSlot(slot, batch->actions.Row(e),
+          return StepSlot(*slot, batch->actions.Row(e),
                           [&](const core::StepResult& result,
                               const core::Env& env, bool auto_reset) {
                             batch->columns.Write(e, result, env, auto_reset);
                           });
         }();
       },
-      [batch, out, done = std::move(done)] {
+      [batch, out, &request, recent, done = std::move(done)] {
         // Appended here, in index order: workers never touch `errors`.
         for (int e = 0; e < static_cast<int>(batch->statuses.size()); ++e) {
           if (batch->statuses[e].ok()) continue;
           v1::IndexedItemError* error = out->add_errors();
           error->set_index(e);
           FillItemError(batch->statuses[e], error->mutable_error());
+        }
+        // An env not found is kept as no slot: looked up again next time.
+        if (!batch->slots.empty()) {
+          recent->Keep(request.names(), std::move(batch->slots));
         }
         done(absl::OkStatus());
       });

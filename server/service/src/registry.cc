@@ -170,8 +170,7 @@ absl::Status Registry::Delete(absl::string_view name, absl::string_view field,
   {
     absl::MutexLock lock(&mu_);
     // A concurrent Delete or the reaper may have removed it already.
-    if (by_name_.erase((*found)->name) > 0) ReleaseOwnerLocked((*found)->owner);
-    by_serial_.erase((*found)->serial);
+    if (!(*found)->removed.load()) RemoveLocked(*found);
   }
   // The last holder (maybe this call, maybe an in-flight step) destroys the
   // world, outside the registry's lock.
@@ -238,6 +237,13 @@ void Registry::ReleaseOwnerLocked(const std::string& owner) {
   }
 }
 
+void Registry::RemoveLocked(const std::shared_ptr<EnvSlot>& slot) {
+  slot->removed.store(true);
+  ReleaseOwnerLocked(slot->owner);
+  by_serial_.erase(slot->serial);
+  by_name_.erase(slot->name);
+}
+
 void Registry::RememberReclaimedLocked(const EnvSlot& slot) {
   if (!reclaimed_.emplace(slot.name, slot.owner).second) return;
   reclaimed_order_.push_back(slot.name);
@@ -255,11 +261,10 @@ absl::Time Registry::ReapExpiredLocked(
   for (auto it = by_name_.begin(); it != by_name_.end();) {
     const int64_t deadline_ns = it->second->last_touched_ns.load() + timeout_ns;
     if (deadline_ns <= now_ns) {
-      ReleaseOwnerLocked(it->second->owner);
-      RememberReclaimedLocked(*it->second);
-      by_serial_.erase(it->second->serial);
-      expired->push_back(std::move(it->second));
-      by_name_.erase(it++);
+      std::shared_ptr<EnvSlot> slot = (it++)->second;
+      RememberReclaimedLocked(*slot);
+      RemoveLocked(slot);
+      expired->push_back(std::move(slot));
     } else {
       next_ns = std::min(next_ns, deadline_ns);
       ++it;
@@ -285,6 +290,16 @@ void Registry::ReapLoop() {
     // Sleeps until the earliest deadline: no CPU while nothing expires.
     reaper_wake_.WaitWithDeadline(&mu_, wake);
   }
+}
+
+std::shared_ptr<EnvSlot> RecentBatches::Find(const Batch& batch, int index,
+                                             absl::string_view owner) {
+  std::shared_ptr<EnvSlot> slot = batch.slots[index].lock();
+  if (slot == nullptr || slot->removed.load() || slot->owner != owner) {
+    return nullptr;
+  }
+  Touch(*slot);
+  return slot;
 }
 
 }  // namespace mll::service

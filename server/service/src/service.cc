@@ -69,9 +69,14 @@ class CallTimer {
 // table into calls of them.
 class Dispatch {
  public:
+  // `recent`: the Session's recent packed batches (null: a unary call).
   Dispatch(Operations* operations, Metrics* metrics, Method via,
-           absl::string_view owner)
-      : operations_(operations), metrics_(metrics), via_(via), owner_(owner) {}
+           absl::string_view owner, RecentBatches* recent = nullptr)
+      : operations_(operations),
+        metrics_(metrics),
+        via_(via),
+        owner_(owner),
+        recent_(recent) {}
 
   // An env created on a Session is bound to it unless detached.
   absl::Status CreateEnv(const v1::CreateEnvRequest& request,
@@ -132,7 +137,7 @@ class Dispatch {
           if (status.ok()) metrics->RecordStepBatch(via, *out);
           done(status);
         },
-        owner_);
+        owner_, recent_);
   }
 
  private:
@@ -142,6 +147,7 @@ class Dispatch {
   Metrics* const metrics_;
   const Method via_;
   const absl::string_view owner_;
+  RecentBatches* const recent_;
 };
 
 // The SessionRequest `op` oneof's members, in the proto's order, as the
@@ -508,8 +514,9 @@ class SessionReactor final
     bound_envs_.clear();
   }
 
-  Dispatch dispatch() const {
-    return Dispatch(operations_, metrics_, Method::kSession, owner_);
+  Dispatch dispatch() {
+    return Dispatch(operations_, metrics_, Method::kSession, owner_,
+                    &recent_batches_);
   }
 
   // Runs messages.request() into messages.response(), then done(status): at
@@ -707,6 +714,8 @@ class SessionReactor final
   bool drain_asked_ ABSL_GUARDED_BY(mu_) = false;
   // Points into the Authenticator, which outlives every call.
   absl::string_view owner_;
+  // The stream's one operation at a time uses them.
+  RecentBatches recent_batches_;
   CallTimer timer_;
   grpc::ByteBuffer read_buffer_;
   SessionMessages messages_;

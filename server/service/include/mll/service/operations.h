@@ -60,17 +60,21 @@ class Operations {
   // Returns at once. A request-level error (both forms set, duplicate names,
   // a packed actions array of the wrong dtype or shape) calls done() before
   // returning, with no env stepped. `request` and `out` must live until
-  // done() runs, and `owner`'s characters too.
+  // done() runs, and `owner`'s characters too. `recent` (null: none): the
+  // caller's recent packed batches, which a packed batch naming the same envs
+  // reuses and any other all of whose envs were found joins; it must not be
+  // used elsewhere until done() has run.
   void StepBatch(const v1::StepBatchRequest& request,
                  v1::StepBatchResponse* out,
                  std::function<void(absl::Status)> done,
-                 absl::string_view owner = kAnonymousOwner);
+                 absl::string_view owner = kAnonymousOwner,
+                 RecentBatches* recent = nullptr);
 
  private:
   // StepBatch's `packed` form.
   void StepPacked(const v1::PackedSteps& request, v1::PackedStepData* out,
                   std::function<void(absl::Status)> done,
-                  absl::string_view owner);
+                  absl::string_view owner, RecentBatches* recent);
 
   Registry* registry_;
   WorkerPool* pool_;

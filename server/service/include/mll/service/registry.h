@@ -5,6 +5,7 @@
 #ifndef MLL_SERVICE_REGISTRY_H_
 #define MLL_SERVICE_REGISTRY_H_
 
+#include <algorithm>
 #include <atomic>
 #include <cstdint>
 #include <deque>
@@ -51,6 +52,9 @@ struct EnvSlot {
   const std::string owner;
   // Steady-clock nanoseconds of the last lookup; read by the reaper.
   std::atomic<int64_t> last_touched_ns{0};
+  // Set when the registry lets go of the env (deleted or reclaimed): from
+  // then on no look-up finds it, kept ones included (RecentBatches).
+  std::atomic<bool> removed{false};
 
   absl::Mutex mu;
   std::unique_ptr<core::Env> env ABSL_PT_GUARDED_BY(mu);
@@ -131,6 +135,10 @@ class Registry {
   void RememberReclaimedLocked(const EnvSlot& slot)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
 
+  // Takes `slot` out of the maps (it is in them).
+  void RemoveLocked(const std::shared_ptr<EnvSlot>& slot)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
+
   const int max_envs_;
   const absl::Duration idle_timeout_;
   const int max_envs_per_owner_;
@@ -152,6 +160,57 @@ class Registry {
   absl::flat_hash_map<std::string, std::string> reclaimed_ ABSL_GUARDED_BY(mu_);
   std::deque<std::string> reclaimed_order_ ABSL_GUARDED_BY(mu_);
   std::thread reaper_;
+};
+
+// The env lists of one caller's recent StepBatches (a Session stream's: one
+// owner, one batch at a time), each with its envs' slots, so that a batch
+// naming the same envs in the same order as one of them (a vector env's every
+// step, or each of an async vector env's batches) needs neither the check for
+// repeated names nor the registry's lock again. A slot is kept weakly: a
+// deleted or reclaimed env is not kept alive, and is never found again.
+class RecentBatches {
+ public:
+  struct Batch {
+    std::vector<std::string> names;
+    std::vector<std::weak_ptr<EnvSlot>> slots;
+  };
+
+  // The kept batch whose names are `names`, in order, or null.
+  template <typename Names>
+  const Batch* Match(const Names& names) const {
+    for (const Batch& batch : batches_) {
+      if (batch.names.size() == static_cast<size_t>(names.size()) &&
+          std::equal(batch.names.begin(), batch.names.end(), names.begin())) {
+        return &batch;
+      }
+    }
+    return nullptr;
+  }
+
+  // Env `index` of `batch` as Registry::Find would return it to `owner`
+  // (touched), or null when the registry no longer holds it or it was not
+  // found then. Safe to call from several threads at once.
+  static std::shared_ptr<EnvSlot> Find(const Batch& batch, int index,
+                                       absl::string_view owner);
+
+  // Keeps a batch whose names are distinct, with slots[e] the slot found for
+  // names[e] (empty if none was), in place of the least recently kept one
+  // beyond kMaxBatches.
+  template <typename Names>
+  void Keep(const Names& names, std::vector<std::weak_ptr<EnvSlot>> slots) {
+    if (static_cast<size_t>(names.size()) > kMaxEnvsPerBatch) return;
+    if (batches_.size() == kMaxBatches) batches_.pop_front();
+    batches_.push_back(Batch{std::vector<std::string>(names.begin(),
+                                                      names.end()),
+                             std::move(slots)});
+  }
+
+ private:
+  // An async vector env alternates num_envs / batch_size lists.
+  static constexpr size_t kMaxBatches = 8;
+  // Larger batches are rare, and their per-call costs are spread thin.
+  static constexpr size_t kMaxEnvsPerBatch = 4096;
+  std::deque<Batch> batches_;
 };
 
 }  // namespace mll::service
