@@ -200,9 +200,9 @@ class RecentBatches {
   void Keep(const Names& names, std::vector<std::weak_ptr<EnvSlot>> slots) {
     if (static_cast<size_t>(names.size()) > kMaxEnvsPerBatch) return;
     if (batches_.size() == kMaxBatches) batches_.pop_front();
-    batches_.push_back(Batch{std::vector<std::string>(names.begin(),
-                                                      names.end()),
-                             std::move(slots)});
+    batches_.push_back(
+        Batch{std::vector<std::string>(names.begin(), names.end()),
+              std::move(slots)});
   }
 
  private:
