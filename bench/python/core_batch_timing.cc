@@ -4,14 +4,23 @@
 // after its episode ended (what the server's auto_reset does), and prints
 // agent-steps per second as one JSON line. Bounded by --steps and --seconds.
 //
+// Each thread steps its share of the envs over and over. With --lockstep the
+// threads wait for each other after every round, so every env is stepped once
+// before any is stepped again, as a server's clients step them (each env
+// once per call, its next step only after the answer); without it a thread
+// that holds a core steps its share several times in a row, which on fewer
+// cores than threads keeps that share in the core's cache.
+//
 // The client benchmark compares the Python vector env against this figure
 // measured in the same run, on the same machine and load.
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <condition_variable>
 #include <cstdint>
 #include <cstdio>
 #include <memory>
+#include <mutex>
 #include <optional>
 #include <random>
 #include <thread>
@@ -29,6 +38,9 @@ ABSL_FLAG(int, threads, 2, "Worker threads; environments are split evenly.");
 ABSL_FLAG(int, steps, 2000, "Steps per environment at most.");
 ABSL_FLAG(double, seconds, 20.0, "Wall-time bound in seconds.");
 ABSL_FLAG(uint64_t, seed, 0, "Env i is first reset with seed + i.");
+ABSL_FLAG(bool, lockstep, false,
+          "Threads wait for each other after every round: each env is stepped "
+          "once before any is stepped again.");
 
 namespace mll::core {
 namespace {
@@ -41,12 +53,51 @@ struct Slot {
   std::vector<int32_t> actions;
 };
 
-// Steps `slots` until `steps` or `deadline`; returns the agent-steps taken.
+// Where --lockstep's threads wait for each other after each round; a round
+// goes on only if the first thread to arrive saw time left, so every thread
+// stops after the same round.
+class RoundBarrier {
+ public:
+  RoundBarrier(int threads, Clock::time_point deadline)
+      : threads_(threads), deadline_(deadline) {}
+
+  // Whether another round follows.
+  bool Arrive() {
+    std::unique_lock<std::mutex> lock(mu_);
+    if (arrived_ == 0) go_on_ = Clock::now() < deadline_;
+    const bool go_on = go_on_;
+    if (++arrived_ == threads_) {
+      arrived_ = 0;
+      ++round_;
+      all_arrived_.notify_all();
+    } else {
+      const uint64_t round = round_;
+      all_arrived_.wait(lock, [&] { return round_ != round; });
+    }
+    return go_on;
+  }
+
+ private:
+  const int threads_;
+  const Clock::time_point deadline_;
+  std::mutex mu_;
+  std::condition_variable all_arrived_;
+  int arrived_ = 0;
+  uint64_t round_ = 0;
+  bool go_on_ = true;
+};
+
+// Steps `slots` until `steps` or `deadline` (with `barrier`: until the
+// barrier says stop); returns the agent-steps taken.
 int64_t StepSlots(std::vector<Slot*> slots, int steps,
-                  Clock::time_point deadline, uint64_t seed) {
+                  Clock::time_point deadline, uint64_t seed,
+                  RoundBarrier* barrier) {
   std::mt19937_64 rng(seed);
   int64_t agent_steps = 0;
-  for (int step = 0; step < steps && Clock::now() < deadline; ++step) {
+  for (int step = 0;
+       step < steps && (barrier != nullptr || Clock::now() < deadline);
+       ++step) {
+    if (barrier != nullptr && step > 0 && !barrier->Arrive()) break;
     for (Slot* slot : slots) {
       if (slot->env->episode_over()) {
         slot->env->Reset(std::nullopt, &slot->result);
@@ -93,11 +144,14 @@ int Run() {
       start + std::chrono::duration_cast<Clock::duration>(
                   std::chrono::duration<double>(absl::GetFlag(FLAGS_seconds)));
   std::vector<int64_t> counts(threads, 0);
+  std::optional<RoundBarrier> barrier;
+  if (absl::GetFlag(FLAGS_lockstep)) barrier.emplace(threads, deadline);
   std::vector<std::thread> workers;
   for (int t = 0; t < threads; ++t) {
     workers.emplace_back([&, t] {
       counts[t] = StepSlots(shards[t], absl::GetFlag(FLAGS_steps), deadline,
-                            absl::GetFlag(FLAGS_seed) + 1000 + t);
+                            absl::GetFlag(FLAGS_seed) + 1000 + t,
+                            barrier.has_value() ? &*barrier : nullptr);
     });
   }
   for (std::thread& worker : workers) worker.join();
@@ -106,11 +160,13 @@ int Run() {
   int64_t agent_steps = 0;
   for (int64_t count : counts) agent_steps += count;
   std::printf(
-      "{\"envs\": %d, \"n_landers\": %d, \"threads\": %d, \"agent_steps\": "
+      "{\"envs\": %d, \"n_landers\": %d, \"threads\": %d, \"lockstep\": %s, "
+      "\"agent_steps\": "
       "%lld, "
       "\"seconds\": %.6f, \"agent_steps_per_s\": %.1f}\n",
-      envs, config.n_landers, threads, static_cast<long long>(agent_steps),
-      seconds, agent_steps / seconds);
+      envs, config.n_landers, threads,
+      absl::GetFlag(FLAGS_lockstep) ? "true" : "false",
+      static_cast<long long>(agent_steps), seconds, agent_steps / seconds);
   return 0;
 }
 

@@ -12,6 +12,12 @@ core alone, C x E envs on T threads, no gRPC): its CPU per agent-step. The ratio
 what the server adds per agent-step (gRPC, protobuf, the worker pool, the registry); with more
 threads it must not grow.
 
+The floor runs `--lockstep`: every env is stepped once before any is stepped again, as the
+clients step them. Free-running (each thread steps its share over and over), a floor with more
+threads than cores steps a thread's share several times within one time slice, from the core's
+cache, which no client's envs get (each is stepped once per call); its figure is reported
+beside ("free-running core").
+
 `mll_cli bench` is the load generator, so an operator can take the same figure against a
 deployment: scrape process_cpu_seconds_total and mll_agent_steps_total while it runs.
 
@@ -173,12 +179,12 @@ def measure_server(args, threads: int, n_landers: int, server_cores, client_core
         server.close()
 
 
-def measure_core(args, threads: int, n_landers: int, cores) -> dict:
+def measure_core(args, threads: int, n_landers: int, cores, lockstep: bool) -> dict:
     envs = args.clients * args.envs
     cpu_before = children_cpu_s()
     output = subprocess.run(
         _taskset(cores) + [args.core_timing, f"--envs={envs}", f"--n_landers={n_landers}", f"--threads={threads}",
-                           "--steps=1000000", f"--seconds={args.seconds}"],
+                           "--steps=1000000", f"--seconds={args.seconds}", f"--lockstep={str(lockstep).lower()}"],
         check=True, capture_output=True, text=True, timeout=args.seconds + 120,
     ).stdout
     result = json.loads(output.strip().splitlines()[-1])
@@ -222,9 +228,13 @@ def main() -> int:
             server_cores, client_cores = cores[:threads], cores[threads:]
         for n_landers in args.n_landers:
             server = measure_server(args, threads, n_landers, server_cores, client_cores)
-            core = measure_core(args, threads, n_landers, server_cores)
+            core = measure_core(args, threads, n_landers, server_cores, lockstep=True)
+            free_running = measure_core(args, threads, n_landers, server_cores, lockstep=False)
+            server_us = server["server_cpu_us_per_agent_step"]
             rows.append({"threads": threads, "n_landers": n_landers, "server": server, "core": core,
-                         "ratio": server["server_cpu_us_per_agent_step"] / core["cpu_us_per_agent_step"],
+                         "free_running_core": free_running,
+                         "ratio": server_us / core["cpu_us_per_agent_step"],
+                         "ratio_free_running": server_us / free_running["cpu_us_per_agent_step"],
                          "throughput_vs_core": server["agent_steps_per_s"] / core["agent_steps_per_s"]})
             disagreement = abs(server["server_cpu_s"] - server["server_proc_cpu_s"])
             if disagreement > max(0.05, 0.03 * server["server_proc_cpu_s"]):
@@ -236,13 +246,14 @@ def main() -> int:
           f"{len(cores)} cores{' pinned' if args.pin else ''}; load average {load_before[0]:.2f} before, "
           f"{load_after[0]:.2f} after\n")
     print("| T | landers | agent-steps/s | vs core | server CPU us/agent-step | core CPU us/agent-step | ratio "
-          "| context switches/call |")
-    print("|---|---|---|---|---|---|---|---|")
+          "| free-running core us/agent-step | ratio to it | context switches/call |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for row in rows:
         server, core = row["server"], row["core"]
         print(f"| {row['threads']} | {row['n_landers']} | {server['agent_steps_per_s']:,.0f} "
               f"| {row['throughput_vs_core']:.2f} | {server['server_cpu_us_per_agent_step']:.2f} "
               f"| {core['cpu_us_per_agent_step']:.2f} | {row['ratio']:.2f}x "
+              f"| {row['free_running_core']['cpu_us_per_agent_step']:.2f} | {row['ratio_free_running']:.2f}x "
               f"| {server['voluntary_switches_per_call']:.1f} |")
     print(json.dumps({"benchmark": "server_cpu", "clients": args.clients, "envs": args.envs,
                       "transport": args.transport, "seconds": args.seconds, "pin": args.pin, "cores": len(cores),
