@@ -61,9 +61,9 @@ class Operations {
   // a packed actions array of the wrong dtype or shape) calls done() before
   // returning, with no env stepped. `request` and `out` must live until
   // done() runs, and `owner`'s characters too. `recent` (null: none): the
-  // caller's recent packed batches, which a packed batch naming the same envs
-  // reuses and any other all of whose envs were found joins; it must not be
-  // used elsewhere until done() has run.
+  // caller's recent packed batches; a packed batch naming the same envs in
+  // the same order as one of them uses its slots, any other packed batch
+  // joins them. It must not be used elsewhere until done() has run.
   void StepBatch(const v1::StepBatchRequest& request,
                  v1::StepBatchResponse* out,
                  std::function<void(absl::Status)> done,
