@@ -27,7 +27,8 @@ import time
 import numpy as np
 import torch
 from stable_baselines3 import PPO
-from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.buffers import RolloutBuffer
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.utils import set_random_seed
 from stable_baselines3.common.vec_env import VecEnvWrapper, VecMonitor, VecNormalize
 
@@ -85,6 +86,43 @@ class NeighborCloseness(VecEnvWrapper):
             if "terminal_observation" in info:
                 info["terminal_observation"] = mll.neighbor_closeness(info["terminal_observation"])
         return mll.neighbor_closeness(observations), rewards, dones, infos
+
+
+class RealTransitionsBuffer(RolloutBuffer):
+    """SB3's rollout buffer, with minibatches of real transitions only. sb3_vec_env keeps a
+    finished lander's row until its environment resets, and each of those steps (infos[k]["idle"])
+    is a zero-reward episode end from the zero observation: on the paper's environment, where a
+    crashed lander's environment flies on for up to 2,000 steps, over a third of the rows. They
+    keep their place in each row's sequence (each is an episode end, so no advantage crosses
+    them) and are left out of the minibatches, as ppo_cleanrl.py leaves them out of its loss. Rows
+    whose infos carry no "idle" (the SuperSuit path) all count as real."""
+
+    def reset(self) -> None:
+        super().reset()
+        self.real = np.ones((self.buffer_size, self.n_envs), dtype=bool)
+
+    def mark_idle(self, infos) -> None:
+        """The infos of the step whose transitions add() stores next."""
+        self.real[self.pos] = [not info.get("idle", False) for info in infos]
+
+    def get(self, batch_size=None):
+        assert self.full
+        indices = np.random.permutation(np.flatnonzero(self.real.swapaxes(0, 1).ravel()))
+        if not self.generator_ready:  # As RolloutBuffer.get: env-major rows, as the indices.
+            for name in ("observations", "actions", "values", "log_probs", "advantages", "returns"):
+                self.__dict__[name] = self.swap_and_flatten(self.__dict__[name])
+            self.generator_ready = True
+        batch_size = batch_size or len(indices)
+        for start in range(0, len(indices), batch_size):
+            yield self._get_samples(indices[start:start + batch_size])
+
+
+class MarkIdleRows(BaseCallback):
+    """Tells the RealTransitionsBuffer which rows of each step were idle."""
+
+    def _on_step(self) -> bool:
+        self.model.rollout_buffer.mark_idle(self.locals["infos"])
+        return True
 
 
 class Scores(BaseCallback):
@@ -158,11 +196,12 @@ def main(argv=None):
             learning_rate=args.lr, gamma=args.gamma, gae_lambda=args.gae_lambda, clip_range=args.clip,
             ent_coef=args.ent_coef, vf_coef=args.vf_coef, max_grad_norm=args.max_grad_norm,
             seed=None if args.supersuit else args.seed, device="cpu", verbose=0,
+            rollout_buffer_class=RealTransitionsBuffer,
         )
         if args.supersuit:  # SuperSuit 3.11's SB3 wrapper cannot take SB3's env.seed(): seed the policy only.
             set_random_seed(args.seed)
         scores = Scores(args.envs, options["n_landers"])
-        model.learn(total_timesteps=args.total_steps, callback=scores)
+        model.learn(total_timesteps=args.total_steps, callback=CallbackList([MarkIdleRows(), scores]))
         env.close()
         trainer_common.write_csv(args.csv, ["lander_steps", "episodes", "mean_return"], scores.rows)
         scores.scores.write(args.episodes_csv)

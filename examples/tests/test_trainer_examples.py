@@ -9,6 +9,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 
 import multi_lunar_lander as mll
@@ -69,6 +70,30 @@ def test_ppo_recipe_trains_saves_reloads_and_evaluates(script, extra, tmp_path):
         from stable_baselines3 import PPO
 
         assert PPO.load(model, device="cpu").num_timesteps == 3072
+
+
+def test_sb3_minibatches_hold_real_transitions_only():
+    """ppo_sb3's RealTransitionsBuffer leaves the idle rows (a finished lander waiting for its
+    environment, the environment's reset step) out of SB3's minibatches: the rows marked idle are
+    exactly those stored with the zero observation, and every transition sampled is a real one."""
+    from stable_baselines3 import PPO
+
+    sys.path.insert(0, str(EXAMPLES))
+    import ppo_sb3
+
+    env = mll.sb3_vec_env(2, n_landers=3, max_cycles=100)
+    model = PPO("MlpPolicy", env, n_steps=128, batch_size=64, n_epochs=1, seed=1, device="cpu",
+                rollout_buffer_class=ppo_sb3.RealTransitionsBuffer)
+    model.learn(total_timesteps=128 * 6, callback=ppo_sb3.MarkIdleRows())  # One rollout of 6 landers.
+    env.close()
+    buffer = model.rollout_buffer
+    real = buffer.real.swapaxes(0, 1).ravel()  # Env-major, as the buffer's rows after training.
+    assert 0 < real.sum() < real.size  # Random landers crash at different steps: some rows idle.
+    observations = buffer.observations
+    assert np.all(observations[~real] == 0) and np.all(np.any(observations[real] != 0, axis=1))
+    sampled = [batch.observations.numpy() for batch in buffer.get(64)]
+    assert sum(len(batch) for batch in sampled) == real.sum()
+    assert all(np.any(batch != 0, axis=1).all() for batch in sampled)
 
 
 def _env_count(address):
