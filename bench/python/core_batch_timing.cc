@@ -41,6 +41,10 @@ ABSL_FLAG(uint64_t, seed, 0, "Env i is first reset with seed + i.");
 ABSL_FLAG(bool, lockstep, false,
           "Threads wait for each other after every round: each env is stepped "
           "once before any is stepped again.");
+ABSL_FLAG(
+    bool, rotate, false,
+    "With --lockstep: in round r thread t steps share (t + r) mod threads, "
+    "so each env moves to another thread (and core) every round.");
 
 namespace mll::core {
 namespace {
@@ -87,18 +91,22 @@ class RoundBarrier {
   bool go_on_ = true;
 };
 
-// Steps `slots` until `steps` or `deadline` (with `barrier`: until the
-// barrier says stop); returns the agent-steps taken.
-int64_t StepSlots(std::vector<Slot*> slots, int steps,
-                  Clock::time_point deadline, uint64_t seed,
-                  RoundBarrier* barrier) {
+// Thread `thread` steps its share of `shards` (with `rotate`, share
+// (thread + round) mod shards in each round) until `steps` or `deadline`
+// (with `barrier`: until the barrier says stop); returns the agent-steps
+// taken.
+int64_t StepSlots(const std::vector<std::vector<Slot*>>& shards, int thread,
+                  bool rotate, int steps, Clock::time_point deadline,
+                  uint64_t seed, RoundBarrier* barrier) {
   std::mt19937_64 rng(seed);
   int64_t agent_steps = 0;
+  const int count = static_cast<int>(shards.size());
   for (int step = 0;
        step < steps && (barrier != nullptr || Clock::now() < deadline);
        ++step) {
     if (barrier != nullptr && step > 0 && !barrier->Arrive()) break;
-    for (Slot* slot : slots) {
+    const int shard = rotate ? (thread + step) % count : thread;
+    for (Slot* slot : shards[shard]) {
       if (slot->env->episode_over()) {
         slot->env->Reset(std::nullopt, &slot->result);
         continue;
@@ -146,11 +154,16 @@ int Run() {
   std::vector<int64_t> counts(threads, 0);
   std::optional<RoundBarrier> barrier;
   if (absl::GetFlag(FLAGS_lockstep)) barrier.emplace(threads, deadline);
+  const bool rotate = absl::GetFlag(FLAGS_rotate);
+  if (rotate && !barrier.has_value()) {
+    std::fprintf(stderr, "--rotate needs --lockstep\n");
+    return 2;
+  }
   std::vector<std::thread> workers;
   for (int t = 0; t < threads; ++t) {
     workers.emplace_back([&, t] {
-      counts[t] = StepSlots(shards[t], absl::GetFlag(FLAGS_steps), deadline,
-                            absl::GetFlag(FLAGS_seed) + 1000 + t,
+      counts[t] = StepSlots(shards, t, rotate, absl::GetFlag(FLAGS_steps),
+                            deadline, absl::GetFlag(FLAGS_seed) + 1000 + t,
                             barrier.has_value() ? &*barrier : nullptr);
     });
   }
@@ -161,12 +174,13 @@ int Run() {
   for (int64_t count : counts) agent_steps += count;
   std::printf(
       "{\"envs\": %d, \"n_landers\": %d, \"threads\": %d, \"lockstep\": %s, "
-      "\"agent_steps\": "
+      "\"rotate\": %s, \"agent_steps\": "
       "%lld, "
       "\"seconds\": %.6f, \"agent_steps_per_s\": %.1f}\n",
       envs, config.n_landers, threads,
       absl::GetFlag(FLAGS_lockstep) ? "true" : "false",
-      static_cast<long long>(agent_steps), seconds, agent_steps / seconds);
+      rotate ? "true" : "false", static_cast<long long>(agent_steps), seconds,
+      agent_steps / seconds);
   return 0;
 }
 
