@@ -10,10 +10,10 @@ wrapper drops SB3's environment seeds, so there only the policy is seeded).
     python examples/ppo_sb3.py --evaluate ppo_sb3.zip --eval-episodes 100
 
 Rewards are clipped to +-100 (--clip-rewards) and scaled, and observations normalised, by SB3's
-VecNormalize with statistics of the real rows only (RealRowsNormalize; --neighbor-closeness: the
-policy sees the neighbours by mll.neighbor_closeness); the scores come from the landers' own
-returns, unscaled. After training (or with --evaluate PATH) the policy flies --eval-episodes
-episodes greedily and one JSON line gives its mean score and the share of landers per outcome.
+VecNormalize (--neighbor-closeness: the policy sees the neighbours by mll.neighbor_closeness); the
+scores come from the landers' own returns, unscaled. After training (or with
+--evaluate PATH) the policy flies --eval-episodes episodes greedily and one JSON line gives its
+mean score and the share of landers per outcome.
 
 Needs stable-baselines3 (`pip install 'multi_lunar_lander[sb3]'`; this repository's venv has
 2.4.1, which runs on Debian's torch 1.13) and, for --supersuit, supersuit.
