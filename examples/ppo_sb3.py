@@ -88,34 +88,6 @@ class NeighborCloseness(VecEnvWrapper):
         return mll.neighbor_closeness(observations), rewards, dones, infos
 
 
-class RealRowsNormalize(VecNormalize):
-    """SB3's VecNormalize whose running statistics count the landers' real rows only. Each step
-    sb3_vec_env returns the zero observation for every lander that has finished (it waits for
-    its environment's other landers) and a zero-reward transition for each waiting step
-    (infos[k]["idle"]); on the paper's environment that is over a third of the rows, and plain
-    VecNormalize would count them, pulling the observations' mean toward zero and their variance
-    up, and the returns' variance down. Here the observation statistics leave out the zero
-    placeholders and the return statistics the idle transitions; scaling itself is VecNormalize's,
-    applied to every row."""
-
-    def step_wait(self):
-        observations, rewards, dones, infos = self.venv.step_wait()
-        self.old_obs, self.old_reward = observations, rewards
-        if self.training:
-            placeholder = ~observations.any(axis=1)  # No real observation is exactly zero.
-            if self.norm_obs and not placeholder.all():
-                self.obs_rms.update(observations[~placeholder])
-            self.returns = self.returns * self.gamma + rewards
-            idle = np.array([info.get("idle", False) for info in infos])
-            if not idle.all():
-                self.ret_rms.update(self.returns[~idle])
-        for k in np.flatnonzero(dones):  # As VecNormalize: the final observations scaled too.
-            if "terminal_observation" in infos[k]:
-                infos[k]["terminal_observation"] = self.normalize_obs(infos[k]["terminal_observation"])
-        self.returns[dones] = 0
-        return self.normalize_obs(observations), self.normalize_reward(rewards), dones, infos
-
-
 class RealTransitionsBuffer(RolloutBuffer):
     """SB3's rollout buffer, with minibatches of real transitions only. sb3_vec_env keeps a
     finished lander's row until its environment resets, and each of those steps (infos[k]["idle"])
@@ -218,7 +190,7 @@ def main(argv=None):
             env = NeighborCloseness(env)
         if args.clip_rewards:
             env = ClipRewards(env, args.clip_rewards)
-        env = RealRowsNormalize(env, norm_obs=args.normalize_observations, norm_reward=True, gamma=args.gamma)
+        env = VecNormalize(env, norm_obs=args.normalize_observations, norm_reward=True, gamma=args.gamma)
         model = PPO(
             "MlpPolicy", env, n_steps=args.num_steps, batch_size=args.minibatch_size, n_epochs=args.epochs,
             learning_rate=args.lr, gamma=args.gamma, gae_lambda=args.gae_lambda, clip_range=args.clip,

@@ -96,39 +96,6 @@ def test_sb3_minibatches_hold_real_transitions_only():
     assert all(np.any(batch != 0, axis=1).all() for batch in sampled)
 
 
-def test_sb3_normalizer_statistics_count_real_rows_only():
-    """ppo_sb3's RealRowsNormalize keeps the observation statistics of the real observations
-    (not the zero placeholders of finished landers) and the return statistics of the real
-    transitions (not the idle ones): its running mean is the mean of exactly those rows."""
-    sys.path.insert(0, str(EXAMPLES))
-    import ppo_sb3
-
-    env = ppo_sb3.RealRowsNormalize(mll.sb3_vec_env(2, n_landers=3, max_cycles=100), gamma=0.99)
-    env.seed(1)
-    env.reset()
-    observations, returns, running = [env.get_original_obs()], [], np.zeros(env.num_envs)
-    rng = np.random.default_rng(1)
-    placeholders = idle_steps = 0
-    for _ in range(150):
-        _, _, dones, infos = env.step(rng.integers(0, 4, env.num_envs))
-        raw = env.get_original_obs()
-        real = raw.any(axis=1)
-        placeholders += int((~real).sum())
-        observations.append(raw[real])
-        idle = np.array([info.get("idle", False) for info in infos])
-        idle_steps += int(idle.sum())
-        running = running * 0.99 + env.get_original_reward()
-        returns.append(running[~idle])
-        running[dones] = 0
-    env.close()
-    assert placeholders > 0 and idle_steps > 0  # Random landers crash early: rows wait.
-    observations, returns = np.concatenate(observations), np.concatenate(returns)
-    assert env.obs_rms.count == pytest.approx(len(observations), abs=1e-3)
-    np.testing.assert_allclose(env.obs_rms.mean, observations.mean(axis=0), rtol=1e-4, atol=1e-5)
-    assert env.ret_rms.count == pytest.approx(len(returns), abs=1e-3)
-    assert env.ret_rms.mean == pytest.approx(returns.mean(), rel=1e-4, abs=1e-5)
-
-
 def _env_count(address):
     return len(listed_names(address))
 
