@@ -23,6 +23,10 @@ memory would bypass the link):
 The proxies run under SCHED_FIFO (delay_proxy --realtime) unless --no-proxy_realtime: on a machine
 whose cores the server and client keep busy, a proxy that waits for a CPU would add to the delay.
 
+With --direct every configuration is also measured straight to the server's address (column
+"direct (no proxy)"): what a client on the server's host gets over TCP, with no proxy's CPU or
+hand-off in the way.
+
 Each measurement: a fresh env (created through the link), a warm-up of --warmup calls, then up to
 --steps calls or --seconds, whichever ends first; env-steps = calls x envs per call. --rounds rounds,
 each running every configuration at every RTT in turn (one proxy per RTT for the whole run);
@@ -279,6 +283,8 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=3.0, help="time per measurement, at most")
     parser.add_argument("--warmup", type=int, default=20, help="calls before each measurement")
     parser.add_argument("--no_envpool", action="store_true", help="skip EnvPool's row")
+    parser.add_argument("--direct", action="store_true",
+                        help="also measure every configuration straight to the server, no proxy (column 'direct')")
     parser.add_argument("--proxy_realtime", action=argparse.BooleanOptionalAction, default=True,
                         help="run the proxies under SCHED_FIFO (delay_proxy --realtime; without CAP_SYS_NICE they "
                         "warn and run normally): a link's delay should not grow with the endpoints' CPU load")
@@ -322,7 +328,9 @@ def main() -> int:
             for envs, batch in args.async_configs:
                 cli_sides[f"cpp async {envs}x{batch}"] = (envs, batch)
     names = [*sides, *cli_sides]
-    results: dict[str, dict[float, list[dict]]] = {name: {rtt: [] for rtt in rtts} for name in names}
+    # The columns: "direct" (no proxy) with --direct, then each RTT through its proxy.
+    columns: list[float | str] = (["direct"] if args.direct else []) + rtts
+    results: dict[str, dict[float | str, list[dict]]] = {name: {column: [] for column in columns} for name in names}
     envpool_results: list[dict] = []
     load_before, pressure_before, ticks_before = os.getloadavg(), cpu_pressure(), cpu_ticks()
     proxies: dict[float, DelayProxy] = {}
@@ -330,20 +338,24 @@ def main() -> int:
         try:
             for rtt in rtts:
                 proxies[rtt] = DelayProxy(args.proxy, server.address, round(rtt * 500), args.proxy_realtime)
+
+            def link(column) -> str:
+                return server.address if column == "direct" else proxies[column].address
+
             for _ in range(args.rounds):
                 # Each configuration at every RTT in turn: its ratios compare runs seconds apart.
                 for name, make in sides.items():
-                    for rtt in rtts:
-                        side = make(proxies[rtt].address)
+                    for column in columns:
+                        side = make(link(column))
                         try:
-                            results[name][rtt].append(measure(side, server.pid, args.warmup, args.steps,
-                                                              args.seconds))
+                            results[name][column].append(measure(side, server.pid, args.warmup, args.steps,
+                                                                 args.seconds))
                         finally:
                             side.close()
                 for name, (envs, batch) in cli_sides.items():
-                    for rtt in rtts:
-                        results[name][rtt].append(measure_cli(args.cli, proxies[rtt].address, server.pid, envs,
-                                                              args.seconds, batch))
+                    for column in columns:
+                        results[name][column].append(measure_cli(args.cli, link(column), server.pid, envs,
+                                                                 args.seconds, batch))
                 if envpool is not None:
                     side = EnvPoolAsync(envpool, args.envs, 64, args.threads, table)
                     try:
@@ -363,13 +375,18 @@ def main() -> int:
           f"(10 s / 60 s) {pressure_before} at start, {pressure_after} at the end; CPU time stolen by the "
           f"hypervisor {steal:.1%}; "
           f"mll_server --threads={args.threads}, {args.rounds} rounds, transport={TRANSPORT}, 1 lander per env")
-    header = " | ".join(f"RTT {rtt:g} ms" + (" (proxy)" if rtt == 0 else "") for rtt in rtts)
+    header = " | ".join(["direct (no proxy)"] * args.direct + [f"RTT {rtt:g} ms" + (" (proxy)" if rtt == 0 else "")
+                                                                 for rtt in rtts])
     print(f"| configuration | {header} | CPU us per env-step, RTT 0 |")
-    print("|---" * (len(rtts) + 2) + "|")
+    print("|---" * (len(columns) + 2) + "|")
     summary: dict[str, dict] = {}
     for name in names:
         cells = []
         summary[name] = {}
+        if args.direct:
+            rate = median([run["env_steps_per_s"] for run in results[name]["direct"]])
+            summary[name]["direct"] = {"env_steps_per_s": rate}
+            cells.append(f"{rate:,.0f}")
         for rtt in rtts:
             rates = [run["env_steps_per_s"] for run in results[name][rtt]]
             ratios = [run["env_steps_per_s"] / base["env_steps_per_s"]
@@ -383,7 +400,7 @@ def main() -> int:
         cpu = median([run["cpu_us_per_env_step"] for run in envpool_results])
         summary["envpool async (in-process)"] = {0.0: {"env_steps_per_s": rate}}
         print(f"| EnvPool {envpool.__version__} async {args.envs}x64, in-process, {args.threads} threads | "
-              f"{rate:,.0f} |{' |' * (len(rtts) - 1)} {cpu:.1f} |")
+              f"{'|' * args.direct} {rate:,.0f} |{' |' * (len(rtts) - 1)} {cpu:.1f} |")
     print()
     for rtt in rtts:
         stats = proxies[rtt].stats
@@ -396,10 +413,12 @@ def main() -> int:
         if 2.0 in rtts:
             print(f"{name}: at RTT 2 ms, {summary[name][2.0]['ratio_to_rtt0']:.2f} of its RTT-0 throughput "
                   "(target >= 0.8)")
-        ratio = median([run["env_steps_per_s"] / sync["env_steps_per_s"]
-                        for run, sync in zip(results[name][0.0], results[sync_name][0.0])])
-        summary[name]["ratio_to_sync_at_rtt0"] = ratio
-        print(f"{name}: at RTT 0, {ratio:.2f} x sync {args.envs} (median of the rounds' ratios; target >= 1)")
+        for column in columns[: 1 + args.direct]:  # Direct (with --direct), then RTT 0.
+            ratio = median([run["env_steps_per_s"] / sync["env_steps_per_s"]
+                            for run, sync in zip(results[name][column], results[sync_name][column])])
+            summary[name][f"ratio_to_sync_{'direct' if column == 'direct' else 'at_rtt0'}"] = ratio
+            where = "directly (no proxy)" if column == "direct" else "at RTT 0"
+            print(f"{name}: {where}, {ratio:.2f} x sync {args.envs} (median of the rounds' ratios; target >= 1 at RTT 0)")
     print(json.dumps({"args": {**vars(args), "async_configs": [f"{n}x{k}" for n, k in args.async_configs]},
                       "load_average": [load_before, load_after],
                       "cpu_pressure": [pressure_before, pressure_after], "steal": steal, "summary": {n: {str(r): v for r, v in s.items()}
