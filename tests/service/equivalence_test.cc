@@ -3,6 +3,7 @@
 // by StepAgent (AEC, once every agent acted), by StepBatch, or on a Session
 // stream, and whatever the server's thread count.
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "gmock/gmock.h"
@@ -198,6 +199,51 @@ TEST_F(EquivalenceTest, SessionMatchesTheCore) {
       }
     }
     stream->WritesDone();
+    EXPECT_TRUE(stream->Finish().ok());
+    EXPECT_EQ(got, expected_[e]) << "seed " << kSeeds[e];
+  }
+}
+
+// A client whose writer runs ahead of its reader (the server runs a stream's
+// requests one at a time, reading the next and writing earlier answers
+// meanwhile): the steps of one env, each batch on the worker pool, still run
+// in request order, every answer comes in order, and a half-close ends the
+// stream only once all of them are written.
+TEST_F(EquivalenceTest, PipelinedSessionMatchesTheCoreAndAnswersAllBeforeEnding) {
+  ServiceOptions options;
+  options.threads = 2;
+  InProcess s(options);
+  for (size_t e = 0; e < kSeeds.size(); ++e) {
+    const std::string name = CreateEnv(*s.stub, Request());
+    grpc::ClientContext context;
+    auto stream = s.stub->Session(&context);
+    std::thread writer([&] {
+      uint64_t sequence = 0;
+      v1::SessionRequest reset;
+      reset.set_sequence(++sequence);
+      *reset.mutable_reset_env() = ResetRequest(name, kSeeds[e]);
+      EXPECT_TRUE(stream->Write(reset));
+      for (size_t c = 0; c + 1 < expected_[e].size(); ++c) {
+        v1::SessionRequest step;
+        step.set_sequence(++sequence);
+        *step.mutable_step_batch()->add_steps() =
+            StepRequest(name, actions_[e][c]);
+        EXPECT_TRUE(stream->Write(step));
+      }
+      stream->WritesDone();
+    });
+    Trajectory got;
+    v1::SessionResponse response;
+    for (uint64_t expected = 1; stream->Read(&response); ++expected) {
+      EXPECT_EQ(response.sequence(), expected);
+      EXPECT_FALSE(response.has_error()) << response.error().message();
+      const v1::StepData& data =
+          response.has_reset_env()
+              ? response.reset_env().data()
+              : response.step_batch().results(0).data();
+      got.push_back(ResultBits(data));
+    }
+    writer.join();
     EXPECT_TRUE(stream->Finish().ok());
     EXPECT_EQ(got, expected_[e]) << "seed " << kSeeds[e];
   }

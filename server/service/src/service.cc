@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <deque>
 #include <functional>
 #include <optional>
 #include <string>
@@ -19,6 +20,7 @@
 #include "google/protobuf/io/coded_stream.h"
 #include "google/protobuf/wire_format_lite.h"
 #include "grpcpp/support/byte_buffer.h"
+#include "grpcpp/support/slice.h"
 #include "mll/service/convert.h"
 #include "mll/service/server_info.h"
 #include "mll/session_ops.h"
@@ -369,11 +371,17 @@ class SessionMessages {
   std::unique_ptr<v1::StepBatchResponse> kept_response_batch_;
 };
 
-// One Session stream: reads a request, runs it, writes its response, reads
-// the next; so responses come in request order and at most one operation of
-// the stream is in flight. Envs it created (not detached) are deleted when
-// the stream ends, however it ends. The caller is authenticated once, when
-// the stream opens; every request then acts as that owner.
+// One Session stream: runs its requests one at a time, in order, and writes
+// their answers in the same order. The stream is pipelined: the next request
+// is read while one runs, and starts as soon as the one before it is done,
+// while that one's answer is still being written; so a client with several
+// requests in flight keeps the workers busy between them. At most one
+// request waits, read but not run, and at most kQueuedAnswers answers wait
+// for the client to take them; past that the stream reads no more (the
+// client's requests wait in HTTP/2 flow control). Envs it created (not
+// detached) are deleted when the stream ends, however it ends. The caller is
+// authenticated once, when the stream opens; every request then acts as that
+// owner.
 //
 // After attach_shared_memory succeeds, the requests come through the
 // session's shared-memory region instead (mll/shared_memory_pipe.h), served
@@ -381,10 +389,11 @@ class SessionMessages {
 // session's life, and a request sent on it gets FAILED_PRECONDITION.
 //
 // Draining (Drain, from the tracker) ends the stream with UNAVAILABLE
-// "draining: ..." at once when it waits for a request, else after the
-// operation in flight has answered; a request read after that is not run.
-// gRPC runs no read or write reaction inline, so the stream's operations
-// are started under mu_.
+// "draining: ..." at once when nothing runs or waits to be written, else
+// once the running request has answered; a request read but not yet run is
+// not run. A client that half-closes gets the answers to everything it sent
+// first. gRPC runs no read or write reaction inline, so the stream's
+// operations are started under mu_; a request runs outside it.
 class SessionReactor final
     : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc::ByteBuffer>,
       public DrainableSession {
@@ -421,57 +430,48 @@ class SessionReactor final
     absl::MutexLock lock(&mu_);
     if (finished_ || drain_asked_) return;
     drain_asked_ = true;
-    if (reading_) FinishDraining();
+    EndIfDone();
   }
 
   void OnReadDone(bool ok) override {
+    std::optional<ReadRequest> next;
     {
       absl::MutexLock lock(&mu_);
       reading_ = false;
       if (finished_) return;  // Drained: the request, if any, is not run.
       if (!ok) {  // The client half-closed, or the call was cancelled.
-        EndStream();
+        half_closed_ = true;
+        EndIfDone();
         return;
       }
+      waiting_request_.emplace();
+      waiting_request_->readable =
+          read_buffer_.DumpToSingleSlice(&waiting_request_->bytes).ok();
+      read_buffer_.Clear();
+      next = TakeNextRequest();
     }
-    timer_.Restart();
-    messages_.ClearResponse();
-    grpc::Slice bytes;
-    if (!read_buffer_.DumpToSingleSlice(&bytes).ok() ||
-        !messages_.ParseRequest(absl::string_view(
-            reinterpret_cast<const char*>(bytes.begin()), bytes.size()))) {
-      Respond(absl::InvalidArgumentError(
-          "request: not a serialized SessionRequest"));
-      return;
-    }
-    const v1::SessionRequest& request = messages_.request();
-    messages_.response().set_sequence(request.sequence());
-    if (region_ != nullptr) {
-      Respond(absl::FailedPreconditionError(absl::StrCat(
-          "op: sent on the stream (sequence ", request.sequence(),
-          ") of a session attached to shared memory; allowed: requests "
-          "through the shared-memory region")));
-      return;
-    }
-    if (request.op_case() == v1::SessionRequest::kAttachSharedMemory) {
-      Respond(AttachSharedMemory());
-      return;
-    }
-    Execute(messages_, [this](absl::Status status) { Respond(status); });
+    Drive(std::move(next));
   }
 
   void OnWriteDone(bool ok) override {
-    absl::MutexLock lock(&mu_);
-    if (!ok) {  // The stream broke; nobody reads any more answers.
-      EndStream();
-      return;
+    std::optional<ReadRequest> next;
+    {
+      absl::MutexLock lock(&mu_);
+      writing_ = false;
+      answers_.pop_front();
+      if (!ok) {  // The stream broke; nobody reads any more answers.
+        broken_ = true;
+        EndIfDone();
+        return;
+      }
+      if (!answers_.empty()) {
+        writing_ = true;
+        StartWrite(&answers_.front());
+      }
+      if (EndIfDone()) return;
+      next = TakeNextRequest();
     }
-    if (drain_asked_) {
-      FinishDraining();
-      return;
-    }
-    reading_ = true;
-    StartRead(&read_buffer_);
+    Drive(std::move(next));
   }
 
   // Also covers a stream that ended without EndStream (e.g. cancelled while a
@@ -485,6 +485,88 @@ class SessionReactor final
   }
 
  private:
+  // Answers that may wait to be written, the one being written included.
+  static constexpr size_t kQueuedAnswers = 2;
+
+  // A request as read from the stream.
+  struct ReadRequest {
+    grpc::Slice bytes;
+    bool readable = false;  // Its bytes could be taken from gRPC's buffer.
+  };
+
+  // The waiting request, to run now if nothing runs and its answer has room;
+  // the next read starts once it is taken. Under mu_.
+  std::optional<ReadRequest> TakeNextRequest()
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_) {
+    if (running_ || !waiting_request_.has_value() || finished_ ||
+        drain_asked_ || broken_ || answers_.size() >= kQueuedAnswers) {
+      return std::nullopt;
+    }
+    std::optional<ReadRequest> next = std::move(waiting_request_);
+    waiting_request_.reset();
+    running_ = true;
+    if (!reading_ && !half_closed_) {
+      reading_ = true;
+      StartRead(&read_buffer_);
+    }
+    return next;
+  }
+
+  // Ends the stream if it is over: broken, drained or half-closed, with no
+  // request running and, unless broken, every answer written. Under mu_;
+  // true if it ended.
+  bool EndIfDone() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_) {
+    if (finished_ || running_ || writing_) return false;
+    if (broken_) {
+      EndStream();
+      return true;
+    }
+    if (!answers_.empty()) return false;
+    if (drain_asked_) {
+      FinishDraining();
+      return true;
+    }
+    if (half_closed_ && !waiting_request_.has_value()) {
+      EndStream();
+      return true;
+    }
+    return false;
+  }
+
+  // Runs `next` and then each request that waits when the one before it is
+  // answered, all on this thread, until none waits. A StepBatch's items run
+  // on this thread and the idle workers (WorkerPool::ParallelFor), so the
+  // thread waits for the workers before it answers and goes on.
+  void Drive(std::optional<ReadRequest> next) {
+    while (next.has_value()) next = Answer(RunReadRequest(*next));
+  }
+
+  // Runs one serialized request into messages_.response(). Only one runs at
+  // a time (running_), so it has messages_ to itself.
+  absl::Status RunReadRequest(const ReadRequest& read) {
+    timer_.Restart();
+    messages_.ClearResponse();
+    if (!read.readable ||
+        !messages_.ParseRequest(absl::string_view(
+            reinterpret_cast<const char*>(read.bytes.begin()),
+            read.bytes.size()))) {
+      return absl::InvalidArgumentError(
+          "request: not a serialized SessionRequest");
+    }
+    const v1::SessionRequest& request = messages_.request();
+    messages_.response().set_sequence(request.sequence());
+    if (region_ != nullptr) {
+      return absl::FailedPreconditionError(absl::StrCat(
+          "op: sent on the stream (sequence ", request.sequence(),
+          ") of a session attached to shared memory; allowed: requests "
+          "through the shared-memory region"));
+    }
+    if (request.op_case() == v1::SessionRequest::kAttachSharedMemory) {
+      return AttachSharedMemory();
+    }
+    return ExecuteAndWait(messages_);
+  }
+
   // The bound envs go before the final status does, so a client that sees
   // the stream end never finds them still listed. Under mu_.
   void EndStream() {
@@ -495,7 +577,7 @@ class SessionReactor final
   }
 
   // As EndStream, with the status that tells the client to move. Under mu_,
-  // with no operation in flight on the stream.
+  // with no request running and no answer waiting.
   void FinishDraining() {
     finished_ = true;
     StopServingSharedMemory();
@@ -519,18 +601,24 @@ class SessionReactor final
                     &recent_batches_);
   }
 
-  // Runs messages.request() into messages.response(), then done(status): at
-  // once, or on the worker pool once a StepBatch's items are done.
-  void Execute(SessionMessages& messages,
-               std::function<void(absl::Status)> done) {
+  // Runs messages.request() into messages.response() and returns its
+  // status; a StepBatch's items on this thread and the idle workers, which
+  // it waits for.
+  absl::Status ExecuteAndWait(SessionMessages& messages) {
     const v1::SessionRequest& request = messages.request();
-    if (request.op_case() == v1::SessionRequest::kStepBatch) {
-      dispatch().StepBatch(request.step_batch(),
-                           messages.StepBatchResponse(request.step_batch()),
-                           std::move(done));
-      return;
+    if (request.op_case() != v1::SessionRequest::kStepBatch) {
+      return Run(request, &messages.response());
     }
-    done(Run(request, &messages.response()));
+    absl::Status status;
+    absl::Notification finished;
+    dispatch().StepBatch(request.step_batch(),
+                         messages.StepBatchResponse(request.step_batch()),
+                         [&](absl::Status done) {
+                           status = std::move(done);
+                           finished.Notify();
+                         });
+    finished.WaitForNotification();
+    return status;
   }
 
   // Runs a request that completes in the call: its RPC's Dispatch method
@@ -570,30 +658,42 @@ class SessionReactor final
     return status;
   }
 
-  void Respond(const absl::Status& status) {
+  // Queues the running request's answer (messages_.response(), or the
+  // error `status`) to be written; returns the next request to run, if one
+  // waits and may run now.
+  std::optional<ReadRequest> Answer(const absl::Status& status) {
     timer_.Record(status);
     v1::SessionResponse& response = messages_.response();
     if (!status.ok()) {
       response.clear_result();
       FillItemError(status, response.mutable_error());
     }
+    grpc::ByteBuffer answer;
     bool own_buffer;
-    write_buffer_.Clear();  // The last write is done: no read is started
-                            // before it is.
     const grpc::Status serialized =
         grpc::SerializationTraits<v1::SessionResponse>::Serialize(
-            response, &write_buffer_, &own_buffer);
+            response, &answer, &own_buffer);
     if (!serialized.ok()) {
       response.clear_result();
       FillItemError(
           absl::InternalError(absl::StrCat("response: cannot be serialized (",
                                            serialized.error_message(), ")")),
           response.mutable_error());
-      write_buffer_.Clear();
+      answer.Clear();
       (void)grpc::SerializationTraits<v1::SessionResponse>::Serialize(
-          response, &write_buffer_, &own_buffer);
+          response, &answer, &own_buffer);
     }
-    StartWrite(&write_buffer_);
+    absl::MutexLock lock(&mu_);
+    running_ = false;
+    if (!finished_ && !broken_) {
+      answers_.push_back(std::move(answer));
+      if (!writing_) {
+        writing_ = true;
+        StartWrite(&answers_.front());
+      }
+    }
+    if (EndIfDone()) return std::nullopt;
+    return TakeNextRequest();
   }
 
   // Creates the session's region and starts the thread that serves it.
@@ -656,12 +756,7 @@ class SessionReactor final
               "request: not a serialized SessionRequest");
         } else {
           response.set_sequence(messages.request().sequence());
-          absl::Notification finished;
-          Execute(messages, [&](absl::Status done) {
-            status = std::move(done);
-            finished.Notify();
-          });
-          finished.WaitForNotification();
+          status = ExecuteAndWait(messages);
         }
       }
       timer.Record(status);
@@ -706,20 +801,31 @@ class SessionReactor final
   const bool local_peer_;
   bool tracked_ = false;  // Added to tracker_ (an admitted stream).
   absl::Mutex mu_;
-  // A read is pending: no operation of the stream is in flight.
+  // A read is pending.
   bool reading_ ABSL_GUARDED_BY(mu_) = false;
+  // A request runs (Run to Answer).
+  bool running_ ABSL_GUARDED_BY(mu_) = false;
+  // The answer at the front of answers_ is being written.
+  bool writing_ ABSL_GUARDED_BY(mu_) = false;
   // Finish was called (or is about to be, by EndStream).
   bool finished_ ABSL_GUARDED_BY(mu_) = false;
-  // Drain was called: the stream ends after the operation in flight.
+  // Drain was called: the stream ends once the running request answered.
   bool drain_asked_ ABSL_GUARDED_BY(mu_) = false;
+  // The client half-closed: the stream ends once everything is answered.
+  bool half_closed_ ABSL_GUARDED_BY(mu_) = false;
+  // A write failed: the stream ends once no request runs.
+  bool broken_ ABSL_GUARDED_BY(mu_) = false;
+  // A request read and not yet run.
+  std::optional<ReadRequest> waiting_request_ ABSL_GUARDED_BY(mu_);
+  // Answers to write, in request order; the front one is being written.
+  std::deque<grpc::ByteBuffer> answers_ ABSL_GUARDED_BY(mu_);
   // Points into the Authenticator, which outlives every call.
   absl::string_view owner_;
-  // The stream's one operation at a time uses them.
+  // The running request uses them.
   RecentBatches recent_batches_;
   CallTimer timer_;
-  grpc::ByteBuffer read_buffer_;
   SessionMessages messages_;
-  grpc::ByteBuffer write_buffer_;
+  grpc::ByteBuffer read_buffer_;
   absl::flat_hash_set<std::string> bound_envs_;
   // Set while the session is attached to shared memory.
   SharedMemorySessions::Slot slot_;
