@@ -209,7 +209,8 @@ TEST_F(EquivalenceTest, SessionMatchesTheCore) {
 // meanwhile): the steps of one env, each batch on the worker pool, still run
 // in request order, every answer comes in order, and a half-close ends the
 // stream only once all of them are written.
-TEST_F(EquivalenceTest, PipelinedSessionMatchesTheCoreAndAnswersAllBeforeEnding) {
+TEST_F(EquivalenceTest,
+       PipelinedSessionMatchesTheCoreAndAnswersAllBeforeEnding) {
   ServiceOptions options;
   options.threads = 2;
   InProcess s(options);
@@ -237,10 +238,9 @@ TEST_F(EquivalenceTest, PipelinedSessionMatchesTheCoreAndAnswersAllBeforeEnding)
     for (uint64_t expected = 1; stream->Read(&response); ++expected) {
       EXPECT_EQ(response.sequence(), expected);
       EXPECT_FALSE(response.has_error()) << response.error().message();
-      const v1::StepData& data =
-          response.has_reset_env()
-              ? response.reset_env().data()
-              : response.step_batch().results(0).data();
+      const v1::StepData& data = response.has_reset_env()
+                                     ? response.reset_env().data()
+                                     : response.step_batch().results(0).data();
       got.push_back(ResultBits(data));
     }
     writer.join();

@@ -526,7 +526,8 @@ class SessionReactor final
       FinishDraining();
       return true;
     }
-    if (half_closed_ && !waiting_request_.has_value()) {
+    // A read starts only once no request waits, so none waits here.
+    if (half_closed_) {
       EndStream();
       return true;
     }
@@ -546,10 +547,9 @@ class SessionReactor final
   absl::Status RunReadRequest(const ReadRequest& read) {
     timer_.Restart();
     messages_.ClearResponse();
-    if (!read.readable ||
-        !messages_.ParseRequest(absl::string_view(
-            reinterpret_cast<const char*>(read.bytes.begin()),
-            read.bytes.size()))) {
+    if (!read.readable || !messages_.ParseRequest(absl::string_view(
+                              reinterpret_cast<const char*>(read.bytes.begin()),
+                              read.bytes.size()))) {
       return absl::InvalidArgumentError(
           "request: not a serialized SessionRequest");
     }
@@ -803,7 +803,7 @@ class SessionReactor final
   absl::Mutex mu_;
   // A read is pending.
   bool reading_ ABSL_GUARDED_BY(mu_) = false;
-  // A request runs (Run to Answer).
+  // A request runs (from TakeNextRequest to Answer).
   bool running_ ABSL_GUARDED_BY(mu_) = false;
   // The answer at the front of answers_ is being written.
   bool writing_ ABSL_GUARDED_BY(mu_) = false;
