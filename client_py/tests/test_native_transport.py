@@ -244,6 +244,9 @@ def test_ctrl_c_interrupts_a_step_that_waits_for_a_stalled_server(transport):
     import threading
     import time
 
+    # A process started in the background by a non-interactive shell inherits SIGINT ignored, and
+    # then Python installs no Ctrl-C handler (interrupt_main would do nothing): install it here.
+    previous_handler = signal.signal(signal.SIGINT, signal.default_int_handler)
     server = mll.ServerProcess(threads=1)
     try:
         vector = mll.vector_env(2, address=server.address, n_landers=1, transport=transport)
@@ -264,6 +267,8 @@ def test_ctrl_c_interrupts_a_step_that_waits_for_a_stalled_server(transport):
                 if interrupted.wait(0.5):
                     return
                 _thread.interrupt_main()
+            if not interrupted.wait(0.5):  # Never interrupted: let the step finish, the test fail.
+                os.kill(server.pid, signal.SIGCONT)
 
         presser = threading.Thread(target=press_ctrl_c)
         presser.start()
@@ -282,3 +287,4 @@ def test_ctrl_c_interrupts_a_step_that_waits_for_a_stalled_server(transport):
         vector.close()
     finally:
         server.stop()
+        signal.signal(signal.SIGINT, previous_handler)
