@@ -94,7 +94,8 @@ def train(args) -> tuple[ppo_common.Agent, ppo_common.ObservationScale | None, l
                            time.perf_counter() - started)
 
         advantages, targets = ppo_common.advantages(  # A truncated episode bootstraps from its final observation.
-            agent, next_observations, rewards, values, terminated, done, args.gamma, args.gae_lambda
+            agent, next_observations, rewards, values, terminated, done, args.gamma, args.gae_lambda,
+            (valid, landers) if args.team_credit else None,
         )
         rows = valid.flatten().nonzero().squeeze(-1)  # Real transitions only.
         batch = tuple(

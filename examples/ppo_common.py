@@ -35,6 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
                         help="scale observations by their running mean and variance")
     parser.add_argument("--neighbor-closeness", action=argparse.BooleanOptionalAction, default=False,
                         help="the policy sees the neighbours by closeness (mll.neighbor_closeness)")
+    parser.add_argument("--team-credit", action=argparse.BooleanOptionalAction, default=False,
+                        help="credit every lander with its environment's summed rewards, also after it is done")
     parser.add_argument("--clip-rewards", type=float, default=100.0, metavar="C",
                         help="clip each reward the learner sees to [-C, C] before scaling it (0: no clipping)")
     parser.add_argument("--save", default=None, metavar="PATH", help="write the trained policy")
@@ -108,19 +110,51 @@ class Agent(nn.Module):
         return action, distribution.log_prob(action), distribution.entropy(), self.value(x)
 
 
+def team_credit(rewards, valid, next_values, goes_on, landers: int):
+    """Credits every lander with its team's return. All arguments are [steps, rows] tensors whose
+    rows hold environments' landers side by side (row k is lander k % landers of environment
+    k // landers): the rewards, which transitions are real (`valid`), each row's value of its next
+    observation, and whether that value counts (`goes_on`: the lander flies on, or was cut off and
+    bootstraps its final observation). Returns (team rewards, next values) per row: the rewards of
+    the environment's real transitions on that step summed, and the row's own next value where it
+    goes on, else the mean next value of the environment's landers that go on (0 when none does).
+    So a lander that lands first still earns what its neighbours earn after it: with shared
+    rewards its own return would lose their landings, and every lander would wait for the others."""
+    by_env = (rewards.shape[0], -1, landers)
+    per_row = lambda per_env: per_env.expand(by_env).reshape(rewards.shape)  # noqa: E731
+    team_rewards = per_row((rewards * valid).view(by_env).sum(-1, keepdim=True))
+    on = goes_on.float().view(by_env)
+    team_next = per_row((next_values.view(by_env) * on).sum(-1, keepdim=True) / on.sum(-1, keepdim=True).clamp(min=1))
+    return team_rewards, torch.where(goes_on, next_values, team_next)
+
+
 @torch.no_grad()
-def advantages(agent: Agent, next_observations, rewards, values, terminated, done, gamma: float, lam: float):
+def advantages(agent: Agent, next_observations, rewards, values, terminated, done, gamma: float, lam: float,
+               team: tuple | None = None):
     """GAE over a rollout whose first axis is time and whose other axes are independent
     sequences (each sequence contiguous in time): returns (advantages, value targets). A
-    truncated episode bootstraps from its final observation (next_observations)."""
+    truncated episode bootstraps from its final observation (next_observations). With `team` =
+    (valid, landers), every lander is credited with its team's return (team_credit)."""
     next_values = agent.value(next_observations)
-    deltas = rewards + gamma * next_values * (1 - terminated) - values
-    result = torch.zeros_like(rewards)
-    running = torch.zeros(rewards.shape[1:])
-    for step in reversed(range(rewards.shape[0])):
-        running = deltas[step] + gamma * lam * (1 - done[step]) * running
-        result[step] = running
+    if team is None:
+        deltas = rewards + gamma * next_values * (1 - terminated) - values
+    else:
+        valid, landers = team
+        team_rewards, next_values = team_credit(rewards, valid, next_values, valid & (terminated == 0), landers)
+        deltas = team_rewards + gamma * next_values - values
+    result = discounted_sums(deltas, done, gamma * lam)
     return result, result + values
+
+
+def discounted_sums(deltas, done, discount: float):
+    """GAE's backward pass: each step's delta plus `discount` times the next step's sum, the
+    sequences cut after every step whose `done` is set (time is the first axis)."""
+    result = torch.zeros_like(deltas)
+    running = torch.zeros(deltas.shape[1:])
+    for step in reversed(range(deltas.shape[0])):
+        running = deltas[step] + discount * (1 - done[step]) * running
+        result[step] = running
+    return result
 
 
 def update(agent: Agent, optimizer, batch, args) -> dict[str, float]:

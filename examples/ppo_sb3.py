@@ -102,13 +102,45 @@ class RealTransitionsBuffer(RolloutBuffer):
     them) and are left out of the minibatches, as ppo_cleanrl.py leaves them out of its loss. Rows
     whose infos carry no "idle" (the SuperSuit path) all count as real."""
 
+    def __init__(self, *args, team_landers: int = 0, **kwargs):
+        """team_landers: the landers per environment when every lander is credited with its
+        team's return (ppo_common.team_credit); 0: each with its own rewards, as SB3 does."""
+        self.team_landers = team_landers
+        super().__init__(*args, **kwargs)
+
     def reset(self) -> None:
         super().reset()
-        self.real = np.ones((self.buffer_size, self.n_envs), dtype=bool)
+        shape = (self.buffer_size, self.n_envs)
+        self.real = np.ones(shape, dtype=bool)
+        # Each step's rewards as the env gave them (SB3 adds gamma * V(final observation) to a cut
+        # off episode's last reward before add()), and which rows ended their episode.
+        self.step_rewards = np.zeros(shape, dtype=np.float32)
+        self.ended = np.zeros(shape, dtype=bool)
+        self.cut_off = np.zeros(shape, dtype=bool)
 
-    def mark_idle(self, infos) -> None:
-        """The infos of the step whose transitions add() stores next."""
+    def mark_step(self, rewards, dones, infos) -> None:
+        """The step whose transitions add() stores next."""
         self.real[self.pos] = [not info.get("idle", False) for info in infos]
+        self.step_rewards[self.pos] = rewards
+        self.ended[self.pos] = dones
+        self.cut_off[self.pos] = [info.get("TimeLimit.truncated", False) for info in infos]
+
+    def compute_returns_and_advantage(self, last_values: torch.Tensor, dones: np.ndarray) -> None:
+        if not self.team_landers:
+            return super().compute_returns_and_advantage(last_values, dones)
+        # The value of each row's next observation: the next step's value where the lander flies
+        # on, the bootstrap SB3 added to the reward where it was cut off.
+        following = np.concatenate([self.values[1:], last_values.cpu().numpy().reshape(1, -1)])
+        final = (self.rewards - self.step_rewards) / self.gamma
+        next_values = np.where(self.ended, final, following)
+        as_tensor = torch.from_numpy
+        team_rewards, next_values = ppo_common.team_credit(
+            as_tensor(self.step_rewards), as_tensor(self.real), as_tensor(next_values),
+            as_tensor(self.real & (~self.ended | self.cut_off)), self.team_landers)
+        deltas = team_rewards + self.gamma * next_values - as_tensor(self.values)
+        self.advantages = ppo_common.discounted_sums(deltas, as_tensor(self.ended.astype(np.float32)),
+                                                     self.gamma * self.gae_lambda).numpy()
+        self.returns = self.advantages + self.values
 
     def get(self, batch_size=None):
         assert self.full
@@ -122,11 +154,11 @@ class RealTransitionsBuffer(RolloutBuffer):
             yield self._get_samples(indices[start:start + batch_size])
 
 
-class MarkIdleRows(BaseCallback):
-    """Tells the RealTransitionsBuffer which rows of each step were idle."""
+class MarkSteps(BaseCallback):
+    """Tells the RealTransitionsBuffer each step's idle rows, rewards and episode ends."""
 
     def _on_step(self) -> bool:
-        self.model.rollout_buffer.mark_idle(self.locals["infos"])
+        self.model.rollout_buffer.mark_step(self.locals["rewards"], self.locals["dones"], self.locals["infos"])
         return True
 
 
@@ -202,11 +234,12 @@ def main(argv=None):
             ent_coef=args.ent_coef, vf_coef=args.vf_coef, max_grad_norm=args.max_grad_norm,
             seed=None if args.supersuit else args.seed, device="cpu", verbose=0,
             rollout_buffer_class=RealTransitionsBuffer,
+            rollout_buffer_kwargs=dict(team_landers=options["n_landers"] if args.team_credit else 0),
         )
         if args.supersuit:  # SuperSuit 3.11's SB3 wrapper cannot take SB3's env.seed(): seed the policy only.
             set_random_seed(args.seed)
         scores = Scores(args.envs, options["n_landers"])
-        model.learn(total_timesteps=args.total_steps, callback=CallbackList([MarkIdleRows(), scores]))
+        model.learn(total_timesteps=args.total_steps, callback=CallbackList([MarkSteps(), scores]))
         env.close()
         trainer_common.write_csv(args.csv, ["lander_steps", "episodes", "mean_return"], scores.rows)
         scores.scores.write(args.episodes_csv)

@@ -84,7 +84,7 @@ def test_sb3_minibatches_hold_real_transitions_only():
     env = mll.sb3_vec_env(2, n_landers=3, max_cycles=100)
     model = PPO("MlpPolicy", env, n_steps=128, batch_size=64, n_epochs=1, seed=1, device="cpu",
                 rollout_buffer_class=ppo_sb3.RealTransitionsBuffer)
-    model.learn(total_timesteps=128 * 6, callback=ppo_sb3.MarkIdleRows())  # One rollout of 6 landers.
+    model.learn(total_timesteps=128 * 6, callback=ppo_sb3.MarkSteps())  # One rollout of 6 landers.
     env.close()
     buffer = model.rollout_buffer
     real = buffer.real.swapaxes(0, 1).ravel()  # Env-major, as the buffer's rows after training.
@@ -94,6 +94,62 @@ def test_sb3_minibatches_hold_real_transitions_only():
     sampled = [batch.observations.numpy() for batch in buffer.get(64)]
     assert sum(len(batch) for batch in sampled) == real.sum()
     assert all(np.any(batch != 0, axis=1).all() for batch in sampled)
+
+
+def test_team_credit_sums_each_step_and_bootstraps_a_lander_done_early_from_the_team():
+    """ppo_common.team_credit on one environment of 3 landers over 2 steps: lander 0 lands on step
+    0 while 1 and 2 fly on; on step 1 lander 1 crashes, lander 2 is cut off by the step limit and
+    lander 0's row is idle."""
+    sys.path.insert(0, str(EXAMPLES))
+    import ppo_common
+    import torch
+
+    rewards = torch.tensor([[100.0, 2.0, 3.0], [5.0, -200.0, 1.0]])
+    valid = torch.tensor([[True, True, True], [False, True, True]])
+    next_values = torch.tensor([[7.0, 10.0, 20.0], [8.0, 30.0, 40.0]])
+    goes_on = torch.tensor([[False, True, True], [False, False, True]])  # Landed; crashed; cut off (bootstraps).
+    team_rewards, team_next = ppo_common.team_credit(rewards, valid, next_values, goes_on, landers=3)
+    assert team_rewards.tolist() == [[105.0] * 3, [-199.0] * 3]  # The idle row's 5 is not counted.
+    # Step 0: the landed lander bootstraps from the mean of its neighbours' values, the others from
+    # their own. Step 1: only lander 2 (cut off) goes on, so the others bootstrap from its value.
+    assert team_next.tolist() == [[15.0, 10.0, 20.0], [40.0, 40.0, 40.0]]
+    _, nobody_next = ppo_common.team_credit(rewards, valid, next_values, torch.zeros_like(goes_on), landers=3)
+    assert nobody_next.tolist() == [[0.0] * 3] * 2  # Every lander done: nothing to bootstrap from.
+
+
+def test_sb3_team_credit_of_lone_landers_is_sb3s_own_gae():
+    """With one lander per environment the team is the lander, so RealTransitionsBuffer's team
+    credit (its own reading of rewards, episode ends and SB3's bootstrap of cut-off episodes) must
+    give SB3's own advantages and returns, on a rollout with crashes and cut-off episodes."""
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.buffers import RolloutBuffer
+    from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+
+    sys.path.insert(0, str(EXAMPLES))
+    import ppo_sb3
+
+    compared = []
+
+    class CompareWithSb3(BaseCallback):
+        def _on_step(self) -> bool:
+            return True
+
+        def _on_rollout_end(self) -> None:
+            buffer = self.model.rollout_buffer
+            team = (buffer.advantages.copy(), buffer.returns.copy())
+            RolloutBuffer.compute_returns_and_advantage(buffer, self.locals["values"], self.locals["dones"])
+            compared.append((team, (buffer.advantages, buffer.returns), buffer.ended.sum(), buffer.cut_off.sum()))
+
+    env = mll.sb3_vec_env(4, n_landers=1, max_cycles=40)  # Random landers: some crash, some are cut off.
+    model = PPO("MlpPolicy", env, n_steps=128, batch_size=64, n_epochs=1, seed=1, device="cpu",
+                rollout_buffer_class=ppo_sb3.RealTransitionsBuffer, rollout_buffer_kwargs=dict(team_landers=1))
+    model.learn(total_timesteps=128 * 4 * 2, callback=CallbackList([ppo_sb3.MarkSteps(), CompareWithSb3()]))
+    env.close()
+    assert len(compared) == 2
+    for (advantages, returns), (sb3_advantages, sb3_returns), ended, cut_off in compared:
+        assert ended > cut_off > 0
+        np.testing.assert_allclose(advantages, sb3_advantages, rtol=1e-5, atol=1e-4)
+        np.testing.assert_allclose(returns, sb3_returns, rtol=1e-5, atol=1e-4)
 
 
 def _env_count(address):
