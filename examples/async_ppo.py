@@ -143,7 +143,8 @@ def train(args) -> tuple[ppo_common.Agent, ppo_common.ObservationScale | None]:
             latest[ids[~more]] = observation[~more]
 
         advantages, targets = ppo_common.advantages(
-            agent, next_observations, rewards, values, terminated, done, args.gamma, args.gae_lambda
+            agent, next_observations, rewards, values, terminated, done, args.gamma, args.gae_lambda,
+            (valid, landers) if args.team_credit else None,
         )
         rows = valid.flatten().nonzero().squeeze(-1)  # Real transitions only.
         batch = tuple(

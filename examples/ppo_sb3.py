@@ -46,7 +46,10 @@ def parse_args(argv=None):
     # for the fewer steps, and 9 million lander steps (3 million environment steps) fit in about
     # 20 minutes (docs/training.md "PPO recipes").
     parser.set_defaults(minibatch_size=256, lr=6e-4, total_steps=9_000_000)
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    if args.team_credit and args.supersuit:  # SuperSuit's rows of finished landers look like flying ones.
+        parser.error("--team-credit needs sb3_vec_env's idle rows: it cannot be used with --supersuit")
+    return args
 
 
 def make_env(args, options: dict):
