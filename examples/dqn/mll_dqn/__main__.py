@@ -79,6 +79,12 @@ def _policy(args):
         "give --checkpoint PATH or --policy heuristic|random|trained")
 
 
+# The environments --env names: the paper's experiment, and the
+# environment's own defaults (3 landers, 500 steps, shared rewards, a crash
+# ends every lander's episode).
+EVALUATION_ENVS = {"paper": PAPER_ENV_CONFIG, "default": {}}
+
+
 # Names of the time split's parts in the headline, in order.
 _SPLIT_NAMES = (("env", "environment"), ("act", "action selection"),
                 ("sample", "replay sampling"), ("learn", "gradient steps"),
@@ -138,6 +144,10 @@ def main(argv=None) -> int:
                          "shipped examples/dqn/trained.qnet)")
         cmd.add_argument("--seed", type=int, default=None,
                          help="first episode's seed")
+        cmd.add_argument("--env", choices=sorted(EVALUATION_ENVS),
+                         help="fly on this environment instead of the one "
+                         "the policy was trained on (the baselines and "
+                         "--policy trained: the paper's)")
     commands.choices["evaluate"].add_argument("--episodes", type=int,
                                               default=100)
     commands.choices["evaluate"].add_argument("--json",
@@ -195,6 +205,8 @@ def main(argv=None) -> int:
         from mll_dqn.train import use_one_thread
         use_one_thread()
         policy, env_config = _policy(args)
+        if args.env:
+            env_config = dict(EVALUATION_ENVS[args.env])
         seed = evaluate.EVAL_SEED if args.seed is None else args.seed
         if args.command == "evaluate":
             result = evaluate.evaluate(policy, env_config, args.episodes,

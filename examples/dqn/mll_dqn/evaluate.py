@@ -136,6 +136,8 @@ def evaluate(policy: Policy, env_config: Dict, episodes: int = 100,
         crash_rate=counts["crashed"] / landers,
         out_of_bounds_rate=counts["out_of_bounds"] / landers,
         truncated_rate=counts["truncated"] / landers,
+        # Ended by another lander's crash (terminate_on_damage).
+        aborted_rate=counts["aborted"] / landers,
     )
 
 

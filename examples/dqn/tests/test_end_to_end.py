@@ -247,6 +247,16 @@ def test_export_chooses_and_report_tabulates_seeds(tmp_path, capsys):
         assert main(["evaluate", "--policy", "trained", "--weights",
                      str(run / "trained.qnet"), "--episodes", "2", "--json",
                      str(run / "eval.json")]) == 0
+    # --env default: there one lander's crash ends its neighbours' episodes
+    # (aborted); the paper's environment flies them on.
+    for env, aborts in (("default", True), ("paper", False)):
+        assert main(["evaluate", "--policy", "random", "--env", env,
+                     "--episodes", "3", "--json", str(tmp_path / "r.json")]) == 0
+        result = json.loads((tmp_path / "r.json").read_text())
+        assert (result["aborted_rate"] > 0) == aborts
+        assert sum(result[rate] for rate in (
+            "landing_rate", "crash_rate", "out_of_bounds_rate",
+            "truncated_rate", "aborted_rate")) == pytest.approx(1.0)
     capsys.readouterr()
     assert main(["report", *map(str, runs), "--out", str(tmp_path)]) == 0
     lines = (tmp_path / "seeds.md").read_text().splitlines()
