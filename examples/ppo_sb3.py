@@ -29,6 +29,7 @@ import torch
 from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.utils import set_random_seed
 from stable_baselines3.common.vec_env import VecEnvWrapper, VecMonitor, VecNormalize
 
@@ -239,6 +240,8 @@ def main(argv=None):
             rollout_buffer_class=RealTransitionsBuffer,
             rollout_buffer_kwargs=dict(team_landers=options["n_landers"] if args.team_credit else 0),
         )
+        # Without a logger of its own, each learn() makes an empty SB3-<time> directory in /tmp.
+        model.set_logger(Logger(folder=None, output_formats=[]))
         if args.supersuit:  # SuperSuit 3.11's SB3 wrapper cannot take SB3's env.seed(): seed the policy only.
             set_random_seed(args.seed)
         scores = Scores(args.envs, options["n_landers"])
