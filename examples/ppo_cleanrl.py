@@ -1,6 +1,7 @@
 """Single-file PPO in the CleanRL style on `mll.gym_vector_env`: every lander is one
 sub-environment of a gymnasium.vector.VectorEnv and all of them share one policy (parameter
-sharing). Its defaults are the recipe that lands (docs/training.md "PPO recipes").
+sharing). Its defaults are the recipe that lands on the paper's environment (--paper); on the
+default environment its landers mostly hover (docs/training.md "PPO recipes").
 
     python examples/ppo_cleanrl.py --seed 1 --save ppo.pt --episodes-csv ppo_episodes.csv
     python examples/ppo_cleanrl.py --paper --seed 1 --save ppo_paper.pt --episodes-csv ppo_paper_episodes.csv

@@ -1,6 +1,7 @@
 """Stable-Baselines3 PPO on `mll.sb3_vec_env`: every lander is one SB3 environment and all of
 them share one policy (parameter sharing), stepped with one batched call per server. Its defaults
-are the recipe that lands (docs/training.md "PPO recipes"); --supersuit builds the same
+are the recipe that lands on the paper's environment (--paper; on the default environment its
+landers mostly hover: docs/training.md "PPO recipes"); --supersuit builds the same
 environments the way PettingZoo's SB3 tutorial does (SuperSuit's black_death_v3,
 pettingzoo_env_to_vec_env_v1 and concat_vec_envs_v1 over `mll.parallel_env`; SuperSuit's SB3
 wrapper drops SB3's environment seeds, so there only the policy is seeded).
