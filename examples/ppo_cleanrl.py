@@ -136,8 +136,8 @@ def main(argv=None):
             ppo_common.save(args.save, agent, options, args, scale)
         act = ppo_common.greedy(agent, scale, args.neighbor_closeness)
     if args.eval_episodes > 0:
-        result = ppo_common.evaluate_greedy(act, options, args.eval_episodes,
-                                            address=args.address, envs=args.envs, seed=args.seed)
+        result = ppo_common.evaluate_greedy(act, ppo_common.evaluation_options(args, options),
+                                            args.eval_episodes, address=args.address, envs=args.envs, seed=args.seed)
         print(json.dumps(result), flush=True)
 
 

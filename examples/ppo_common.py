@@ -15,6 +15,11 @@ import multi_lunar_lander as mll
 import trainer_common
 
 
+# The environments --evaluate-on names: the paper's experiment, and the environment's own
+# defaults (3 landers, 500 steps, shared rewards, one lander's crash ends every lander's episode).
+EVALUATION_ENVIRONMENTS = {"paper": trainer_common.PAPER_OPTIONS, "default": {}}
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """PPO's hyperparameters, beside trainer_common.parser's flags. The defaults are the recipe
     of docs/training.md "PPO recipes": RL Zoo's tuned LunarLander PPO (rollouts of 1,024 steps,
@@ -42,6 +47,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("--save", default=None, metavar="PATH", help="write the trained policy")
     parser.add_argument("--evaluate", default=None, metavar="PATH",
                         help="do not train: reload the policy saved at PATH and evaluate it greedily")
+    parser.add_argument("--evaluate-on", choices=sorted(EVALUATION_ENVIRONMENTS), default=None,
+                        help="fly the evaluation episodes on this environment instead of the policy's own")
     parser.add_argument("--eval-episodes", type=int, default=10,
                         help="environment episodes of greedy evaluation after training or with --evaluate (0: none)")
     parser.add_argument("--episodes-csv", default=None,
@@ -238,6 +245,11 @@ def load(path: str):
     scale = config["observation_scale"]
     scale = None if scale is None else ObservationScale(*scale)
     return greedy(agent, scale, config["args"].get("neighbor_closeness", False)), config
+
+
+def evaluation_options(args, trained_options: dict) -> dict:
+    """The environment options of the greedy evaluation: --evaluate-on's, else the policy's own."""
+    return dict(EVALUATION_ENVIRONMENTS[args.evaluate_on]) if args.evaluate_on else trained_options
 
 
 # Evaluation seeds start here: far from the training seeds (seed + environment index).

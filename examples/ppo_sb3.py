@@ -260,10 +260,13 @@ def main(argv=None):
             model.observation_statistics = None if scale is None else (
                 scale.mean.tolist(), scale.var.tolist(), scale.clip)
             model.neighbor_closeness = closeness
-            model.save(args.save, include=["environment_options", "observation_statistics", "neighbor_closeness"])
+            # Without this example's rollout buffer: PPO.load gives SB3's own, and needs no module of ours.
+            model.save(args.save, include=["environment_options", "observation_statistics", "neighbor_closeness"],
+                       exclude=["rollout_buffer_class", "rollout_buffer_kwargs"])
     if args.eval_episodes > 0:
-        result = ppo_common.evaluate_greedy(greedy(model, scale, closeness), options, args.eval_episodes,
-                                            address=args.address, envs=args.envs, seed=args.seed)
+        act = greedy(model, scale, closeness)
+        result = ppo_common.evaluate_greedy(act, ppo_common.evaluation_options(args, options),
+                                            args.eval_episodes, address=args.address, envs=args.envs, seed=args.seed)
         print(json.dumps(result), flush=True)
 
 

@@ -66,6 +66,14 @@ def test_ppo_recipe_trains_saves_reloads_and_evaluates(script, extra, tmp_path):
     )
     assert reloaded.returncode == 0, reloaded.stderr[-3000:]
     assert json.loads(reloaded.stdout.splitlines()[-1]) == evaluation
+    if "--paper" in extra:  # Flown on the default environment, one crash ends the others' episodes.
+        elsewhere = subprocess.run(
+            [sys.executable, str(EXAMPLES / script), "--envs", "4", "--evaluate", str(model), "--eval-episodes", "3",
+             "--evaluate-on", "default"],
+            capture_output=True, text=True, timeout=300,
+        )
+        assert elsewhere.returncode == 0, elsewhere.stderr[-3000:]
+        assert evaluation["aborted"] == 0 and json.loads(elsewhere.stdout.splitlines()[-1])["aborted"] > 0
     if script == "ppo_sb3.py":
         from stable_baselines3 import PPO
 
