@@ -275,6 +275,7 @@ def evaluate_greedy(act, options: dict, episodes: int, address=None, envs: int =
             if len(scores) >= episodes:
                 break
     landers = len(outcomes) // len(scores) * episodes  # The landers of the first `episodes` episodes.
-    shares = {name: float(np.mean([o == code for o in outcomes[:landers]])) for code, name in enumerate(mll.OUTCOMES) if name}
+    shares = {name: float(np.mean([o == code for o in outcomes[:landers]]))
+              for code, name in enumerate(mll.OUTCOMES) if name}
     return {"evaluation_episodes": episodes, "mean_score": float(np.mean(scores[:episodes])),
             "mean_lander_return": float(np.mean(lander_returns[:landers])), **shares}

@@ -23,7 +23,8 @@ def parser(description: str, rollout: str) -> argparse.ArgumentParser:
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     parser.add_argument("--csv", default=None, help="write one row per rollout: steps, episodes, mean return")
     parser.add_argument("--paper", action="store_true",
-                        help="the environment of the paper's DQN experiment (docs/dqn.md) instead of --landers/--max-cycles")
+                        help="the environment of the paper's DQN experiment (docs/dqn.md) "
+                        "instead of --landers/--max-cycles")
     return parser
 
 
