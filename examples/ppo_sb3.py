@@ -126,6 +126,8 @@ class RealTransitionsBuffer(RolloutBuffer):
     def mark_step(self, rewards, dones, infos) -> None:
         """The step whose transitions add() stores next."""
         self.real[self.pos] = [not info.get("idle", False) for info in infos]
+        if not self.team_landers:  # Only team credit reads the rest.
+            return
         self.step_rewards[self.pos] = rewards
         self.ended[self.pos] = dones
         self.cut_off[self.pos] = [info.get("TimeLimit.truncated", False) for info in infos]
