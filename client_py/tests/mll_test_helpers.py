@@ -7,6 +7,7 @@ import time
 import grpc
 import numpy as np
 import pytest
+from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 import multi_lunar_lander as mll
 from multi_lunar_lander._stubs import pb, pb_grpc
@@ -59,6 +60,17 @@ def listed_names(address):
             token = page.next_page_token
             if not token:
                 return names
+
+
+def wait_draining(address, timeout_s=10):
+    """Waits (bounded) until the server at `address` answers its health check NOT_SERVING: it
+    got SIGTERM and drains."""
+    deadline = time.monotonic() + timeout_s
+    with grpc.insecure_channel(address) as channel:
+        stub = health_pb2_grpc.HealthStub(channel)
+        while stub.Check(health_pb2.HealthCheckRequest(), timeout=5).status != health_pb2.HealthCheckResponse.NOT_SERVING:
+            assert time.monotonic() < deadline, f"the server at {address} does not drain within {timeout_s} s"
+            time.sleep(0.02)
 
 
 def url_in_log(process, pattern, timeout_s=10):

@@ -11,12 +11,11 @@ import time
 import grpc
 import numpy as np
 import pytest
-from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 import multi_lunar_lander as mll
 from multi_lunar_lander import _native
 
-from mll_test_helpers import random_actions
+from mll_test_helpers import random_actions, wait_draining
 
 NUM_ENVS, BATCH, RECVS, KILL_AT = 24, 8, 120, 60
 OPTIONS = dict(n_landers=2, max_cycles=30)  # Each env's episodes end (truncated) within its ~40 steps.
@@ -113,16 +112,6 @@ def test_an_env_deleted_behind_its_back_is_recreated_on_its_server(address, raw_
     _assert_same_trajectories(got, expected, 15)
 
 
-def _draining(server):
-    """Waits (bounded) until `server` answers its health check NOT_SERVING: it drains."""
-    deadline = time.monotonic() + 10
-    with grpc.insecure_channel(server.address) as channel:
-        stub = health_pb2_grpc.HealthStub(channel)
-        while stub.Check(health_pb2.HealthCheckRequest(), timeout=5).status != health_pb2.HealthCheckResponse.NOT_SERVING:
-            assert time.monotonic() < deadline, "the server does not drain"
-            time.sleep(0.02)
-
-
 def _rounds(vector, table, rounds, fault_round=None, fault=None):
     """Each env's results over `rounds` rounds after async_reset: a round sends envs 1 and 4,
     then 2 and 5, then 0 and 3 (over three servers: the second server's first), and recvs all
@@ -159,7 +148,7 @@ def test_a_target_that_drains_during_the_failover_is_passed_over(caplog):
             # c round robin, and c drains already, so env 4 goes on to a.
             _kill(b)
             c._process.send_signal(signal.SIGTERM)
-            _draining(c)
+            wait_draining(c.address)
 
         with caplog.at_level(logging.WARNING, logger="multi_lunar_lander"):
             with mll.vector_env(6, address=addresses, batch_size=3, n_landers=2) as vector:
@@ -182,7 +171,7 @@ def test_no_server_left_names_the_servers_tried():
             _kill(b)
             _kill(a)
             c._process.send_signal(signal.SIGTERM)
-            _draining(c)
+            wait_draining(c.address)
             vector.send(np.zeros((1, 2), np.int32), [1])  # On b.
             with pytest.raises(mll.MLLError) as raised:
                 vector.recv()  # Env 1's failover tries a (dead), then c (draining).
