@@ -117,7 +117,8 @@ def check_compatible(info: ServerInfo, address: str, needs: Iterable[str] = (), 
             f"{_describe_server(info, address)} speaks {'a newer' if newer else 'an older'} wire protocol "
             f"than {_describe_client()}: "
             + (
-                f"upgrade the client to a release of protocol v{major} (pip install -U multi_lunar_lander), "
+                f"upgrade the client to a release of protocol v{major} (pip install ./client_py from a clone of "
+                f"that release; the package is not on a package index), "
                 f"or use a server of protocol v{PROTOCOL[0]}"
                 if newer
                 else f"upgrade the server to a release of protocol v{PROTOCOL[0]} "
