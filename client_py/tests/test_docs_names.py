@@ -330,3 +330,21 @@ def test_both_lists_of_documents_name_the_same_documents():
         f"{sorted(docs - top)} that README.md does not"
     )
     assert every <= docs, f"docs/README.md does not list {sorted(every - docs)}"
+
+
+def test_the_error_code_table_lists_every_code_the_server_returns():
+    """server.md's Error codes table has a row for every canonical code that the server's sources
+    (server/core/src, server/service/src) return."""
+    sources = "\n".join(
+        (_REPO / path).read_text(encoding="utf-8")
+        for path in sorted(_tracked())
+        if path.startswith(("server/core/src/", "server/service/src/")) and path.endswith(".cc")
+    )
+    words = set(re.findall(r"absl::(\w+?)Error\(", sources))
+    codes = {re.sub(r"(?<!^)([A-Z])", r"_\1", word).upper() for word in words}
+    text = (_REPO / "docs/server.md").read_text(encoding="utf-8")
+    section = text[text.index("## Error codes"):]
+    section = section[: section.index("\n## ", 1)]
+    table = set(re.findall(r"^\| ([A-Z_]+) \|", section, re.MULTILINE))
+    assert {"INVALID_ARGUMENT", "NOT_FOUND", "PERMISSION_DENIED"} <= codes
+    assert not codes - table, f"docs/server.md's Error codes table lacks {sorted(codes - table)}"

@@ -149,6 +149,7 @@ def no_server_binary(tmp_path, monkeypatch):
     monkeypatch.setenv("PATH", str(tmp_path))
     monkeypatch.setattr(sysconfig, "get_path", lambda name, *args, **kwargs: str(tmp_path))
     monkeypatch.setattr(_server, "_CHECKOUT_BUILD_BIN", tmp_path / "build" / "mll_server")
+    monkeypatch.setattr(_server, "_WHEEL_BIN", tmp_path / "wheel" / "mll_server", raising=False)
     return _message(mll.find_server_binary), None
 
 
