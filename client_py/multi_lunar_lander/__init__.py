@@ -120,7 +120,7 @@ def sb3_vec_env(num_envs: int, address=None, **options):
     except ImportError as error:
         raise ImportError(
             f"sb3_vec_env needs stable-baselines3 ({error}); install it with "
-            "`pip install 'multi_lunar_lander[sb3]'`"
+            "`pip install 'stable-baselines3>=2.4.1'` (the package's `sb3` extra)"
         ) from error
     return SB3VecEnv(num_envs, address=address, **options)
 
