@@ -11,7 +11,7 @@ class Viewer:
             import pygame
         except ImportError as error:  # An optional dependency (extra "render").
             raise ImportError(
-                'render_mode="human" needs pygame: pip install "pygame>=2.1.3" (the package's `render` extra)'
+                'render_mode="human" needs pygame: pip install "pygame>=2.1.3" (the package\'s `render` extra)'
             ) from error
         self._pygame = pygame
         self._title = title
