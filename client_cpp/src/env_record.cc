@@ -42,16 +42,16 @@ T GetLittleEndian(absl::string_view bytes) {
   return static_cast<T>(value);
 }
 
-// Reads the state's fields in order; each read names the field it wanted
-// when the state ends before it.
-class StateReader {
+// Reads the snapshot's fields in order; each read names the field it wanted
+// when the snapshot ends before it.
+class SnapshotReader {
  public:
-  explicit StateReader(absl::string_view body) : body_(body) {}
+  explicit SnapshotReader(absl::string_view body) : body_(body) {}
 
   absl::StatusOr<absl::string_view> Take(size_t size, absl::string_view what) {
     if (size > body_.size() - offset_) {
       return absl::InvalidArgumentError(
-          absl::StrCat("state is truncated in its ", what));
+          absl::StrCat("snapshot is truncated in its ", what));
     }
     absl::string_view chunk = body_.substr(offset_, size);
     offset_ += size;
@@ -122,57 +122,58 @@ void EnvRecord::Append(RecordOperation operation,
   actions.append(action_row.data(), action_row.size());
 }
 
-std::string EncodeState(const v1::EnvConfig& config,
-                        const v1::ServerInfo& server, const EnvRecord& record,
-                        v1::DType dtype, uint32_t row_bytes,
-                        absl::string_view last_observations) {
+std::string EncodeSnapshot(const v1::EnvConfig& config,
+                           const v1::ServerInfo& server,
+                           const EnvRecord& record, v1::DType dtype,
+                           uint32_t row_bytes,
+                           absl::string_view last_observations) {
   const std::string config_bytes = DeterministicBytes(config);
   const absl::string_view release =
       absl::string_view(server.server_version()).substr(0, 65535);
-  std::string state(kMagic);
-  PutLittleEndian<uint16_t>(kFormatVersion, &state);
-  PutLittleEndian<uint16_t>(server.protocol_major(), &state);
-  PutLittleEndian<uint16_t>(server.protocol_minor(), &state);
-  PutLittleEndian<uint16_t>(release.size(), &state);
-  state.append(release.data(), release.size());
-  PutLittleEndian<uint32_t>(config_bytes.size(), &state);
-  state.append(config_bytes);
-  PutLittleEndian<uint64_t>(record.seed.value_or(0), &state);
-  PutLittleEndian<uint8_t>(dtype, &state);
-  PutLittleEndian<uint32_t>(row_bytes, &state);
-  PutLittleEndian<uint32_t>(record.operations.size(), &state);
-  state.append(record.operations);
-  state.append(record.actions);
-  PutLittleEndian<uint32_t>(last_observations.size(), &state);
-  state.append(last_observations.data(), last_observations.size());
-  PutLittleEndian<uint32_t>(Crc32(state), &state);
-  return state;
+  std::string snapshot(kMagic);
+  PutLittleEndian<uint16_t>(kFormatVersion, &snapshot);
+  PutLittleEndian<uint16_t>(server.protocol_major(), &snapshot);
+  PutLittleEndian<uint16_t>(server.protocol_minor(), &snapshot);
+  PutLittleEndian<uint16_t>(release.size(), &snapshot);
+  snapshot.append(release.data(), release.size());
+  PutLittleEndian<uint32_t>(config_bytes.size(), &snapshot);
+  snapshot.append(config_bytes);
+  PutLittleEndian<uint64_t>(record.seed.value_or(0), &snapshot);
+  PutLittleEndian<uint8_t>(dtype, &snapshot);
+  PutLittleEndian<uint32_t>(row_bytes, &snapshot);
+  PutLittleEndian<uint32_t>(record.operations.size(), &snapshot);
+  snapshot.append(record.operations);
+  snapshot.append(record.actions);
+  PutLittleEndian<uint32_t>(last_observations.size(), &snapshot);
+  snapshot.append(last_observations.data(), last_observations.size());
+  PutLittleEndian<uint32_t>(Crc32(snapshot), &snapshot);
+  return snapshot;
 }
 
-absl::StatusOr<DecodedState> DecodeState(absl::string_view state) {
-  if (state.size() < 8 || state.substr(0, kMagic.size()) != kMagic) {
+absl::StatusOr<DecodedSnapshot> DecodeSnapshot(absl::string_view snapshot) {
+  if (snapshot.size() < 8 || snapshot.substr(0, kMagic.size()) != kMagic) {
     return absl::InvalidArgumentError(
-        "state does not start with \"MLLS\": not an env state (or "
+        "snapshot does not start with \"MLLS\": not an env snapshot (or "
         "truncated)");
   }
-  const absl::string_view body = state.substr(0, state.size() - 4);
-  const uint32_t crc = GetLittleEndian<uint32_t>(state.substr(body.size()));
+  const absl::string_view body = snapshot.substr(0, snapshot.size() - 4);
+  const uint32_t crc = GetLittleEndian<uint32_t>(snapshot.substr(body.size()));
   if (Crc32(body) != crc) {
     return absl::InvalidArgumentError(
-        absl::StrFormat("state is damaged: its CRC-32 is 0x%08x, its "
+        absl::StrFormat("snapshot is damaged: its CRC-32 is 0x%08x, its "
                         "contents' 0x%08x",
                         crc, Crc32(body)));
   }
-  StateReader reader(body.substr(kMagic.size()));
+  SnapshotReader reader(body.substr(kMagic.size()));
   absl::StatusOr<absl::string_view> header = reader.Take(8, "header");
   if (!header.ok()) return header.status();
   const uint16_t version = GetLittleEndian<uint16_t>(*header);
   if (version != kFormatVersion) {
     return absl::InvalidArgumentError(absl::StrCat(
-        "state has format version ", version, "; this client reads version ",
+        "snapshot has format version ", version, "; this client reads version ",
         kFormatVersion, " (upgrade the client)"));
   }
-  DecodedState decoded;
+  DecodedSnapshot decoded;
   decoded.protocol_major = GetLittleEndian<uint16_t>(header->substr(2));
   decoded.protocol_minor = GetLittleEndian<uint16_t>(header->substr(4));
   absl::StatusOr<absl::string_view> release =
@@ -183,7 +184,7 @@ absl::StatusOr<DecodedState> DecodeState(absl::string_view state) {
   if (!config.ok()) return config.status();
   if (!decoded.config.ParseFromArray(config->data(),
                                      static_cast<int>(config->size()))) {
-    return absl::InvalidArgumentError("state's config does not parse");
+    return absl::InvalidArgumentError("snapshot's config does not parse");
   }
   absl::StatusOr<absl::string_view> sizes = reader.Take(17, "seed and sizes");
   if (!sizes.ok()) return sizes.status();
@@ -191,7 +192,7 @@ absl::StatusOr<DecodedState> DecodeState(absl::string_view state) {
   const uint8_t dtype = GetLittleEndian<uint8_t>(sizes->substr(8));
   if (dtype != v1::DTYPE_INT32 && dtype != v1::DTYPE_FLOAT32) {
     return absl::InvalidArgumentError(
-        absl::StrCat("state's action dtype is ", static_cast<int>(dtype),
+        absl::StrCat("snapshot's action dtype is ", static_cast<int>(dtype),
                      "; expected int32 or float32"));
   }
   decoded.dtype = static_cast<v1::DType>(dtype);
@@ -199,7 +200,7 @@ absl::StatusOr<DecodedState> DecodeState(absl::string_view state) {
   const uint32_t count = GetLittleEndian<uint32_t>(sizes->substr(13));
   if (count > kMaxRecordSteps) {
     return absl::InvalidArgumentError(absl::StrCat(
-        "state holds ", count, " operations; at most ", kMaxRecordSteps));
+        "snapshot holds ", count, " operations; at most ", kMaxRecordSteps));
   }
   absl::StatusOr<absl::string_view> operations =
       reader.Take(count, "operations");
@@ -207,7 +208,7 @@ absl::StatusOr<DecodedState> DecodeState(absl::string_view state) {
   for (char operation : *operations) {
     if (operation != kStep && operation != kAutoReset && operation != kReset) {
       return absl::InvalidArgumentError(
-          "state holds an unknown operation code");
+          "snapshot holds an unknown operation code");
     }
   }
   decoded.record.operations = std::string(*operations);
@@ -220,45 +221,47 @@ absl::StatusOr<DecodedState> DecodeState(absl::string_view state) {
   decoded.last_observations = std::string(*observations);
   if (reader.left() != 0) {
     return absl::InvalidArgumentError(
-        absl::StrCat("state has ", reader.left(), " bytes after its end"));
+        absl::StrCat("snapshot has ", reader.left(), " bytes after its end"));
   }
   return decoded;
 }
 
-absl::Status CheckStateConfig(const DecodedState& state,
-                              const v1::EnvConfig& config) {
+absl::Status CheckSnapshotConfig(const DecodedSnapshot& snapshot,
+                                 const v1::EnvConfig& config) {
   const v1::EnvConfig mine = PhysicsOf(config);
-  const v1::EnvConfig theirs = PhysicsOf(state.config);
+  const v1::EnvConfig theirs = PhysicsOf(snapshot.config);
   if (DeterministicBytes(mine) != DeterministicBytes(theirs)) {
     return absl::InvalidArgumentError(absl::StrCat(
-        "state is of an env with other options (", Describe(theirs),
+        "snapshot is of an env with other options (", Describe(theirs),
         ") than this one's (", Describe(mine), ")"));
   }
   const uint32_t expected = config.n_landers() * (config.continuous() ? 8 : 4);
   const v1::DType dtype =
       config.continuous() ? v1::DTYPE_FLOAT32 : v1::DTYPE_INT32;
-  if (state.row_bytes != expected || state.dtype != dtype) {
+  if (snapshot.row_bytes != expected || snapshot.dtype != dtype) {
     return absl::InvalidArgumentError(
-        absl::StrCat("state's actions are ", state.row_bytes,
+        absl::StrCat("snapshot's actions are ", snapshot.row_bytes,
                      " bytes a step; this env's are ", expected));
   }
   return absl::OkStatus();
 }
 
-absl::Status CheckRestorable(const DecodedState& state,
+absl::Status CheckRestorable(const DecodedSnapshot& snapshot,
                              const v1::EnvConfig& config,
                              const v1::ServerInfo& server) {
-  if (absl::Status status = CheckStateConfig(state, config); !status.ok()) {
+  if (absl::Status status = CheckSnapshotConfig(snapshot, config);
+      !status.ok()) {
     return status;
   }
-  if (state.protocol_major != static_cast<int>(server.protocol_major())) {
+  if (snapshot.protocol_major != static_cast<int>(server.protocol_major())) {
     return absl::InvalidArgumentError(absl::StrCat(
-        "state is from a server of wire protocol ", state.protocol_major, ".",
-        state.protocol_minor, " (release ",
-        state.release.empty() ? "unknown" : state.release,
+        "snapshot is from a server of wire protocol ", snapshot.protocol_major,
+        ".", snapshot.protocol_minor, " (release ",
+        snapshot.release.empty() ? "unknown" : snapshot.release,
         "); this server speaks ", server.protocol_major(), ".",
         server.protocol_minor(), " (release ", server.server_version(),
-        "): restore it on a server of protocol ", state.protocol_major, ".x"));
+        "): restore it on a server of protocol ", snapshot.protocol_major,
+        ".x"));
   }
   return absl::OkStatus();
 }

@@ -1,15 +1,15 @@
 // An environment's record: what recreates it to the same bits on any server
-// of the same release, and its state bytes. The C++ side of the Python
+// of the same release, and its snapshot bytes. The C++ side of the Python
 // client's multi_lunar_lander/_record.py, whose docstring defines the record
-// and the state format; both clients read each other's states.
+// and the snapshot format; both clients read each other's snapshots.
 //
 // An env is deterministic to the bit: its config, the seed of its last seeded
 // reset and every operation since (steps with their actions, auto-reset
 // steps, unseeded resets) recreate it. VectorEnv keeps one record per env to
 // fail over (an env lost with its server is recreated elsewhere and replayed)
-// and to give EnvState / RestoreEnv.
+// and to give EnvSnapshot / RestoreEnv.
 //
-// State format (all integers little-endian): "MLLS", u16 format version, u16
+// Snapshot format (all integers little-endian): "MLLS", u16 format version, u16
 // and u16 the wire protocol (major, minor) of the server that ran the env,
 // u16 length + the server's release string, u32 length + the EnvConfig
 // message, u64 seed, u8 action wire dtype, u32 action row bytes, u32
@@ -56,7 +56,7 @@ struct EnvRecord {
   void Append(RecordOperation operation, absl::string_view action_row);
 };
 
-struct DecodedState {
+struct DecodedSnapshot {
   int protocol_major = 0;
   int protocol_minor = 0;
   std::string release;
@@ -64,31 +64,32 @@ struct DecodedState {
   EnvRecord record;
   v1::DType dtype = v1::DTYPE_UNSPECIFIED;
   uint32_t row_bytes = 0;
-  // float32 [n_landers, 12], the bytes as the state holds them.
+  // float32 [n_landers, 12], the bytes as the snapshot holds them.
   std::string last_observations;
 };
 
-// The state bytes of an env with `config` that ran on the server `server`.
-std::string EncodeState(const v1::EnvConfig& config,
-                        const v1::ServerInfo& server, const EnvRecord& record,
-                        v1::DType dtype, uint32_t row_bytes,
-                        absl::string_view last_observations);
+// The snapshot bytes of an env with `config` that ran on the server `server`.
+std::string EncodeSnapshot(const v1::EnvConfig& config,
+                           const v1::ServerInfo& server,
+                           const EnvRecord& record, v1::DType dtype,
+                           uint32_t row_bytes,
+                           absl::string_view last_observations);
 
-// Parses and checks a state: INVALID_ARGUMENT naming what is wrong (not a
-// state, damaged CRC, other format version, truncation, bad contents).
-absl::StatusOr<DecodedState> DecodeState(absl::string_view state);
+// Parses and checks a snapshot: INVALID_ARGUMENT naming what is wrong (not a
+// snapshot, damaged CRC, other format version, truncation, bad contents).
+absl::StatusOr<DecodedSnapshot> DecodeSnapshot(absl::string_view snapshot);
 
-// INVALID_ARGUMENT unless the state's env has the options of `config`
+// INVALID_ARGUMENT unless the snapshot's env has the options of `config`
 // (render_mode and auto_reset aside: they do not change the physics) and its
 // action rows.
-absl::Status CheckStateConfig(const DecodedState& state,
-                              const v1::EnvConfig& config);
+absl::Status CheckSnapshotConfig(const DecodedSnapshot& snapshot,
+                                 const v1::EnvConfig& config);
 
-// INVALID_ARGUMENT unless the state can be replayed into an env of `config`
-// on the server `server`: CheckStateConfig, and the same wire protocol major
+// INVALID_ARGUMENT unless the snapshot can be replayed into an env of `config`
+// on the server `server`: CheckSnapshotConfig, and the same wire protocol major
 // version (another major may change the physics or the operations). Another
 // release of the same major is tried: the replay's bit check decides.
-absl::Status CheckRestorable(const DecodedState& state,
+absl::Status CheckRestorable(const DecodedSnapshot& snapshot,
                              const v1::EnvConfig& config,
                              const v1::ServerInfo& server);
 

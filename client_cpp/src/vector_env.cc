@@ -408,7 +408,7 @@ struct VectorEnv::State {
   std::vector<Shard> shards;
   std::vector<std::string> names;
   // Each env's options as the server filled them in: what failover and
-  // RestoreEnv recreate, and what EnvState writes.
+  // RestoreEnv recreate, and what EnvSnapshot writes.
   std::vector<v1::EnvConfig> configs;
   int n_landers = 0;
   bool continuous = false;
@@ -1373,7 +1373,7 @@ absl::Status VectorEnv::ReceiveOne() {
   return state.FailOverAndResend(lost, requests);
 }
 
-// ------------------------------------------------------------ env state
+// ------------------------------------------------------------ env snapshot
 
 absl::Status VectorEnv::CheckEnvIndex(int env) const {
   if (env >= 0 && env < num_envs()) return absl::OkStatus();
@@ -1381,7 +1381,7 @@ absl::Status VectorEnv::CheckEnvIndex(int env) const {
       absl::StrCat("env index is ", env, "; allowed: 0..", num_envs() - 1));
 }
 
-absl::StatusOr<std::string> VectorEnv::EnvState(int env) const {
+absl::StatusOr<std::string> VectorEnv::EnvSnapshot(int env) const {
   const State& state = *state_;
   if (absl::Status status = CheckNothingInFlight(); !status.ok()) return status;
   if (absl::Status status = CheckEnvIndex(env); !status.ok()) return status;
@@ -1391,14 +1391,14 @@ absl::StatusOr<std::string> VectorEnv::EnvState(int env) const {
   absl::StatusOr<v1::ServerInfo> server =
       state.TransportOf(state.placement[env]).ServerInfo();
   if (!server.ok()) return server.status();
-  return internal::EncodeState(
+  return internal::EncodeSnapshot(
       state.configs[env], *server, state.records[env],
       state.continuous ? v1::DTYPE_FLOAT32 : v1::DTYPE_INT32,
       static_cast<uint32_t>(state.row_bytes()), state.LastObservations(env));
 }
 
 absl::StatusOr<std::vector<float>> VectorEnv::RestoreEnv(
-    int env, absl::string_view env_state) {
+    int env, absl::string_view snapshot) {
   State& state = *state_;
   if (absl::Status status = CheckNothingInFlight(); !status.ok()) return status;
   if (absl::Status status = CheckEnvIndex(env); !status.ok()) return status;
@@ -1408,8 +1408,8 @@ absl::StatusOr<std::vector<float>> VectorEnv::RestoreEnv(
         " was attached, not created by this VectorEnv: RestoreEnv replaces "
         "an env, and this one is not the VectorEnv's to delete"));
   }
-  absl::StatusOr<internal::DecodedState> decoded =
-      internal::DecodeState(env_state);
+  absl::StatusOr<internal::DecodedSnapshot> decoded =
+      internal::DecodeSnapshot(snapshot);
   if (!decoded.ok()) return decoded.status();
   const int server = state.placement[env];
   StreamTransport& transport = state.TransportOf(server);

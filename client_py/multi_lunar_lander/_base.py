@@ -1,7 +1,7 @@
 """What the AEC and parallel environments share beyond their step: creating the server-side
-environment, spaces, rendering, deletion, and the env's record (see _record) with what it gives:
-state() / restore / clone(), and failover (an env lost with its server is recreated on another
-and replayed, and the call retried)."""
+environment, spaces (PettingZoo's state() and state_space too), rendering, deletion, and the
+env's record (see _record) with what it gives: snapshot() / restore / clone(), and failover (an
+env lost with its server is recreated on another and replayed, and the call retried)."""
 
 from __future__ import annotations
 
@@ -87,7 +87,7 @@ class RemoteEnvBase:
         self._adopt(connection, env)
         self.render_mode = render_mode
         self.config = config_dict(env.config)
-        self._env_config = env.config  # Filled in by the server (what a state carries).
+        self._env_config = env.config  # Filled in by the server (what a snapshot carries).
         self.continuous = bool(env.config.continuous)
         self.possible_agents = list(env.possible_agents)
         self._agent_index = {agent: index for index, agent in enumerate(self.possible_agents)}
@@ -95,6 +95,15 @@ class RemoteEnvBase:
         # not reseed another's).
         self.observation_spaces = {a: space_from_proto(env.observation_space) for a in self.possible_agents}
         self.action_spaces = {a: space_from_proto(env.action_space) for a in self.possible_agents}
+        # PettingZoo's state_space: every lander's observation in lander order, flat, with the
+        # observation space's bounds (state()).
+        observation_space = self.observation_spaces[self.possible_agents[0]]
+        self._observation_size = int(observation_space.shape[0])
+        self.state_space = gymnasium.spaces.Box(
+            np.tile(observation_space.low, len(self.possible_agents)),
+            np.tile(observation_space.high, len(self.possible_agents)),
+            dtype=np.float32,
+        )
         self.metadata = dict(METADATA, render_fps=env.render_fps or METADATA["render_fps"])
         self._viewer: Viewer | None = None
         # The record (see _record): the seed of the last seeded reset, the operations since, each
@@ -245,25 +254,44 @@ class RemoteEnvBase:
         (GetServerInfo, asked when the environment was created or moved there by failover)."""
         return self._connection.server_info
 
-    # ----------------------------------------------------------------- env state
+    # ----------------------------------------------------------------- PettingZoo's global state
 
-    def state(self) -> bytes:
-        """This env's state: bytes that recreate it at this point (restore, clone) to the same bits
-        on any server of the same release. FAILED_PRECONDITION before the first reset or past the
-        record's limit (docs/python.md)."""
+    def state(self) -> np.ndarray:
+        """PettingZoo's global state (for centralized critics): float32 (n_landers * 12,), lander
+        i's 12 observation values at [12 i, 12 i + 12), the same bits as its latest observation
+        (observe(agent); the parallel env's latest returned observation). Rows of landers not in
+        `agents` (done: after the parallel step that ended them, after the AEC dead step that
+        removed them; all of them before the first reset) are zeros. Described by `state_space`.
+        Made on the client from the observations it holds: no server call."""
+        state = np.zeros((len(self.possible_agents), self._observation_size), np.float32)
+        present = [self._agent_index[agent] for agent in self.agents]
+        if present:
+            state[present] = self._observation_rows()[present]
+        return state.reshape(-1)
+
+    def _observation_rows(self) -> np.ndarray:
+        """float32 (n_landers, 12): each lander's latest observation, as the subclass holds it."""
+        raise NotImplementedError
+
+    # ----------------------------------------------------------------- snapshot
+
+    def snapshot(self) -> bytes:
+        """This env's snapshot: bytes that recreate it at this point (restore, clone) to the same
+        bits on any server of the same release. FAILED_PRECONDITION before the first reset or past
+        the record's limit (docs/python.md)."""
         info = self.server_info
-        return _record.encode_state(
+        return _record.encode_snapshot(
             self._env_config, info.protocol, info.server_version, self._env_record(), self._dtype,
             self._actions.nbytes,
         )
 
-    def _restore(self, state: bytes, operations: Sequence[int]):
-        """Puts this env at the point `state` describes (its steps among `operations`): a new
-        server-side env replays it, checked against the state's last observations, then replaces
-        this one's. Returns the replay's last answer. INVALID_ARGUMENT for a damaged state or one
+    def _restore(self, snapshot: bytes, operations: Sequence[int]):
+        """Puts this env at the point `snapshot` describes (its steps among `operations`): a new
+        server-side env replays it, checked against the snapshot's last observations, then replaces
+        this one's. Returns the replay's last answer. INVALID_ARGUMENT for a damaged snapshot or one
         of an env with other options or steps, DATA_LOSS when the replay gives other bits; on any
         error the env is untouched."""
-        decoded = _record.decode_state(state, operations)
+        decoded = _record.decode_snapshot(snapshot, operations)
         _record.check_restorable(decoded, self._env_config, self.server_info)
         (env,), (answer,) = _record.replay(
             self._connection, self._env_config, [decoded.record], [f"{self._name} (restored)"],
@@ -282,11 +310,11 @@ class RemoteEnvBase:
 
     def clone(self):
         """A new env of this class on the same server with the same arguments, at this same point
-        (state() restored into it)."""
-        state = self.state()
+        (snapshot() restored into it)."""
+        snapshot = self.snapshot()
         other = rebuild(type(self), self._init_kwargs)
         try:
-            other.restore(state)
+            other.restore(snapshot)
         except BaseException:
             other.close()
             raise

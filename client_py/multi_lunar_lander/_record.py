@@ -4,7 +4,7 @@ and the failover that uses it.
 An env is deterministic to the bit: it is fully described by its config, the seed of its last
 seeded reset and every operation since (steps with their actions, auto-reset steps, unseeded
 resets, which continue the generator's stream). The clients keep this record to fail over (an
-env lost with its server is recreated elsewhere and replayed) and to give `state()` / restore.
+env lost with its server is recreated elsewhere and replayed) and to give `snapshot()` / restore.
 
 Operations (one byte each) and their action row (the wire bytes of the step's actions: int32
 [n_landers] or float32 [n_landers, 2]; zeros where ignored):
@@ -16,16 +16,16 @@ Operations (one byte each) and their action row (the wire bytes of the step's ac
   AGENT_STEP: the action at the acting agent's slot of the row; DEAD_STEP: a dead step (no
   action; the row is zeros).
 A record holds StepEnv operations (STEP, AUTO_RESET) or StepAgent ones, never both: the server
-refuses to mix the two step APIs within an episode, so each env kind restores only states of
+refuses to mix the two step APIs within an episode, so each env kind restores only snapshots of
 its own operations (and RESET).
 
 A record holds at most MAX_RECORD_STEPS operations since its seeded reset; past it the env
 cannot be recreated (failover raises FAILED_PRECONDITION naming the env) until its next seeded
 reset starts a new record.
 
-State format (env.state(), all integers little-endian): b"MLLS", u16 format version (1: operations
-STEP, AUTO_RESET, RESET; 2: the same layout, AGENT_STEP and DEAD_STEP allowed too. A state is
-written with the lowest version that holds its operations, so the states of vector and parallel
+Snapshot format (env.snapshot(), all integers little-endian): b"MLLS", u16 format version (1: operations
+STEP, AUTO_RESET, RESET; 2: the same layout, AGENT_STEP and DEAD_STEP allowed too. A snapshot is
+written with the lowest version that holds its operations, so the snapshots of vector and parallel
 envs stay readable by version-1 clients, which refuse an AEC env's by its version), u16 and
 u16 the wire protocol (major, minor) of the server that ran the env, u16 length + the server's
 release string, u32 length + the EnvConfig message (the server's filled-in config), u64 seed,
@@ -158,7 +158,7 @@ class GrowingLog:
         return kinds[used].copy(), self.actions[start:end, env][used].copy()
 
 
-def encode_state(
+def encode_snapshot(
     config: "pb.EnvConfig", protocol: Sequence[int], release: str, record: EnvRecord, dtype: int, row_bytes: int
 ) -> bytes:
     config_bytes = config.SerializeToString(deterministic=True)
@@ -181,27 +181,29 @@ def encode_state(
     return body + struct.pack("<I", zlib.crc32(body))
 
 
-class DecodedState:
+class DecodedSnapshot:
     __slots__ = ("protocol", "release", "config", "record", "dtype", "row_bytes")
 
 
-def decode_state(state, operations: Sequence[int] = STEP_OPERATIONS) -> DecodedState:
-    """Parses and checks a state for an env that replays `operations` (STEP_OPERATIONS: vector
+def decode_snapshot(snapshot, operations: Sequence[int] = STEP_OPERATIONS) -> DecodedSnapshot:
+    """Parses and checks a snapshot for an env that replays `operations` (STEP_OPERATIONS: vector
     and parallel envs; AEC_OPERATIONS: the AEC env); INVALID_ARGUMENT naming what is wrong."""
-    if not isinstance(state, (bytes, bytearray, memoryview)):
-        raise invalid_argument(f"state is a {type(state).__name__}; expected the bytes of env.state()")
-    data = bytes(state)
+    if not isinstance(snapshot, (bytes, bytearray, memoryview)):
+        raise invalid_argument(f"snapshot is a {type(snapshot).__name__}; expected the bytes of env.snapshot()")
+    data = bytes(snapshot)
     if len(data) < 8 or data[:4] != MAGIC:
-        raise invalid_argument("state does not start with b'MLLS': not an env state (or truncated)")
+        raise invalid_argument("snapshot does not start with b'MLLS': not an env snapshot (or truncated)")
     body, (crc,) = data[:-4], struct.unpack("<I", data[-4:])
     if zlib.crc32(body) != crc:
-        raise invalid_argument(f"state is damaged: its CRC-32 is {crc:#010x}, its contents' {zlib.crc32(body):#010x}")
+        raise invalid_argument(
+            f"snapshot is damaged: its CRC-32 is {crc:#010x}, its contents' {zlib.crc32(body):#010x}"
+        )
     offset = 4
 
     def take(size: int, what: str) -> bytes:
         nonlocal offset
         if offset + size > len(body):
-            raise invalid_argument(f"state is truncated in its {what}")
+            raise invalid_argument(f"snapshot is truncated in its {what}")
         chunk = body[offset : offset + size]
         offset += size
         return chunk
@@ -209,9 +211,10 @@ def decode_state(state, operations: Sequence[int] = STEP_OPERATIONS) -> DecodedS
     version, major, minor, release_len = struct.unpack("<HHHH", take(8, "header"))
     if version not in VERSION_OPERATIONS:
         raise invalid_argument(
-            f"state has format version {version}; this client reads versions 1 to {FORMAT_VERSION} (upgrade the client)"
+            f"snapshot has format version {version}; this client reads versions 1 to {FORMAT_VERSION} "
+            "(upgrade the client)"
         )
-    decoded = DecodedState()
+    decoded = DecodedSnapshot()
     decoded.protocol = (major, minor)
     decoded.release = take(release_len, "release").decode("utf-8", "replace")
     (config_len,) = struct.unpack("<I", take(4, "config length"))
@@ -219,51 +222,51 @@ def decode_state(state, operations: Sequence[int] = STEP_OPERATIONS) -> DecodedS
     try:
         decoded.config.ParseFromString(take(config_len, "config"))
     except Exception as error:  # google.protobuf.message.DecodeError
-        raise invalid_argument(f"state's config does not parse: {error}") from None
+        raise invalid_argument(f"snapshot's config does not parse: {error}") from None
     seed, dtype, row_bytes, count = struct.unpack("<QBII", take(17, "seed and sizes"))
     if dtype not in (pb.DTYPE_INT32, pb.DTYPE_FLOAT32):
-        raise invalid_argument(f"state's action dtype is {dtype}; expected int32 or float32")
+        raise invalid_argument(f"snapshot's action dtype is {dtype}; expected int32 or float32")
     if count > MAX_RECORD_STEPS:
-        raise invalid_argument(f"state holds {count} operations; at most {MAX_RECORD_STEPS}")
+        raise invalid_argument(f"snapshot holds {count} operations; at most {MAX_RECORD_STEPS}")
     kinds = np.frombuffer(take(count, "operations"), np.uint8)
     if not np.isin(kinds, VERSION_OPERATIONS[version]).all():
-        raise invalid_argument(f"state holds an operation code unknown to format version {version}")
+        raise invalid_argument(f"snapshot holds an operation code unknown to format version {version}")
     if not np.isin(kinds, operations).all():
         raise invalid_argument(
-            "state holds steps of the other step API (StepAgent: an AEC env's; StepEnv: a vector or parallel "
+            "snapshot holds steps of the other step API (StepAgent: an AEC env's; StepEnv: a vector or parallel "
             "env's), which this env does not replay"
         )
     actions = np.frombuffer(take(count * row_bytes, "actions"), np.uint8).reshape(count, row_bytes)
     (obs_len,) = struct.unpack("<I", take(4, "observations length"))
     last = take(obs_len, "observations")
     if offset != len(body):
-        raise invalid_argument(f"state has {len(body) - offset} bytes after its end")
+        raise invalid_argument(f"snapshot has {len(body) - offset} bytes after its end")
     decoded.record = EnvRecord(seed, kinds, actions, last)
     decoded.dtype, decoded.row_bytes = dtype, row_bytes
     return decoded
 
 
-def check_config(state_config: "pb.EnvConfig", config: "pb.EnvConfig", row_bytes: int, dtype: int) -> None:
-    """INVALID_ARGUMENT unless the state's env has the options of `config` (render_mode and
+def check_config(snapshot_config: "pb.EnvConfig", config: "pb.EnvConfig", row_bytes: int, dtype: int) -> None:
+    """INVALID_ARGUMENT unless the snapshot's env has the options of `config` (render_mode and
     auto_reset aside: they do not change the physics)."""
     mine, theirs = pb.EnvConfig(), pb.EnvConfig()
     mine.CopyFrom(config)
-    theirs.CopyFrom(state_config)
+    theirs.CopyFrom(snapshot_config)
     for message in (mine, theirs):
         message.ClearField("render_mode")
         message.ClearField("auto_reset")
     if mine != theirs:
         raise invalid_argument(
-            f"state is of an env with other options ({str(theirs).strip() or 'defaults'}) than this one's "
+            f"snapshot is of an env with other options ({str(theirs).strip() or 'defaults'}) than this one's "
             f"({str(mine).strip() or 'defaults'})".replace("\n", ", ")
         )
     n_landers = int(config.n_landers)
     expected = n_landers * (8 if config.continuous else 4)
     if row_bytes != expected or dtype != (pb.DTYPE_FLOAT32 if config.continuous else pb.DTYPE_INT32):
-        raise invalid_argument(f"state's actions are {row_bytes} bytes a step; this env's are {expected}")
+        raise invalid_argument(f"snapshot's actions are {row_bytes} bytes a step; this env's are {expected}")
 
 
-def check_restorable(decoded: DecodedState, config: "pb.EnvConfig", server) -> None:
+def check_restorable(decoded: DecodedSnapshot, config: "pb.EnvConfig", server) -> None:
     """INVALID_ARGUMENT unless `decoded` can be replayed into an env of `config` on the server
     `server` (its ServerInfo): the same options (check_config) and the same wire protocol major
     version (another major may change the physics or the operations). Another release of the same
@@ -272,7 +275,7 @@ def check_restorable(decoded: DecodedState, config: "pb.EnvConfig", server) -> N
     major, minor = decoded.protocol
     if major != server.protocol[0]:
         raise invalid_argument(
-            f"state is from a server of wire protocol {major}.{minor} (release {decoded.release or 'unknown'}); "
+            f"snapshot is from a server of wire protocol {major}.{minor} (release {decoded.release or 'unknown'}); "
             f"this server speaks {server.protocol[0]}.{server.protocol[1]} (release {server.server_version}): "
             f"restore it on a server of protocol {major}.x"
         )

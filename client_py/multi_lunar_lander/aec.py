@@ -4,7 +4,7 @@ The server keeps PettingZoo's AEC bookkeeping (agent order, the dead-step rule, 
 `_cumulative_rewards`); after each call this class copies the returned `AecState` into the
 attributes pettingzoo.AECEnv's own `last()`, `observe()` and `agent_iter()` read. Each turn is
 recorded (AGENT_STEP or DEAD_STEP, see _record), so replaying the record gives the same agent
-selection and bits: what failover and state()/restore()/clone() use.
+selection and bits: what failover and snapshot()/restore()/clone() use.
 """
 
 from __future__ import annotations
@@ -61,8 +61,13 @@ class MultiLunarLanderEnv(RemoteEnvBase, AECEnv):
     an env lost with its server is recreated on another from its record and the turn retried;
     `failovers` counts the events).
 
-    ## Env state
-    state() -> bytes, restore(state), clone(): as the parallel env's, for AEC states.
+    ## State
+    state() -> float32 (n_landers * 12,), described by state_space: PettingZoo's global state,
+    lander i's observe() at [12 i, 12 i + 12); zeros for landers no longer in `agents` (removed by
+    their dead step).
+
+    ## Snapshot
+    snapshot() -> bytes, restore(snapshot), clone(): as the parallel env's, for AEC turns.
     """
 
     def _init_state(self) -> None:
@@ -101,17 +106,20 @@ class MultiLunarLanderEnv(RemoteEnvBase, AECEnv):
         if response.aec.world_stepped:
             self._show_if_human()
 
-    def restore(self, state: bytes) -> None:
-        """Puts this env at the point `state` (another AEC env's state()) describes, agent_selection
-        and the PettingZoo attributes included: a new server-side env replays it, checked against
-        the state's last observations, then replaces this one's. INVALID_ARGUMENT for a damaged
-        state or one of an env with other options (or of a parallel or vector env, which steps
-        with the other step API), DATA_LOSS when the replay gives other bits; on any error the env
-        is untouched."""
-        self._apply(self._restore(state, _record.AEC_OPERATIONS).aec)
+    def restore(self, snapshot: bytes) -> None:
+        """Puts this env at the point `snapshot` (another AEC env's snapshot()) describes,
+        agent_selection and the PettingZoo attributes included: a new server-side env replays it,
+        checked against the snapshot's last observations, then replaces this one's.
+        INVALID_ARGUMENT for a damaged snapshot or one of an env with other options (or of a
+        parallel or vector env, which steps with the other step API), DATA_LOSS when the replay
+        gives other bits; on any error the env is untouched."""
+        self._apply(self._restore(snapshot, _record.AEC_OPERATIONS).aec)
 
     def observe(self, agent: str) -> np.ndarray:
         return self._observations[self._agent_index[agent]].copy()
+
+    def _observation_rows(self) -> np.ndarray:
+        return self._observations
 
     def _apply(self, aec: "pb.AecState") -> None:
         """Copies the server's AEC state into PettingZoo's attributes."""

@@ -37,8 +37,11 @@ class MultiLunarLanderParallelEnv(RemoteEnvBase, ParallelEnv):
     PettingZoo's own parallel envs do (SuperSuit's black_death_v3 relies on it); a step with
     actions after the end, or any step before the first reset, raises FAILED_PRECONDITION.
 
-    state() -> bytes, restore(state), clone(): the env at this point, as bytes that recreate it
-    to the same bits on any server of the same release (see _record and docs/python.md).
+    state() -> float32 (n_landers * 12,), described by state_space: PettingZoo's global state,
+    lander i's latest observation at [12 i, 12 i + 12); zeros for landers not in `agents`.
+
+    snapshot() -> bytes, restore(snapshot), clone(): the env at this point, as bytes that recreate
+    it to the same bits on any server of the same release (see _record and docs/python.md).
     failover (on by default with several servers or the embedded one): an env lost with its
     server is recreated on another from that record and the step retried; `failovers` counts.
     """
@@ -86,13 +89,13 @@ class MultiLunarLanderParallelEnv(RemoteEnvBase, ParallelEnv):
         self._show_if_human()
         return result
 
-    def restore(self, state: bytes) -> dict:
-        """Puts this env at the point `state` (state(), or a vector env's env_state) describes: a
-        new server-side env replays it, checked against the state's last observations, then
-        replaces this one's. Returns the observations of the agents active then. INVALID_ARGUMENT
-        for a damaged state or one of an env with other options (or an AEC env's), DATA_LOSS when
-        the replay gives other bits; on any error the env is untouched."""
-        answer = self._restore(state, _record.STEP_OPERATIONS)
+    def restore(self, snapshot: bytes) -> dict:
+        """Puts this env at the point `snapshot` (snapshot(), or a vector env's env_snapshot)
+        describes: a new server-side env replays it, checked against the snapshot's last
+        observations, then replaces this one's. Returns the observations of the agents active then.
+        INVALID_ARGUMENT for a damaged snapshot or one of an env with other options (or an AEC
+        env's), DATA_LOSS when the replay gives other bits; on any error the env is untouched."""
+        answer = self._restore(snapshot, _record.STEP_OPERATIONS)
         # Active now: every agent after a reset, else those that stepped and are not done.
         if isinstance(answer, pb.ResetEnvResponse):
             self.agents = list(self.possible_agents)
@@ -102,5 +105,9 @@ class MultiLunarLanderParallelEnv(RemoteEnvBase, ParallelEnv):
             stepped = _arrays.to_numpy(data.stepped).astype(bool)
             self.agents = [a for i, a in enumerate(self.possible_agents) if stepped[i] and not done[i]]
         self._was_reset = True
-        observations = np.frombuffer(self._last_observations, "<f4").reshape(len(self.possible_agents), 12)
+        observations = self._observation_rows()
         return {agent: observations[self._agent_index[agent]].astype(np.float32) for agent in self.agents}
+
+    def _observation_rows(self) -> np.ndarray:
+        """The observations of the latest reset, step or restore, all landers' (the record's)."""
+        return np.frombuffer(self._last_observations, "<f4").reshape(len(self.possible_agents), -1)

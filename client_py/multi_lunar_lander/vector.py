@@ -888,28 +888,28 @@ class VectorEnv:
             f"{first.message}{self._refusals(refused)}",
         )
 
-    # ----------------------------------------------------------------- env state
+    # ----------------------------------------------------------------- env snapshot
 
-    def env_state(self, index: int) -> bytes:
-        """Env `index`'s state: bytes that recreate it at this point to the same bits on any
+    def env_snapshot(self, index: int) -> bytes:
+        """Env `index`'s snapshot: bytes that recreate it at this point to the same bits on any
         server of the same release (restore_env, parallel_env's restore). FAILED_PRECONDITION
-        when its record cannot (see docs/python.md, "Failover and env state")."""
+        when its record cannot (see docs/python.md, "Failover and snapshots")."""
         self._check_no_step_in_flight()
         index = self._env_index(index)
         info = self._connection_of(index).server_info
-        return _record.encode_state(
+        return _record.encode_snapshot(
             self._spec_config, info.protocol, info.server_version, self._env_record(index),
             self._action_dtype, self._row_bytes,
         )
 
-    def restore_env(self, index: int, state: bytes) -> np.ndarray:
-        """Puts env `index` at the point `state` (env_state, parallel_env's state) describes: a new
-        env on the same server replays it, checked to the bits, then replaces the old one.
-        Returns its observations (n_landers, 12). INVALID_ARGUMENT for a damaged state or one of an
-        env with other options; the env is untouched on any error."""
+    def restore_env(self, index: int, snapshot: bytes) -> np.ndarray:
+        """Puts env `index` at the point `snapshot` (env_snapshot, parallel_env's snapshot)
+        describes: a new env on the same server replays it, checked to the bits, then replaces the
+        old one. Returns its observations (n_landers, 12). INVALID_ARGUMENT for a damaged snapshot
+        or one of an env with other options; the env is untouched on any error."""
         self._check_no_step_in_flight()
         index = self._env_index(index)
-        decoded = _record.decode_state(state)
+        decoded = _record.decode_snapshot(snapshot)
         connection = self._connection_of(index)
         _record.check_restorable(decoded, self._spec_config, connection.server_info)
         (env,), _ = _record.replay(

@@ -101,15 +101,15 @@ def _parallel_steps(env, rng, steps):
     return out
 
 
-def test_parallel_state_restores_on_another_server_process(address):
+def test_parallel_snapshot_restores_on_another_server_process(address):
     with mll.ServerProcess(threads=1) as other:
         env = mll.parallel_env(address=address, n_landers=2)
         env.reset(seed=11)
         _parallel_steps(env, np.random.default_rng(1), 150)  # Crosses episode ends (unseeded resets).
-        state = env.state()
-        assert state[:4] == b"MLLS"
+        snapshot = env.snapshot()
+        assert snapshot[:4] == b"MLLS"
         elsewhere = mll.parallel_env(address=other.address, n_landers=2)
-        restored = elsewhere.restore(state)
+        restored = elsewhere.restore(snapshot)
         assert sorted(restored) == sorted(env.agents) == sorted(elsewhere.agents)
         twin = env.clone()
         expected = _parallel_steps(env, np.random.default_rng(2), 60)
@@ -120,7 +120,7 @@ def test_parallel_state_restores_on_another_server_process(address):
             e.close()
 
 
-def test_vector_env_state_moves_an_env_between_server_processes(address):
+def test_vector_env_snapshot_moves_an_env_between_server_processes(address):
     with mll.ServerProcess(threads=1) as other:
         vector = mll.vector_env(3, address=address, n_landers=2, max_cycles=40)
         target = mll.vector_env(3, address=other.address, n_landers=2, max_cycles=40)
@@ -129,7 +129,7 @@ def test_vector_env_state_moves_an_env_between_server_processes(address):
         target.reset(seed=99)
         for _ in range(70):  # Past max_cycles: auto-resets in the record.
             vector.step(random_actions(rng, (3, 2), False))
-        observations = target.restore_env(2, vector.env_state(1))
+        observations = target.restore_env(2, vector.env_snapshot(1))
         assert same_bits(observations, vector._last_observations[1])
         for _ in range(50):
             actions = random_actions(rng, (3, 2), False)
@@ -140,23 +140,23 @@ def test_vector_env_state_moves_an_env_between_server_processes(address):
         target.close()
 
 
-def test_a_damaged_state_is_refused_and_the_env_untouched(address):
+def test_a_damaged_snapshot_is_refused_and_the_env_untouched(address):
     env = mll.parallel_env(address=address, n_landers=2)
     reference = mll.parallel_env(address=address, n_landers=2)
     for e in (env, reference):
         e.reset(seed=3)
         _parallel_steps(e, np.random.default_rng(5), 10)
-    state = env.state()
+    snapshot = env.snapshot()
     name = env.name
-    flipped = bytearray(state)
-    flipped[len(state) // 2] ^= 0x10
+    flipped = bytearray(snapshot)
+    flipped[len(snapshot) // 2] ^= 0x10
     other_options = mll.parallel_env(address=address, n_landers=3)
     other_options.reset(seed=3)
     cases = {
         "damaged": bytes(flipped),
-        "damaged|truncated": state[:-9],
-        "MLLS": b"NOPE" + state[4:],
-        "other options": other_options.state(),
+        "damaged|truncated": snapshot[:-9],
+        "MLLS": b"NOPE" + snapshot[4:],
+        "other options": other_options.snapshot(),
         "bytes": "not bytes",
     }
     for match, bad in cases.items():
@@ -168,37 +168,37 @@ def test_a_damaged_state_is_refused_and_the_env_untouched(address):
     want = _parallel_steps(reference, np.random.default_rng(6), 30)
     assert all(same_bits(x, y) for x, y in zip(got, want))
     with pytest.raises(mll.MLLError) as raised:
-        mll.parallel_env(address=address).state()
+        mll.parallel_env(address=address).snapshot()
     assert raised.value.code == grpc.StatusCode.FAILED_PRECONDITION
     for e in (env, reference, other_options):
         e.close()
 
 
-def _with_protocol(state: bytes, major: int, minor: int) -> bytes:
-    """`state` as a server of wire protocol major.minor would have written it (CRC-32 renewed)."""
-    body = bytearray(state[:-4])
+def _with_protocol(snapshot: bytes, major: int, minor: int) -> bytes:
+    """`snapshot` as a server of wire protocol major.minor would have written it (CRC-32 renewed)."""
+    body = bytearray(snapshot[:-4])
     body[6:10] = struct.pack("<HH", major, minor)  # After b"MLLS" and the u16 format version.
     return bytes(body) + struct.pack("<I", zlib.crc32(body))
 
 
-def test_a_state_from_another_protocol_major_is_refused_naming_both(address):
-    """A state says which wire protocol its server spoke; another major is refused before any
+def test_a_snapshot_from_another_protocol_major_is_refused_naming_both(address):
+    """A snapshot says which wire protocol its server spoke; another major is refused before any
     replay (the env untouched), the same major with another minor restores."""
     env = mll.parallel_env(address=address, n_landers=2)
     env.reset(seed=3)
     _parallel_steps(env, np.random.default_rng(5), 10)
-    state, name = env.state(), env.name
+    snapshot, name = env.snapshot(), env.name
     major, minor = env.server_info.protocol
     with pytest.raises(mll.MLLError, match=rf"wire protocol {major + 1}\.0 .* speaks {major}\.{minor}") as raised:
-        env.restore(_with_protocol(state, major + 1, 0))
+        env.restore(_with_protocol(snapshot, major + 1, 0))
     assert raised.value.code == grpc.StatusCode.INVALID_ARGUMENT and env.name == name
     vector = mll.vector_env(2, address=address, n_landers=2)
     vector.reset(seed=1)
     with pytest.raises(mll.MLLError, match="restore it on a server of protocol") as raised:
-        vector.restore_env(1, _with_protocol(state, major + 1, 0))
+        vector.restore_env(1, _with_protocol(snapshot, major + 1, 0))
     assert raised.value.code == grpc.StatusCode.INVALID_ARGUMENT
-    same_minor = vector.restore_env(0, state)
-    other_minor = vector.restore_env(1, _with_protocol(state, major, minor + 1))
+    same_minor = vector.restore_env(0, snapshot)
+    other_minor = vector.restore_env(1, _with_protocol(snapshot, major, minor + 1))
     assert same_bits(other_minor, same_minor) and np.abs(same_minor).sum() > 0
     vector.close()
     env.close()

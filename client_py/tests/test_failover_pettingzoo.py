@@ -21,13 +21,13 @@ KINDS = {"parallel": mll.parallel_env, "aec": mll.env}
 
 def _parallel_turn(env, reference, rng):
     """One step of both envs with the same random actions (a reset at the episode's end);
-    what each returned, with its agents."""
+    what each returned, with its agents and PettingZoo state."""
     if not reference.agents:
         results = env.reset(), reference.reset()
     else:
         actions = {agent: int(rng.integers(0, 4)) for agent in reference.agents}
         results = env.step(actions), reference.step(actions)
-    return [(result, e.agents) for result, e in zip(results, (env, reference))]
+    return [(result, e.agents, e.state()) for result, e in zip(results, (env, reference))]
 
 
 def _aec_view(env):
@@ -42,6 +42,7 @@ def _aec_view(env):
         dict(env.truncations),
         dict(env.infos),
         [env.observe(agent) for agent in env.possible_agents],
+        env.state(),
     )
 
 
@@ -107,9 +108,9 @@ def test_kill_the_server_of_an_env_mid_episode(kind, caplog):
         assert env.address in (a.address, c.address)
         warnings = _failover_warnings(caplog)
         assert len(warnings) == 1 and "UNAVAILABLE" in warnings[0], warnings
-        state = env.state()  # The record goes on past the failover.
+        snapshot = env.snapshot()  # The record goes on past the failover.
         twin = KINDS[kind](address=c.address, n_landers=2)
-        twin.restore(state)
+        twin.restore(snapshot)
         _lockstep_on(kind, env, twin)
         for e in (env, reference, twin):
             e.close()
@@ -196,7 +197,7 @@ def test_an_env_lost_by_its_server_is_recreated_there(kind, address, raw_stub):
     reference.close()
 
 
-def test_aec_state_restores_clones_and_refuses_the_other_step_api(address):
+def test_aec_snapshot_restores_clones_and_refuses_the_other_step_api(address):
     with mll.ServerProcess(threads=1) as other:
         env = mll.env(address=address, n_landers=3, continuous=True)
         env.reset(seed=5)
@@ -204,10 +205,10 @@ def test_aec_state_restores_clones_and_refuses_the_other_step_api(address):
         for _ in range(31):  # Mid-cycle: some agents have acted since the world stepped.
             env.step(None if env.terminations[env.agent_selection] or env.truncations[env.agent_selection]
                      else rng.uniform(-1, 1, 2).astype(np.float32))
-        state = env.state()
-        assert state[:4] == b"MLLS" and state[4:6] == (2).to_bytes(2, "little")  # Format version 2.
+        snapshot = env.snapshot()
+        assert snapshot[:4] == b"MLLS" and snapshot[4:6] == (2).to_bytes(2, "little")  # Format version 2.
         elsewhere = mll.env(address=other.address, n_landers=3, continuous=True)
-        assert elsewhere.restore(state) is None
+        assert elsewhere.restore(snapshot) is None
         twin = env.clone()
         for copy in (elsewhere, twin):
             assert pickle.dumps(_aec_view(copy)) == pickle.dumps(_aec_view(env))
@@ -223,7 +224,7 @@ def test_aec_state_restores_clones_and_refuses_the_other_step_api(address):
         parallel = mll.parallel_env(address=address, n_landers=3, continuous=True)
         parallel.reset(seed=5)
         parallel.step({agent: np.zeros(2, np.float32) for agent in parallel.agents})
-        for target, foreign in ((env, parallel.state()), (parallel, state)):
+        for target, foreign in ((env, parallel.snapshot()), (parallel, snapshot)):
             with pytest.raises(mll.MLLError, match="other step API") as raised:
                 target.restore(foreign)
             assert raised.value.code == grpc.StatusCode.INVALID_ARGUMENT

@@ -1,8 +1,8 @@
-// VectorEnv's failover and env state, against real mll_server processes: a
+// VectorEnv's failover and env snapshot, against real mll_server processes: a
 // server killed (kill -9) mid-run, in Step or in a Send/Recv loop, costs no
 // episode and no bit; a dead failover target is passed over; failover off
-// reports the loss; a state (after Step or Send/Recv steps) restores on
-// another server to the same bits, and a damaged or foreign state is refused
+// reports the loss; a snapshot (after Step or Send/Recv steps) restores on
+// another server to the same bits, and a damaged or foreign snapshot is refused
 // with the env untouched.
 #include <zlib.h>
 
@@ -483,21 +483,21 @@ TEST(FailoverTest, SendRecvWithNoServerLeftNamesTheServersTried) {
   EXPECT_EQ(envs->failovers(), 0);
 }
 
-// The state's bytes with `edit` applied and a valid CRC again.
-std::string Edited(std::string state,
+// The snapshot's bytes with `edit` applied and a valid CRC again.
+std::string Edited(std::string snapshot,
                    const std::function<void(std::string*)>& edit) {
-  state.resize(state.size() - 4);
-  edit(&state);
+  snapshot.resize(snapshot.size() - 4);
+  edit(&snapshot);
   const uint32_t crc = static_cast<uint32_t>(
-      crc32(0L, reinterpret_cast<const Bytef*>(state.data()),
-            static_cast<uInt>(state.size())));
+      crc32(0L, reinterpret_cast<const Bytef*>(snapshot.data()),
+            static_cast<uInt>(snapshot.size())));
   for (int byte = 0; byte < 4; ++byte) {
-    state.push_back(static_cast<char>((crc >> (8 * byte)) & 0xff));
+    snapshot.push_back(static_cast<char>((crc >> (8 * byte)) & 0xff));
   }
-  return state;
+  return snapshot;
 }
 
-class EnvStateTest : public ::testing::Test {
+class EnvSnapshotTest : public ::testing::Test {
  protected:
   static void SetUpTestSuite() { servers_ = new auto(StartServers(2)); }
   static void TearDownTestSuite() { delete servers_; }
@@ -510,9 +510,9 @@ class EnvStateTest : public ::testing::Test {
   static inline std::vector<std::unique_ptr<ServerProcess>>* servers_;
 };
 
-// A state taken on one server restores on another to the same bits: the
-// restored env's state is the same bytes, and both envs go on alike.
-TEST_F(EnvStateTest, RestoresOnAnotherServerToTheSameBits) {
+// A snapshot taken on one server restores on another to the same bits: the
+// restored env's snapshot is the same bytes, and both envs go on alike.
+TEST_F(EnvSnapshotTest, RestoresOnAnotherServerToTheSameBits) {
   Client first = ClientOn(0);
   Client second = ClientOn(1);
   absl::StatusOr<VectorEnv> source = VectorEnv::Create(first, 3, SmallConfig());
@@ -528,16 +528,16 @@ TEST_F(EnvStateTest, RestoresOnAnotherServerToTheSameBits) {
   for (int step = 55; step < 70; ++step) {
     ASSERT_TRUE(source->Step(absl::MakeConstSpan(ActionsOf(step, 3))).ok());
   }
-  absl::StatusOr<std::string> state = source->EnvState(1);
-  ASSERT_TRUE(state.ok()) << state.status();
-  EXPECT_EQ(state->substr(0, 4), "MLLS");
+  absl::StatusOr<std::string> snapshot = source->EnvSnapshot(1);
+  ASSERT_TRUE(snapshot.ok()) << snapshot.status();
+  EXPECT_EQ(snapshot->substr(0, 4), "MLLS");
   const std::string old_name = target->names()[2];
   absl::StatusOr<std::vector<float>> observations =
-      target->RestoreEnv(2, *state);
+      target->RestoreEnv(2, *snapshot);
   ASSERT_TRUE(observations.ok()) << observations.status();
   EXPECT_NE(target->names()[2], old_name);
   EXPECT_EQ(*observations, source->Result(1).observations);
-  EXPECT_EQ(*target->EnvState(2), *state);
+  EXPECT_EQ(*target->EnvSnapshot(2), *snapshot);
   for (int step = 70; step < 100; ++step) {
     const std::vector<int32_t> actions = ActionsOf(step, 3);
     std::vector<int32_t> moved(actions);
@@ -552,9 +552,9 @@ TEST_F(EnvStateTest, RestoresOnAnotherServerToTheSameBits) {
   }
 }
 
-// Send/Recv steps are recorded: states taken after them restore on another
+// Send/Recv steps are recorded: snapshots taken after them restore on another
 // server to the same bits, and the restored envs go on as the originals.
-TEST_F(EnvStateTest, StatesAfterSendRecvStepsRestoreToTheSameBits) {
+TEST_F(EnvSnapshotTest, SnapshotsAfterSendRecvStepsRestoreToTheSameBits) {
   constexpr int kEnvs = 4;
   Client first = ClientOn(0);
   Client second = ClientOn(1);
@@ -595,13 +595,13 @@ TEST_F(EnvStateTest, StatesAfterSendRecvStepsRestoreToTheSameBits) {
   receive();
   for (int env = 0; env < kEnvs; ++env) {
     SCOPED_TRACE(env);
-    absl::StatusOr<std::string> state = source->EnvState(env);
-    ASSERT_TRUE(state.ok()) << state.status();
+    absl::StatusOr<std::string> snapshot = source->EnvSnapshot(env);
+    ASSERT_TRUE(snapshot.ok()) << snapshot.status();
     absl::StatusOr<std::vector<float>> observations =
-        target->RestoreEnv(env, *state);
+        target->RestoreEnv(env, *snapshot);
     ASSERT_TRUE(observations.ok()) << observations.status();
     EXPECT_EQ(*observations, last[env]);
-    EXPECT_EQ(*target->EnvState(env), *state);
+    EXPECT_EQ(*target->EnvSnapshot(env), *snapshot);
   }
   for (int step = 0; step < 20; ++step) {
     const std::vector<int32_t> actions = ActionsOf(step, kEnvs);
@@ -615,7 +615,8 @@ TEST_F(EnvStateTest, StatesAfterSendRecvStepsRestoreToTheSameBits) {
   }
 }
 
-TEST_F(EnvStateTest, DamagedOrForeignStatesAreRefusedAndTheEnvIsUntouched) {
+TEST_F(EnvSnapshotTest,
+       DamagedOrForeignSnapshotsAreRefusedAndTheEnvIsUntouched) {
   Client client = ClientOn(0);
   absl::StatusOr<VectorEnv> envs = VectorEnv::Create(client, 2, SmallConfig());
   absl::StatusOr<VectorEnv> three =
@@ -626,45 +627,45 @@ TEST_F(EnvStateTest, DamagedOrForeignStatesAreRefusedAndTheEnvIsUntouched) {
   for (int step = 0; step < 10; ++step) {
     ASSERT_TRUE(envs->Step(absl::MakeConstSpan(ActionsOf(step, 2))).ok());
   }
-  const absl::StatusOr<std::string> state = envs->EnvState(0);
-  const absl::StatusOr<std::string> foreign = three->EnvState(0);
-  ASSERT_TRUE(state.ok() && foreign.ok());
+  const absl::StatusOr<std::string> snapshot = envs->EnvSnapshot(0);
+  const absl::StatusOr<std::string> foreign = three->EnvSnapshot(0);
+  ASSERT_TRUE(snapshot.ok() && foreign.ok());
   const std::vector<std::string> names = envs->names();
 
   struct Refusal {
     const char* label;
-    std::string state;
+    std::string snapshot;
     absl::StatusCode code;
     const char* says;
   };
-  std::string flipped = *state;
+  std::string flipped = *snapshot;
   flipped[flipped.size() / 2] ^= 0x10;
   const std::vector<Refusal> refusals = {
       {"damaged", flipped, absl::StatusCode::kInvalidArgument,
-       "state is damaged: its CRC-32"},
-      {"bad magic", "XXXX" + state->substr(4),
+       "snapshot is damaged: its CRC-32"},
+      {"bad magic", "XXXX" + snapshot->substr(4),
        absl::StatusCode::kInvalidArgument, "does not start with \"MLLS\""},
       {"other format version",
-       Edited(*state, [](std::string* s) { (*s)[4] = 2; }),
+       Edited(*snapshot, [](std::string* s) { (*s)[4] = 2; }),
        absl::StatusCode::kInvalidArgument, "format version 2"},
       {"truncated",
-       Edited(*state, [](std::string* s) { s->resize(s->size() - 30); }),
-       absl::StatusCode::kInvalidArgument, "state is truncated in its"},
+       Edited(*snapshot, [](std::string* s) { s->resize(s->size() - 30); }),
+       absl::StatusCode::kInvalidArgument, "snapshot is truncated in its"},
       {"other options", *foreign, absl::StatusCode::kInvalidArgument,
        "other options (n_landers: 3"},
       // Bytes 6-7 after the magic and format version: the protocol major.
       {"other protocol major",
-       Edited(*state, [](std::string* s) { (*s)[6] += 1; }),
+       Edited(*snapshot, [](std::string* s) { (*s)[6] += 1; }),
        absl::StatusCode::kInvalidArgument,
        "restore it on a server of protocol "},
       {"other bits",
-       Edited(*state, [](std::string* s) { (*s)[s->size() - 1] ^= 0x01; }),
+       Edited(*snapshot, [](std::string* s) { (*s)[s->size() - 1] ^= 0x01; }),
        absl::StatusCode::kDataLoss, "env 1 (restored): replaying its 10"},
   };
   for (const Refusal& refusal : refusals) {
     SCOPED_TRACE(refusal.label);
     absl::StatusOr<std::vector<float>> restored =
-        envs->RestoreEnv(1, refusal.state);
+        envs->RestoreEnv(1, refusal.snapshot);
     EXPECT_EQ(restored.status().code(), refusal.code) << restored.status();
     EXPECT_THAT(std::string(restored.status().message()),
                 HasSubstr(refusal.says));
@@ -672,33 +673,34 @@ TEST_F(EnvStateTest, DamagedOrForeignStatesAreRefusedAndTheEnvIsUntouched) {
   }
   // Nothing else harmed: the envs step on, their records whole.
   ASSERT_TRUE(envs->Step(absl::MakeConstSpan(ActionsOf(10, 2))).ok());
-  EXPECT_TRUE(envs->EnvState(1).ok());
-  EXPECT_EQ(envs->RestoreEnv(2, *state).status().code(),
+  EXPECT_TRUE(envs->EnvSnapshot(1).ok());
+  EXPECT_EQ(envs->RestoreEnv(2, *snapshot).status().code(),
             absl::StatusCode::kInvalidArgument);
 }
 
-TEST_F(EnvStateTest, RecordsThatCannotRecreateTheirEnvSaySo) {
+TEST_F(EnvSnapshotTest, RecordsThatCannotRecreateTheirEnvSaySo) {
   Client client = ClientOn(0);
   absl::StatusOr<VectorEnv> envs =
       VectorEnv::Create(client, 2, SmallConfig(1), /*batch_size=*/1);
   ASSERT_TRUE(envs.ok());
-  absl::StatusOr<std::string> state = envs->EnvState(0);
-  EXPECT_EQ(state.status().code(), absl::StatusCode::kFailedPrecondition);
-  EXPECT_THAT(std::string(state.status().message()), HasSubstr("env 0 (envs/"));
-  EXPECT_THAT(std::string(state.status().message()),
+  absl::StatusOr<std::string> snapshot = envs->EnvSnapshot(0);
+  EXPECT_EQ(snapshot.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(std::string(snapshot.status().message()),
+              HasSubstr("env 0 (envs/"));
+  EXPECT_THAT(std::string(snapshot.status().message()),
               HasSubstr("never reset (no known seed)"));
   // Not while any env is in flight; Send/Recv steps are recorded.
   ASSERT_TRUE(envs->AsyncReset(uint64_t{2}).ok());
-  state = envs->EnvState(0);
-  EXPECT_EQ(state.status().code(), absl::StatusCode::kFailedPrecondition);
-  EXPECT_THAT(std::string(state.status().message()), HasSubstr("Recv them"));
+  snapshot = envs->EnvSnapshot(0);
+  EXPECT_EQ(snapshot.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(std::string(snapshot.status().message()), HasSubstr("Recv them"));
   ASSERT_TRUE(envs->Recv().ok());
   ASSERT_TRUE(envs->Recv().ok());
   ASSERT_TRUE(
       envs->Send(absl::MakeConstSpan(std::vector<int32_t>{1}), {1}).ok());
   ASSERT_TRUE(envs->Recv().ok());
-  EXPECT_TRUE(envs->EnvState(0).ok());
-  EXPECT_TRUE(envs->EnvState(1).ok());
+  EXPECT_TRUE(envs->EnvSnapshot(0).ok());
+  EXPECT_TRUE(envs->EnvSnapshot(1).ok());
   // Past 100,000 operations since the seeded reset.
   ASSERT_TRUE(envs->Reset(uint64_t{3}).ok());
   const std::vector<int32_t> actions(2, 0);
@@ -708,12 +710,12 @@ TEST_F(EnvStateTest, RecordsThatCannotRecreateTheirEnvSaySo) {
     ASSERT_LT(std::chrono::steady_clock::now(), deadline) << "step " << step;
     ASSERT_TRUE(envs->Step(absl::MakeConstSpan(actions)).ok());
   }
-  state = envs->EnvState(1);
-  EXPECT_EQ(state.status().code(), absl::StatusCode::kFailedPrecondition);
-  EXPECT_THAT(std::string(state.status().message()),
+  snapshot = envs->EnvSnapshot(1);
+  EXPECT_EQ(snapshot.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(std::string(snapshot.status().message()),
               HasSubstr("passed 100000 operations"));
   ASSERT_TRUE(envs->Reset(uint64_t{3}).ok());
-  EXPECT_TRUE(envs->EnvState(1).ok());
+  EXPECT_TRUE(envs->EnvSnapshot(1).ok());
 }
 
 }  // namespace

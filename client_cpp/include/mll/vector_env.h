@@ -50,14 +50,15 @@
 // on it sent again on the envs' new servers, so Recv returns the same
 // per-env results as without the fault. Each event counts in failovers() and
 // is logged once on stderr with its cause. A record holds at most 100,000
-// operations since its seeded reset; past it failover and EnvState of that
+// operations since its seeded reset; past it failover and EnvSnapshot of that
 // env fail FAILED_PRECONDITION naming it, until its next seeded reset.
 //
-// Env state: EnvState(i) gives env i's record as bytes in the Python client's
-// format (multi_lunar_lander/_record.py: "MLLS", format version, the server's
-// wire protocol and release, the EnvConfig, the seed, the operations and their
-// actions, the last observations, a CRC-32), and RestoreEnv(i, state) puts
-// env i at the point a state (from either client) describes.
+// Snapshots: EnvSnapshot(i) gives env i's record as bytes in the Python
+// client's format (multi_lunar_lander/_record.py: "MLLS", format version, the
+// server's wire protocol and release, the EnvConfig, the seed, the operations
+// and their actions, the last observations, a CRC-32), and
+// RestoreEnv(i, snapshot) puts env i at the point a snapshot (from either
+// client) describes.
 #ifndef MLL_VECTOR_ENV_H_
 #define MLL_VECTOR_ENV_H_
 
@@ -177,22 +178,22 @@ class VectorEnv {
   bool failover() const;
   int failovers() const;
 
-  // Env `env`'s state: bytes that recreate it at this point to the same bits
-  // on any server of the same release (RestoreEnv here, restore_env or
+  // Env `env`'s snapshot: bytes that recreate it at this point to the same
+  // bits on any server of the same release (RestoreEnv here, restore_env or
   // parallel_env's restore in Python). FAILED_PRECONDITION naming the env
   // when its record cannot (never reset, or past 100,000 operations), or
   // while any env is in flight.
-  absl::StatusOr<std::string> EnvState(int env) const;
-  // Puts env `env` at the point `state` describes: a new env on the same
+  absl::StatusOr<std::string> EnvSnapshot(int env) const;
+  // Puts env `env` at the point `snapshot` describes: a new env on the same
   // server replays it, checked to the bits, then replaces the old one (a new
   // name). Returns its observations, float32 [n_landers, 12]; the latest
   // results are unchanged. INVALID_ARGUMENT naming what is wrong for a
-  // damaged state (CRC, magic, format version, truncation) or one of an env
-  // with other options; DATA_LOSS when the replay gives other bits (another
-  // release's physics); FAILED_PRECONDITION for an attached env. On any
-  // error the env is untouched.
+  // damaged snapshot (CRC, magic, format version, truncation) or one of an
+  // env with other options; DATA_LOSS when the replay gives other bits
+  // (another release's physics); FAILED_PRECONDITION for an attached env. On
+  // any error the env is untouched.
   absl::StatusOr<std::vector<float>> RestoreEnv(int env,
-                                                absl::string_view state);
+                                                absl::string_view snapshot);
 
  private:
   struct State;

@@ -1,9 +1,9 @@
 // Test tool: one env of a C++ VectorEnv, started from a seed or restored from
-// a state file (EnvState's bytes, from either client), stepped with a fixed
-// action pattern, its state written to a file. client_py/tests/
-// test_cpp_env_state.py compares those bytes with the Python client's.
+// a snapshot file (EnvSnapshot's bytes, from either client), stepped with a
+// fixed action pattern, its snapshot written to a file. client_py/tests/
+// test_cpp_env_snapshot.py compares those bytes with the Python client's.
 //
-//   env_state_tool --address=HOST:PORT --n_landers=N --max_cycles=M
+//   env_snapshot_tool --address=HOST:PORT --n_landers=N --max_cycles=M
 //                  (--seed=S | --restore=FILE) --first_step=T --steps=K
 //                  --out=FILE
 //
@@ -24,7 +24,7 @@
 namespace {
 
 int Fail(const absl::Status& status) {
-  std::fprintf(stderr, "env_state_tool: %s\n", status.ToString().c_str());
+  std::fprintf(stderr, "env_snapshot_tool: %s\n", status.ToString().c_str());
   return 1;
 }
 
@@ -36,7 +36,7 @@ int main(int argc, char** argv) {
     const std::string arg = argv[i];
     const size_t equals = arg.find('=');
     if (arg.rfind("--", 0) != 0 || equals == std::string::npos) {
-      std::fprintf(stderr, "env_state_tool: bad argument %s\n", argv[i]);
+      std::fprintf(stderr, "env_snapshot_tool: bad argument %s\n", argv[i]);
       return 2;
     }
     flags[arg.substr(2, equals - 2)] = arg.substr(equals + 1);
@@ -47,7 +47,7 @@ int main(int argc, char** argv) {
       !absl::SimpleAtoi(flags["first_step"], &first_step) ||
       !absl::SimpleAtoi(flags["steps"], &steps) || flags["out"].empty()) {
     std::fprintf(stderr,
-                 "env_state_tool: --n_landers, --max_cycles, --first_step, "
+                 "env_snapshot_tool: --n_landers, --max_cycles, --first_step, "
                  "--steps and --out are required\n");
     return 2;
   }
@@ -67,9 +67,9 @@ int main(int argc, char** argv) {
     }
   } else {
     std::ifstream in(flags["restore"], std::ios::binary);
-    const std::string state((std::istreambuf_iterator<char>(in)),
-                            std::istreambuf_iterator<char>());
-    absl::StatusOr<std::vector<float>> restored = envs->RestoreEnv(0, state);
+    const std::string snapshot((std::istreambuf_iterator<char>(in)),
+                               std::istreambuf_iterator<char>());
+    absl::StatusOr<std::vector<float>> restored = envs->RestoreEnv(0, snapshot);
     if (!restored.ok()) return Fail(restored.status());
   }
   std::vector<int32_t> actions(n_landers);
@@ -79,8 +79,8 @@ int main(int argc, char** argv) {
       return Fail(status);
     }
   }
-  absl::StatusOr<std::string> state = envs->EnvState(0);
-  if (!state.ok()) return Fail(state.status());
-  std::ofstream(flags["out"], std::ios::binary) << *state;
+  absl::StatusOr<std::string> snapshot = envs->EnvSnapshot(0);
+  if (!snapshot.ok()) return Fail(snapshot.status());
+  std::ofstream(flags["out"], std::ios::binary) << *snapshot;
   return 0;
 }

@@ -1,6 +1,6 @@
-"""Env states cross between the clients: a state written by Python's vector_env restores in the
+"""Env snapshots cross between the clients: a snapshot written by Python's vector_env restores in the
 C++ VectorEnv and vice versa, and after the same steps both clients write the same bytes
-(tests/client_cpp/env_state_tool.cc drives the C++ side)."""
+(tests/client_cpp/env_snapshot_tool.cc drives the C++ side)."""
 
 import os
 import pathlib
@@ -13,15 +13,15 @@ import multi_lunar_lander as mll
 from multi_lunar_lander._server import checkout_build_path
 
 TOOL = pathlib.Path(
-    os.environ.get("MLL_ENV_STATE_TOOL_BIN") or checkout_build_path("tests", "client_cpp", "env_state_tool")
+    os.environ.get("MLL_ENV_SNAPSHOT_TOOL_BIN") or checkout_build_path("tests", "client_cpp", "env_snapshot_tool")
 )
-pytestmark = pytest.mark.skipif(not TOOL.is_file(), reason=f"env_state_tool is not built ({TOOL})")
+pytestmark = pytest.mark.skipif(not TOOL.is_file(), reason=f"env_snapshot_tool is not built ({TOOL})")
 N_LANDERS, MAX_CYCLES, SEED = 2, 30, 11
-FIRST, MORE = 40, 25  # Steps before the state is taken, and after it (auto-resets in both).
+FIRST, MORE = 40, 25  # Steps before the snapshot is taken, and after it (auto-resets in both).
 
 
 def _actions(t):
-    """Step t's actions, as env_state_tool gives them: lander a acts (t + a) % 4."""
+    """Step t's actions, as env_snapshot_tool gives them: lander a acts (t + a) % 4."""
     return np.array([[(t + a) % 4 for a in range(N_LANDERS)]], np.int32)
 
 
@@ -47,37 +47,37 @@ def _cpp(address, tmp_path, name, *start, first, steps):
     return out.read_bytes()
 
 
-def test_states_cross_between_python_and_cpp_to_the_same_bytes(address, tmp_path):
+def test_snapshots_cross_between_python_and_cpp_to_the_same_bytes(address, tmp_path):
     with _python_env(address) as vector:
         vector.reset(seed=SEED)
         _fly(vector, 0, FIRST)
-        python_first = vector.env_state(0)
+        python_first = vector.env_snapshot(0)
         _fly(vector, FIRST, MORE)
-        python_last = vector.env_state(0)
+        python_last = vector.env_snapshot(0)
     # C++ from the seed writes Python's bytes.
     cpp_first = _cpp(address, tmp_path, "cpp_first", f"--seed={SEED}", first=0, steps=FIRST)
     assert cpp_first == python_first
-    # Python's state restored in C++, stepped on: Python's bytes again.
+    # Python's snapshot restored in C++, stepped on: Python's bytes again.
     (tmp_path / "python_first").write_bytes(python_first)
     restored_in_cpp = _cpp(
         address, tmp_path, "restored_in_cpp", f"--restore={tmp_path / 'python_first'}", first=FIRST, steps=MORE
     )
     assert restored_in_cpp == python_last
-    # C++'s state restored in Python, stepped on: the same.
+    # C++'s snapshot restored in Python, stepped on: the same.
     with _python_env(address) as vector:
         vector.reset(seed=SEED + 1)
         vector.restore_env(0, cpp_first)
         _fly(vector, FIRST, MORE)
-        assert vector.env_state(0) == python_last
+        assert vector.env_snapshot(0) == python_last
 
 
-def test_a_damaged_state_from_python_is_refused_by_cpp(address, tmp_path):
+def test_a_damaged_snapshot_from_python_is_refused_by_cpp(address, tmp_path):
     with _python_env(address) as vector:
         vector.reset(seed=SEED)
         _fly(vector, 0, 5)
-        state = bytearray(vector.env_state(0))
-    state[len(state) // 2] ^= 0x10
-    (tmp_path / "damaged").write_bytes(bytes(state))
+        snapshot = bytearray(vector.env_snapshot(0))
+    snapshot[len(snapshot) // 2] ^= 0x10
+    (tmp_path / "damaged").write_bytes(bytes(snapshot))
     done = subprocess.run(
         [
             str(TOOL), f"--address={address}", f"--n_landers={N_LANDERS}", f"--max_cycles={MAX_CYCLES}",
@@ -86,4 +86,4 @@ def test_a_damaged_state_from_python_is_refused_by_cpp(address, tmp_path):
         capture_output=True, text=True, timeout=120,
     )
     assert done.returncode == 1
-    assert "INVALID_ARGUMENT: state is damaged: its CRC-32" in done.stderr
+    assert "INVALID_ARGUMENT: snapshot is damaged: its CRC-32" in done.stderr
