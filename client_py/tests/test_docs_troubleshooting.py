@@ -275,7 +275,7 @@ def message_size(tmp_path):
 
 def not_recreatable(tmp_path, address):
     vector = mll.vector_env(1, address=address)  # Never reset.
-    snapshot = getattr(vector, "env_snapshot", None) or vector.env_state
+    snapshot = vector.env_snapshot
     try:
         return _message(snapshot, 0), address
     finally:
