@@ -13,6 +13,7 @@
 
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "mll/service/server_info.h"
 #include "server_process.h"
 #include "test_util.h"
 
@@ -216,6 +217,14 @@ TEST(ServerBinaryTest, HelpListsEveryFlagAndExitsZero) {
         "--shutdown_grace_s", "--parent_pid"}) {
     EXPECT_THAT(output, HasSubstr(flag));
   }
+}
+
+// The project's version, as GetServerInfo's server_version (and the Python
+// package's: scripts/wheel_smoke.py checks the installed wheel).
+TEST(ServerBinaryTest, VersionIsGetServerInfosAndExitsZero) {
+  const auto [code, output] = RunServer("--version");
+  EXPECT_EQ(code, 0);
+  EXPECT_EQ(output, "mll_server " + std::string(ServerVersion()) + "\n");
 }
 
 }  // namespace

@@ -21,6 +21,10 @@
 namespace mll::core::tools {
 namespace {
 
+#ifndef MLL_PROJECT_VERSION
+#error "MLL_PROJECT_VERSION must be defined (server/core/CMakeLists.txt)"
+#endif
+
 constexpr int kExitUsage = 2;
 
 absl::string_view Basename(absl::string_view path) {
@@ -84,17 +88,24 @@ std::vector<std::string> ParseCommandLine(
     int argc, char** argv,
     absl::FunctionRef<std::string(const std::vector<std::string>&)> help) {
   bool wants_help = false;
+  bool wants_version = false;
   std::vector<std::string> words;
   for (int i = 1; i < argc; ++i) {
     const absl::string_view word = argv[i];
     if (IsHelpFlag(word)) {
       wants_help = true;
+    } else if (word == "--version" || word == "-version") {
+      wants_version = true;
     } else if (!absl::StartsWith(word, "-")) {
       words.emplace_back(word);
     }
   }
   if (wants_help) {
     std::cout << help(words) << std::flush;
+    std::exit(0);
+  }
+  if (wants_version) {
+    std::cout << Basename(argv[0]) << " " << MLL_PROJECT_VERSION << std::endl;
     std::exit(0);
   }
   std::vector<char*> positional = absl::ParseCommandLine(argc, argv);

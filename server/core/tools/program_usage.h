@@ -1,7 +1,10 @@
 // Command-line help shared by mll_rollout, mll_server and mll_cli: `--help`
 // lists the program's own flags by name, default and description (never
 // abseil's internal flags or the paths of the files that define them) and
-// exits 0, and positional arguments are refused where a program takes none.
+// exits 0, `--version` prints "<program> <version>" (the project's version,
+// CMake's PROJECT_VERSION, as GetServerInfo's server_version and the Python
+// package's) and exits 0, and positional arguments are refused where a program
+// takes none.
 // Also --parent_pid's rule for the programs that a client or a benchmark
 // starts (mll_server, delay_proxy).
 #ifndef MLL_CORE_TOOLS_PROGRAM_USAGE_H_
@@ -33,7 +36,8 @@ std::string DescribeFlags(
     const std::vector<const absl::CommandLineFlag*>& flags);
 
 // absl::ParseCommandLine, except that --help, -h, --helpfull and --helpshort
-// print help(arguments) to stdout and exit 0, where `arguments` are the
+// print help(arguments) to stdout and exit 0, --version prints the program's
+// name and the project's version and exits 0, where `arguments` are the
 // command line's words that are not flags. Returns the positional arguments
 // (argv[0] excluded).
 std::vector<std::string> ParseCommandLine(
