@@ -7,7 +7,8 @@
 #      limits, because podman's rootful default nofile=1048576 makes runc fail
 #      where the host allows less) and points CONTAINERS_CONF at it;
 #   3. makes the base image localhost/debian:bookworm-slim with debootstrap from
-#      the Debian mirror apt uses (cached: rootfs tarball and image are kept);
+#      the Debian mirror apt uses (scripts/debian-rootfs.sh; cached: rootfs
+#      tarball and image are kept);
 #   4. builds the image (the build stage compiles and runs ctest);
 #   5. runs it with a loopback-only port mapping, waits for the server to be
 #      healthy (grpc.health.v1 from the host, and the image's HEALTHCHECK);
@@ -88,40 +89,12 @@ export CONTAINERS_CONF=$CACHE/containers.conf
 cat "$CONTAINERS_CONF"
 
 step "3. base image $BASE_IMAGE"
-# The first bookworm (not -security) mirror that apt uses, deb822 or one-line.
-debian_mirror() {
-  local file
-  for file in /etc/apt/sources.list.d/*.sources; do
-    [ -f "$file" ] || continue
-    awk '/^URIs:/{uri=$2} /^Suites:/{for(i=2;i<=NF;i++) if($i=="bookworm") found=1}
-         /^$/{if(found&&uri){print uri; exit} found=0; uri=""}
-         END{if(found&&uri) print uri}' "$file" | head -n1
-  done
-  awk '$1=="deb" && $3=="bookworm" {print $2}' /etc/apt/sources.list 2>/dev/null || true
-}
+source scripts/debian-rootfs.sh
 if podman image exists "$BASE_IMAGE"; then
   echo "cached: $BASE_IMAGE"
 else
   tarball=$CACHE/bookworm-minbase.tar
-  if [ ! -s "$tarball" ]; then
-    mirror=$(debian_mirror | head -n1)
-    [ -n "$mirror" ] || fail "no bookworm mirror found in apt's sources"
-    echo "debootstrap bookworm from $mirror"
-    rm -rf "$CACHE/rootfs"
-    timeout 1800 debootstrap --variant=minbase bookworm "$CACHE/rootfs" "$mirror"
-    # Slim like the official image: no apt lists or caches in the base layer.
-    # apt sources as on this host (main, -updates, -security) like the
-    # official image, and slim like it: no apt lists or caches in the layer.
-    if [ -f /etc/apt/sources.list.d/debian.sources ]; then
-      cp /etc/apt/sources.list.d/debian.sources "$CACHE/rootfs/etc/apt/sources.list.d/"
-      rm -f "$CACHE/rootfs/etc/apt/sources.list"
-    fi
-    rm -rf "$CACHE/rootfs/var/lib/apt/lists/"* "$CACHE/rootfs/var/cache/apt/"*.bin \
-      "$CACHE/rootfs/var/cache/apt/archives/"*.deb
-    tar -C "$CACHE/rootfs" -cf "$tarball.tmp" .
-    mv "$tarball.tmp" "$tarball"
-    rm -rf "$CACHE/rootfs"
-  fi
+  debian_rootfs_tarball "$tarball" || fail "debootstrap of bookworm failed"
   podman import --change 'CMD ["bash"]' "$tarball" "$BASE_IMAGE"
 fi
 pass "base image $BASE_IMAGE"

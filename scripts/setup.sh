@@ -11,6 +11,7 @@ DEBIAN_PACKAGES=(
   libabsl-dev libgtest-dev libgmock-dev libbenchmark-dev libcairo2-dev libpng-dev
   libcpp-httplib-dev openssl chromium clang-format
   python3 python3-venv python3-dev python3-torch libopenblas0-pthread
+  debootstrap iproute2  # scripts/wheel-test.sh: a clean Debian chroot, its network namespace
 )
 
 missing=()

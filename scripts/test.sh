@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Runs every test: installs what is missing, lints, builds, then the C++
-# suites (ctest) and the Python suites (pytest). Exit code non-zero on any
+# suites (ctest), the Python suites (pytest), and the binary wheel built from
+# that build and installed on a clean Debian 12 (scripts/wheel.sh and
+# scripts/wheel-test.sh, as root or through sudo). Exit code non-zero on any
 # failure. CI passes CMAKE_ARGS=-DMLL_WERROR=ON so that a warning fails too.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -16,3 +18,7 @@ if ls client_py/tests/*.py examples/dqn/tests/*.py examples/tests/*.py >/dev/nul
   export MLL_SERVER_BIN="$PWD/${BUILD_DIR:-build}/server/service/mll_server"
   .venv/bin/python -m pytest -q $(ls -d client_py/tests examples/dqn/tests examples/tests 2>/dev/null)
 fi
+echo "== the binary wheel (scripts/wheel.sh), installed and run on a clean Debian 12 (scripts/wheel-test.sh)"
+scripts/wheel.sh
+SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO=sudo
+$SUDO scripts/wheel-test.sh

@@ -9,7 +9,9 @@ region both processes map, with one futex wake-up each way and no socket.
 
 Where the library is looked for: $MLL_NATIVE_LIBRARY when set (only there); else beside this
 package (`pip install .` at the repository's root installs it there); else a source checkout's
-build tree (scripts/build.sh). `pip install ./client_py` installs no library: the "auto"
+build tree (scripts/build.sh). The binary wheel (scripts/wheel.sh) has it beside the package
+too, with the libraries it needs in multi_lunar_lander.libs/ (its RPATH points there).
+`pip install ./client_py` installs no library: the "auto"
 transport then uses grpcio. Nor does a process forked from one that has used the library (gRPC
 C++ does not survive a fork): "auto" uses grpcio there too.
 """
@@ -131,7 +133,8 @@ def uses_native(transport: str) -> bool:
         raise MLLError(
             grpc.StatusCode.FAILED_PRECONDITION,
             f"transport={transport!r} needs {LIBRARY_NAME}, which is not available ({why_not}); it is "
-            f"built with the server (scripts/build.sh in a clone, or pip install . at its root), or "
+            f"in the binary wheel and built with the server (scripts/build.sh in a clone, or pip "
+            f"install . at its root), or "
             f"set ${LIBRARY_ENV} to its path; transport='auto' falls back to grpcio",
         )
     return lib is not None
@@ -249,6 +252,7 @@ class NativeSessionStream(SessionStream):
         """Cancels the stream (idempotent); the next send() opens a new one. What was in flight is
         lost."""
         self._awaited.clear()
+        self.closes += 1
         if self._handle is not None:
             self._finalizer()
             self._handle = self._finalizer = None

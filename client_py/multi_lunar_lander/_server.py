@@ -48,6 +48,11 @@ def checkout_build_path(*parts: str) -> pathlib.Path:
 
 
 _CHECKOUT_BUILD_BIN = checkout_build_path("server", "service", SERVER_BIN_NAME)
+# The binary wheel's (scripts/wheel.sh): auditwheel moves the programs out of the scripts
+# directory into multi_lunar_lander.scripts/ beside the package, where their RPATH reaches the
+# libraries it bundles (multi_lunar_lander.libs/), and leaves in the scripts directory a Python
+# shim that execs them; the embedded server runs the binary itself, not the shim.
+_WHEEL_BIN = pathlib.Path(__file__).resolve().parent.with_name("multi_lunar_lander.scripts") / SERVER_BIN_NAME
 
 
 def _is_executable_file(path: str | os.PathLike) -> bool:
@@ -55,9 +60,10 @@ def _is_executable_file(path: str | os.PathLike) -> bool:
 
 
 def find_server_binary() -> str:
-    """The `mll_server` an embedded server runs: $MLL_SERVER_BIN; else the one installed beside
-    this Python (`pip install .` puts it in the environment's scripts directory, which need not
-    be on PATH); else `mll_server` on PATH; else, in a source checkout, its build tree."""
+    """The `mll_server` an embedded server runs: $MLL_SERVER_BIN; else the binary wheel's, beside
+    this package; else the one installed beside this Python (`pip install .` puts it in the
+    environment's scripts directory, which need not be on PATH); else `mll_server` on PATH; else,
+    in a source checkout, its build tree."""
     from_env = os.environ.get(SERVER_BIN_ENV)
     if from_env:
         if _is_executable_file(from_env):
@@ -67,6 +73,8 @@ def find_server_binary() -> str:
             f"cannot start an embedded mll_server: ${SERVER_BIN_ENV}={from_env} is not an "
             "executable file",
         )
+    if _is_executable_file(_WHEEL_BIN):
+        return str(_WHEEL_BIN)
     scripts_dir = sysconfig.get_path("scripts")
     beside_python = os.path.join(scripts_dir, SERVER_BIN_NAME) if scripts_dir else ""
     if beside_python and _is_executable_file(beside_python):
@@ -79,9 +87,9 @@ def find_server_binary() -> str:
     raise MLLError(
         grpc.StatusCode.UNAVAILABLE,
         f"cannot start an embedded mll_server: none in {scripts_dir}, none on PATH, and "
-        f"${SERVER_BIN_ENV} is unset. Install the package with the server (pip install . in a "
-        "clone of the repository), set $MLL_SERVER_BIN to an mll_server binary, or pass "
-        "address='host:port' of a running server.",
+        f"${SERVER_BIN_ENV} is unset. Install the package with the server (its binary wheel, or "
+        "pip install . in a clone of the repository), set $MLL_SERVER_BIN to an mll_server "
+        "binary, or pass address='host:port' of a running server.",
     )
 
 
