@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
 # The binary wheel (dist/, from scripts/wheel.sh) on a clean Debian 12, as a trainer installs it
 # on another machine: run as root (debootstrap, chroot, namespaces); scripts/test.sh runs it.
-#   1. the wheel holds what a trainer needs and nothing else: no tests, no debug symbols;
-#   2. a bookworm root file system from debootstrap with python3, python3-venv and
-#      ca-certificates from Debian (scripts/debian-rootfs.sh; cached as a tarball in
-#      $MLL_WHEEL_TEST_CACHE, default /var/cache/mll-wheel-test), unpacked afresh into a
-#      temporary directory: no compiler, no -dev package;
+#   1. the wheel holds what a trainer needs and nothing else: no tests, no debug symbols; its
+#      stubs are the ones that run on every Python it installs on;
+#   2. a bookworm root file system from debootstrap (minbase) with python3 and python3-venv
+#      from Debian (scripts/debian-rootfs.sh; cached as a tarball in $MLL_WHEEL_TEST_CACHE,
+#      default /var/cache/mll-wheel-test), unpacked afresh into a temporary directory: no
+#      compiler, no -dev package, no X11;
 #   3. in a chroot there: a fresh venv (no system site packages), `pip install` of the wheel,
 #      its dependencies from PyPI (pip's cache kept in the cache directory);
 #   4. offline, in a network namespace whose loopback also has 192.0.2.1 (a host that is not
@@ -37,24 +38,32 @@ for file in multi_lunar_lander/libmll_native_stream.so multi_lunar_lander.script
 done
 unpacked=$(mktemp -d)
 python3 -m zipfile -e "$wheel" "$unpacked"
+# One wheel for every Python: its stubs must be those of the grpcio-tools pinned for Python 3.11
+# (1.62.3), which run on protobuf 4.25.1 and later (client_py/tests/test_dependency_ranges.py).
+grep -q "Protobuf Python Version: 4.25.1$" "$unpacked/multi_lunar_lander/_proto/multi_lunar_lander_pb2.py" \
+  || fail "the wheel's stubs are not protobuf 4.25.1's: $(grep -h 'Protobuf Python Version' \
+    "$unpacked/multi_lunar_lander/_proto/multi_lunar_lander_pb2.py")"
 debug=$(find "$unpacked" -name '*.so*' -o -path '*.scripts/*' | while read -r elf; do
   readelf -S --wide "$elf" | grep -qE '\] \.(debug_|symtab)' && echo "$elf"; done || true)
 rm -rf "$unpacked"
 [ -z "$debug" ] || fail "not stripped: $debug"
-echo "$(grep -c . <<<"$contents") files; every ELF file stripped"
+echo "$(grep -c . <<<"$contents") files; the stubs run on protobuf 4.25.1 and later; every ELF file stripped"
 took contents
 
 say "2. Debian 12 root file system"
 source scripts/debian-rootfs.sh
 mkdir -p "$CACHE/pip"
-debian_rootfs_tarball "$CACHE/bookworm-python3.tar" python3 python3-venv ca-certificates
+packages=(python3 python3-venv)
+tarball=$CACHE/bookworm-minbase+$(IFS=+; echo "${packages[*]}").tar
+debian_rootfs_tarball "$tarball" "${packages[@]}"
 took "root file system (debootstrap, or its cached tarball)"
 root=$(mktemp -d /var/tmp/mll-wheel-test.XXXXXX)
 trap 'rm -rf --one-file-system "$root"' EXIT
-tar -C "$root" -xf "$CACHE/bookworm-python3.tar"
+tar -C "$root" -xf "$tarball"
 # The host's network settings, as a container gets them: DNS, and the CA bundle that its TLS
 # (a proxy's own CA, where there is one) verifies against; pip.conf where the host has one.
 cp /etc/resolv.conf "$root/etc/resolv.conf"
+mkdir -p "$root/etc/ssl/certs"
 cp /etc/ssl/certs/ca-certificates.crt "$root/etc/ssl/certs/ca-certificates.crt"
 [ -f /etc/pip.conf ] && cp /etc/pip.conf "$root/etc/pip.conf"
 mkdir -p "$root/wheel" "$root/root/.cache/pip"
