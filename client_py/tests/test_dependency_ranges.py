@@ -37,6 +37,16 @@ def _toml(path: pathlib.Path) -> dict:
     return tomllib.loads(path.read_text())
 
 
+def test_the_client_alone_has_the_projects_version():
+    """pyproject.toml takes its version from CMakeLists.txt's project(VERSION), as the programs'
+    --version and GetServerInfo do; client_py/pyproject.toml, a setuptools build, writes it."""
+    regex = _toml(TOP)["tool"]["scikit-build"]["metadata"]["version"]["regex"]
+    project_version = re.search(regex, (REPO / "CMakeLists.txt").read_text()).group("value")
+    assert _toml(CLIENT)["project"]["version"] == project_version, (
+        f"client_py/pyproject.toml's version is not CMakeLists.txt's project version {project_version}"
+    )
+
+
 def _generator(path: pathlib.Path) -> list[str]:
     return [r for r in _toml(path)["build-system"]["requires"] if Requirement(r).name == "grpcio-tools"]
 
