@@ -5,6 +5,7 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <chrono>
 #include <cstring>
@@ -57,6 +58,77 @@ gpr_timespec DeadlineAfter(absl::Duration timeout) {
 
 }  // namespace
 
+template <typename Names>
+uint32_t BatchHandles::HandleOf(const Names& names) {
+  const auto same = [&names](const Declared& declared) {
+    return declared.names.size() == static_cast<size_t>(names.size()) &&
+           std::equal(declared.names.begin(), declared.names.end(),
+                      names.begin());
+  };
+  Declared* victim = nullptr;
+  for (Declared& declared : declared_) {
+    if (same(declared)) {
+      declared.last_used = ++clock_;
+      return static_cast<uint32_t>(&declared - declared_.data()) + 1;
+    }
+    if (victim == nullptr || declared.last_used < victim->last_used) {
+      victim = &declared;
+    }
+  }
+  if (declared_.size() < kMaxHandle) {
+    victim = &declared_.emplace_back();
+  }
+  const size_t held = declared_envs_ - victim->names.size();
+  if (held + static_cast<size_t>(names.size()) > kMaxDeclaredEnvs) return 0;
+  declared_envs_ = held + static_cast<size_t>(names.size());
+  victim->names.assign(names.begin(), names.end());
+  victim->version = ++versions_;
+  victim->answered = false;
+  victim->last_used = ++clock_;
+  return static_cast<uint32_t>(victim - declared_.data()) + 1;
+}
+
+std::string BatchHandles::Serialize(v1::SessionRequest& request) {
+  if (!request.has_step_batch() || !request.step_batch().has_packed() ||
+      request.step_batch().packed().handle() != 0 ||
+      request.step_batch().packed().names().empty()) {
+    return request.SerializeAsString();
+  }
+  v1::PackedSteps& packed = *request.mutable_step_batch()->mutable_packed();
+  const uint32_t handle = HandleOf(packed.names());
+  if (handle == 0) return request.SerializeAsString();
+  const Declared& declared = declared_[handle - 1];
+  packed.set_handle(handle);
+  std::string bytes;
+  if (declared.answered) {
+    // The names are left out for the serialization, and put back.
+    google::protobuf::RepeatedPtrField<std::string> names;
+    names.Swap(packed.mutable_names());
+    bytes = request.SerializeAsString();
+    names.Swap(packed.mutable_names());
+  } else {
+    bytes = request.SerializeAsString();
+    declaring_[request.sequence()] = {handle, declared.version};
+  }
+  packed.set_handle(0);
+  return bytes;
+}
+
+void BatchHandles::Answered(uint64_t sequence, bool ok) {
+  const auto it = declaring_.find(sequence);
+  if (it == declaring_.end()) return;
+  const auto [handle, version] = it->second;
+  declaring_.erase(it);
+  Declared& declared = declared_[handle - 1];
+  if (ok && declared.version == version) declared.answered = true;
+}
+
+void BatchHandles::Clear() {
+  declared_.clear();
+  declared_envs_ = 0;
+  declaring_.clear();
+}
+
 SessionStream::SessionStream(
     absl::StatusOr<std::shared_ptr<grpc::Channel>> channel, std::string token,
     std::string what, SessionTransport mode)
@@ -86,6 +158,7 @@ absl::Status SessionStream::Open() {
 
 absl::Status SessionStream::OpenStream() {
   if (!channel_status_.ok()) return channel_status_;
+  batch_handles_.Clear();  // A new session.
   queue_ = std::make_unique<grpc::CompletionQueue>();
   context_ = std::make_unique<grpc::ClientContext>();
   AddToken(context_.get(), token_);
@@ -348,8 +421,18 @@ std::optional<absl::Status> SessionStream::ReceiveFromRegion(
 
 absl::StatusOr<uint64_t> SessionStream::Send(v1::SessionRequest& request) {
   request.set_sequence(++last_sequence_);
-  absl::Status status = SendBytes(request.SerializeAsString());
-  if (!status.ok()) return status;
+  if (!batch_handles_enabled_) {
+    absl::Status status = SendBytes(request.SerializeAsString());
+    if (!status.ok()) return status;
+    return last_sequence_;
+  }
+  // The handles are those of the session that gets the request.
+  if (absl::Status status = Open(); !status.ok()) return status;
+  absl::Status status = SendBytes(batch_handles_.Serialize(request));
+  if (!status.ok()) {
+    batch_handles_.Answered(last_sequence_, /*ok=*/false);
+    return status;
+  }
   return last_sequence_;
 }
 
@@ -372,6 +455,7 @@ absl::Status SessionStream::Receive(uint64_t sequence,
         return absl::InternalError(absl::StrCat(
             what_, " answered with bytes that are not a SessionResponse"));
       }
+      batch_handles_.Answered(answer.sequence(), !answer.has_error());
       if (answer.sequence() == sequence) {
         *response = std::move(answer);
         break;

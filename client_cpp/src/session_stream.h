@@ -20,6 +20,14 @@
 // A broken stream (the server went, or cancelled the session) reports the
 // stream's gRPC status to every waiting Receive; the next Send opens a new
 // stream (and asks for shared memory again, as the first did).
+//
+// Batch handles (PackedSteps.handle, for a server with the capability
+// "packed_batch_handles"; off until EnableBatchHandles): the typed Send gives
+// every packed StepBatch that names its envs a handle of the session. The
+// first request of a list of envs declares it (names and handle); once its
+// answer came back OK, the same list goes out as the handle alone, with the
+// actions. A new stream is a new session, with no handles: its first request
+// of each list declares it again.
 #ifndef MLL_CLIENT_SRC_SESSION_STREAM_H_
 #define MLL_CLIENT_SRC_SESSION_STREAM_H_
 
@@ -29,6 +37,8 @@
 #include <memory>
 #include <optional>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "absl/container/flat_hash_map.h"
 #include "absl/status/status.h"
@@ -47,6 +57,47 @@
 
 namespace mll::client {
 namespace internal {
+
+// The batch handles of one Session (see above): which lists of envs the
+// client declared under which handle, and which declarations the server
+// has answered. The figures are the wire contract's (PackedSteps.handle).
+class BatchHandles {
+ public:
+  static constexpr uint32_t kMaxHandle = 64;
+  static constexpr size_t kMaxDeclaredEnvs = 65536;
+
+  // Serializes `request` (numbered) for this session: a packed StepBatch
+  // with names and no handle goes out as its declared handle alone when the
+  // declaration was answered, else with its names and a handle, declaring
+  // it (in place of the least recently used handle when all are taken; with
+  // no handle when the declared envs would pass kMaxDeclaredEnvs). Any other
+  // request goes out as it is. `request` is left as it was.
+  std::string Serialize(v1::SessionRequest& request);
+  // The answer to request `sequence` came (`ok`: without an error); a
+  // declaration it made counts from now on.
+  void Answered(uint64_t sequence, bool ok);
+  // A new session: no handles.
+  void Clear();
+
+ private:
+  struct Declared {
+    std::vector<std::string> names;  // Empty: free.
+    uint64_t version = 0;            // Of the names, for answers.
+    bool answered = false;           // The server has it.
+    uint64_t last_used = 0;
+  };
+  // The handle (1..kMaxHandle) of `names`: their declaration, or a free or
+  // least recently used one for them; 0 when they cannot have one.
+  template <typename Names>
+  uint32_t HandleOf(const Names& names);
+
+  std::vector<Declared> declared_;  // declared_[handle - 1].
+  size_t declared_envs_ = 0;
+  uint64_t clock_ = 0;
+  uint64_t versions_ = 0;
+  // Requests in flight that declare a handle: sequence -> (handle, version).
+  absl::flat_hash_map<uint64_t, std::pair<uint32_t, uint64_t>> declaring_;
+};
 
 class SessionStream {
  public:
@@ -90,9 +141,15 @@ class SessionStream {
   // Typed forms: Send numbers the request (its `sequence`) and returns the
   // number; Receive waits for the answer to request `sequence` (answers to
   // other requests that come first are kept for their own Receive), checks
-  // its sequence, and turns a SessionResponse.error into its status.
+  // its sequence, and turns a SessionResponse.error into its status. With
+  // batch handles enabled, Send sends packed StepBatches by handle
+  // (BatchHandles), opening the stream first.
   absl::StatusOr<uint64_t> Send(v1::SessionRequest& request);
   absl::Status Receive(uint64_t sequence, v1::SessionResponse* response);
+  // Whether the typed Send uses batch handles (the server must have
+  // "packed_batch_handles").
+  void EnableBatchHandles(bool enabled) { batch_handles_enabled_ = enabled; }
+  bool batch_handles_enabled() const { return batch_handles_enabled_; }
 
   // Cancels the open stream, if any (the server then ends the session and
   // deletes its bound envs); the next Send opens a new one. What was in
@@ -153,8 +210,10 @@ class SessionStream {
   std::deque<std::string> region_queue_;
 
   // Typed use: the last number given, and answers that came before their
-  // Receive.
+  // Receive; the open stream's batch handles.
   uint64_t last_sequence_ = 0;
+  bool batch_handles_enabled_ = false;
+  BatchHandles batch_handles_;
   absl::flat_hash_map<uint64_t, v1::SessionResponse> early_answers_;
   std::string last_message_;
 };

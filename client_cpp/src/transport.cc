@@ -6,6 +6,7 @@
 #include <utility>
 #include <vector>
 
+#include "absl/algorithm/container.h"
 #include "absl/base/thread_annotations.h"
 #include "absl/strings/str_cat.h"
 #include "absl/synchronization/mutex.h"
@@ -26,6 +27,9 @@ namespace {
 using ::google::protobuf::internal::WireFormatLite;
 
 constexpr char kHealthCheckMethod[] = "/grpc.health.v1.Health/Check";
+// ServerInfo.capabilities: PackedSteps.handle on a Session.
+constexpr absl::string_view kCapabilityPackedBatchHandles =
+    "packed_batch_handles";
 // Lease renewals per idle timeout: two more before a lease could expire.
 constexpr int kRenewalsPerTimeout = 3;
 // Never more often than this, whatever the server's timeout.
@@ -300,6 +304,13 @@ absl::Status Transport::CheckHealth(absl::string_view service) const {
 absl::StatusOr<std::shared_ptr<Transport>> Transport::OpenSession() const {
   auto session =
       std::make_shared<StreamTransport>(address_, channel_, options_);
+  {
+    absl::MutexLock lock(&server_info_mu_);
+    if (server_info_.has_value()) {
+      absl::MutexLock session_lock(&session->server_info_mu_);
+      session->server_info_ = server_info_;
+    }
+  }
   // Asked for by name, shared memory is refused here, not at the first call.
   if (options_.session_transport == SessionTransport::kSharedMemory) {
     absl::Status status = session->Open();
@@ -328,8 +339,28 @@ absl::Status StreamTransport::Open() {
 }
 
 absl::StatusOr<uint64_t> StreamTransport::Send(v1::SessionRequest& request) {
+  DecideBatchHandles(request);
   absl::MutexLock lock(&mu_);
   return stream_.Send(request);
+}
+
+void StreamTransport::DecideBatchHandles(const v1::SessionRequest& request) {
+  if (batch_handles_decided_.load(std::memory_order_acquire) ||
+      !request.step_batch().has_packed()) {
+    return;
+  }
+  const absl::StatusOr<v1::ServerInfo> info = ServerInfo();
+  const bool enabled =
+      info.ok() && absl::c_linear_search(info->capabilities(),
+                                         kCapabilityPackedBatchHandles);
+  absl::MutexLock lock(&mu_);
+  stream_.EnableBatchHandles(enabled);
+  batch_handles_decided_.store(true, std::memory_order_release);
+}
+
+bool StreamTransport::batch_handles_in_use() {
+  absl::MutexLock lock(&mu_);
+  return stream_.batch_handles_enabled();
 }
 
 absl::Status StreamTransport::Receive(uint64_t sequence,
@@ -340,6 +371,7 @@ absl::Status StreamTransport::Receive(uint64_t sequence,
 
 absl::Status StreamTransport::Call(v1::SessionRequest& request,
                                    v1::SessionResponse* response) {
+  DecideBatchHandles(request);
   absl::MutexLock lock(&mu_);
   absl::StatusOr<uint64_t> sequence = stream_.Send(request);
   if (!sequence.ok()) return sequence.status();

@@ -5,6 +5,7 @@
 #ifndef MLL_CLIENT_SRC_TRANSPORT_H_
 #define MLL_CLIENT_SRC_TRANSPORT_H_
 
+#include <atomic>
 #include <future>
 #include <memory>
 #include <optional>
@@ -102,7 +103,7 @@ class Transport {
   bool stopping_ ABSL_GUARDED_BY(lease_mu_) = false;
   std::thread renewer_;  // Started by the first Hold.
 
-  absl::Mutex server_info_mu_;
+  mutable absl::Mutex server_info_mu_;
   std::optional<v1::ServerInfo> server_info_ ABSL_GUARDED_BY(server_info_mu_);
 };
 
@@ -130,7 +131,19 @@ class StreamTransport final : public Transport {
   // "shared_memory" or "native" (opening the stream when none is open).
   std::string transport_name();
 
+  // Whether the server was found to have "packed_batch_handles" (asked
+  // before the first packed StepBatch goes out), so that packed StepBatches
+  // go out by handle (SessionStream).
+  bool batch_handles_in_use();
+
  private:
+  friend class Transport;  // OpenSession hands its ServerInfo down.
+  // Enables the stream's batch handles before the first packed StepBatch,
+  // when the server has them; a server that cannot be asked (GetServerInfo
+  // failed) gets none on this stream transport.
+  void DecideBatchHandles(const v1::SessionRequest& request);
+
+  std::atomic<bool> batch_handles_decided_{false};
   absl::Mutex mu_;
   SessionStream stream_ ABSL_GUARDED_BY(mu_);
 };

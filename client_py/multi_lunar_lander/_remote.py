@@ -324,6 +324,8 @@ class SessionStream:
         self._sequence = 0
         self._awaited: collections.deque[int] = collections.deque()  # Sequences sent, not received.
         self._finalizer = None
+        # Counts close() calls: the session's state (e.g. its batch handles) ends with each.
+        self.closes = 0
 
     def _number(self, request: "pb.SessionRequest") -> None:
         """Gives `request` the next sequence number."""
@@ -392,6 +394,7 @@ class SessionStream:
         """Half-closes and cancels the stream (idempotent); the next send() opens a new one. What
         was in flight is lost."""
         self._awaited.clear()
+        self.closes += 1
         if self._responses is not None:
             self._finalizer()
             self._responses.cancel()

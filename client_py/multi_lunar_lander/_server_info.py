@@ -15,8 +15,9 @@ import grpc
 
 from ._errors import MLLError
 
-# The wire protocol this client speaks: package mll.v1, up to minor 1 (1: GetServerInfo).
-PROTOCOL = (1, 1)
+# The wire protocol this client speaks: package mll.v1, up to minor 2 (1: GetServerInfo; 2:
+# PackedSteps.handle).
+PROTOCOL = (1, 2)
 
 
 def client_version() -> str:

@@ -2,7 +2,8 @@
 in StepBatch's packed form (one actions array in, one array per result column out; no
 per-environment messages to build or parse, no per-environment Python loop). Each StepBatch
 travels as one request on a Session stream kept open to its server, which saves a unary call's
-set-up on both sides: over the native library (_native.NativeSessionStream, gRPC C++ in the
+set-up on both sides; a server with "packed_batch_handles" gets each list of envs once, and then
+only a handle (PackedSteps.handle) and the actions (_Handles): over the native library (_native.NativeSessionStream, gRPC C++ in the
 calling thread) when it is available, else over grpcio (SessionStream); with a server on this
 host the native stream's messages pass through shared memory instead; see docs/benchmarks.md.
 
@@ -70,18 +71,81 @@ _ENV_COLUMNS = (
 
 class _Server(NamedTuple):
     """One server's share of a vector env: env indices `rows` (ascending int array: env i starts
-    on server i mod S, and moves on failover), and its packed StepBatch request (inside a
-    SessionRequest), built whenever the placement changes, of which each step replaces only the
-    action bytes (`actions`), sent on the server's Session stream."""
+    on server i mod S, and moves on failover), built whenever the placement changes; each step
+    sends them one packed StepBatch request on the server's Session stream."""
 
     connection: Connection
     index: int  # Into VectorEnv._connections.
     rows: np.ndarray
     count: int  # How many envs: rows of every array of the request and the response.
-    message: "pb.SessionRequest"  # .step_batch is the packed StepBatchRequest.
-    actions: "pb.Array"
     columns: tuple  # _arrays.Column of every result column, shaped for this server's envs.
     stream: SessionStream
+
+
+# PackedSteps.handle's range and how many envs a session's declared batches hold together (the
+# wire contract's figures).
+MAX_HANDLE = 64
+MAX_DECLARED_ENVS = 65536
+
+
+class _Handles:
+    """The batch handles of one server's Session stream (PackedSteps.handle; the server has
+    "packed_batch_handles"). Each list of envs stepped on it (by env indices; a new placement or
+    new names forget them all) gets a handle: the first request of a list declares it (names and
+    handle); once that request's answer came back OK, the list goes out as the handle alone with
+    the actions. A failed receive or a closed stream forgets them too: a new stream is a new
+    session, with no handles (redeclaring is always safe; a handle the session lacks is never
+    sent)."""
+
+    def __init__(self, stream: SessionStream):
+        self._stream = stream
+        self.forget()
+
+    def forget(self) -> None:
+        self._closes = self._stream.closes  # The stream's session these handles belong to.
+        self._handle_of: dict[bytes, int] = {}  # Envs (their indices' bytes) -> handle.
+        self._lists: dict[int, tuple[bytes, int, int]] = {}  # Handle -> (envs, count, version).
+        self._answered: set[int] = set()  # Handles whose declaration the server answered.
+        self._declaring: dict[int, tuple[int, int]] = {}  # Request sequence -> (handle, version).
+        self._used: collections.OrderedDict[int, None] = collections.OrderedDict()  # Least recent first.
+        self._envs = 0  # Envs of the declared lists together.
+        self._version = 0
+
+    def handle(self, envs: bytes, count: int) -> tuple[int, bool]:
+        """(handle, answered) for the list `envs` of `count` envs: answered True when its
+        declaration was answered (send the handle alone); handle 0 when it cannot have one."""
+        if self._stream.closes != self._closes:  # Closed since: a new session.
+            self.forget()
+        handle = self._handle_of.get(envs)
+        if handle is None:
+            if len(self._lists) < MAX_HANDLE:
+                handle = min(set(range(1, len(self._lists) + 2)) - self._lists.keys())
+                held = self._envs
+            else:  # The least recently used one is declared anew.
+                handle = next(iter(self._used))
+                held = self._envs - self._lists[handle][1]
+            if held + count > MAX_DECLARED_ENVS:
+                return 0, False
+            if handle in self._lists:
+                del self._handle_of[self._lists[handle][0]]
+            self._version += 1
+            self._lists[handle] = (envs, count, self._version)
+            self._handle_of[envs] = handle
+            self._answered.discard(handle)
+            self._envs = held + count
+        self._used[handle] = None
+        self._used.move_to_end(handle)
+        return handle, handle in self._answered
+
+    def declaring(self, sequence: int, handle: int) -> None:
+        """Request `sequence` (sent) declares `handle` as its current list."""
+        self._declaring[sequence] = (handle, self._lists[handle][2])
+
+    def answered(self, sequence: int) -> None:
+        """Request `sequence` was answered OK: a declaration it made counts from now on."""
+        handle, version = self._declaring.pop(sequence, (0, 0))
+        if handle in self._lists and self._lists[handle][2] == version:
+            self._answered.add(handle)
 
 
 class VectorEnv:
@@ -184,8 +248,9 @@ class VectorEnv:
         self._ready: collections.deque[tuple[np.ndarray, dict]] = collections.deque()
         # The result columns of the async API's answers, by their number of envs.
         self._async_columns: dict[int, tuple] = {}
-        # Requests of the async API, by (server, envs), reused over the native stream.
-        self._async_requests: dict[tuple[int, bytes], "pb.SessionRequest"] = {}
+        # Packed StepBatch requests, by (server, envs, handle, answered), reused where they can be
+        # (_packed_request).
+        self._requests: dict[tuple[int, bytes, int, bool], "pb.SessionRequest"] = {}
         # Env i starts on server i mod S (failover moves it); servers beyond num_envs get no connection.
         self._connections: list[Connection] = []
         self._security, self._peers = security, addresses
@@ -247,6 +312,7 @@ class VectorEnv:
             stream_type = SessionStream
         self._stream_type = stream_type
         self._streams = [stream_type(connection) for connection in self._connections]
+        self._handles = [self._new_handles(index) for index in range(len(self._connections))]
         self._in_flight = [collections.deque() for _ in self._connections]
         self._build_servers()
         if transport == "shared_memory":
@@ -260,25 +326,52 @@ class VectorEnv:
 
     def _build_servers(self) -> None:
         """self._servers from the placement: one per connection that holds envs."""
-        self._async_requests = {}  # Their names may have changed (failover, restore_env).
+        self._requests = {}  # Their names may have changed (failover, restore_env) ...
+        for handles in self._handles:  # ... and so may the lists of envs behind the handles.
+            if handles is not None:
+                handles.forget()
         self._servers = []
         for index, connection in enumerate(self._connections):
             rows = np.flatnonzero(self._placement == index)
             if rows.size == 0:
                 continue
-            names = [self._names[row] for row in rows]
-            message = pb.SessionRequest()
-            message.step_batch.packed.names.extend(names)
-            actions = message.step_batch.packed.actions
-            actions.dtype = self._action_dtype
-            actions.shape.extend((len(names),) + self._action_shape)
             columns = tuple(
-                _arrays.Column(field, wire, (len(names),) + shape(self.n_landers), result)
+                _arrays.Column(field, wire, (rows.size,) + shape(self.n_landers), result)
                 for field, wire, result, shape in _AGENT_COLUMNS + _ENV_COLUMNS
             )
-            self._servers.append(
-                _Server(connection, index, rows, len(names), message, actions, columns, self._streams[index])
-            )
+            self._servers.append(_Server(connection, index, rows, int(rows.size), columns, self._streams[index]))
+
+    def _new_handles(self, index: int) -> "_Handles | None":
+        """The batch handles of connection `index`'s (new) stream, when its server has them."""
+        if "packed_batch_handles" not in self._connections[index].server_info.capabilities:
+            return None
+        return _Handles(self._streams[index])
+
+    def _send_packed(self, server: "_Server", envs: np.ndarray, actions: bytes, reusable: bool) -> None:
+        """Sends one packed StepBatch of `envs` (on `server`) with the action bytes `actions`;
+        `reusable`: the request of the same envs sent before has been answered."""
+        handles = self._handles[server.index]
+        key = envs.tobytes()
+        handle, answered = handles.handle(key, envs.size) if handles is not None else (0, False)
+        message = self._packed_request(server, envs, key, handle, answered, reusable)
+        message.step_batch.packed.actions.data = actions
+        server.stream.send(message)
+        if handle and not answered:
+            handles.declaring(message.sequence, handle)
+
+    def _receive_packed(self, index: int):
+        """The StepBatchResponse of the oldest request in flight on connection `index`'s stream;
+        any failure forgets the stream's handles (redeclared with their next steps)."""
+        handles = self._handles[index]
+        try:
+            response = self._streams[index].receive()
+        except BaseException:
+            if handles is not None:
+                handles.forget()
+            raise
+        if handles is not None:
+            handles.answered(response.sequence)
+        return response.step_batch
 
     @property
     def transport(self) -> str:
@@ -502,30 +595,33 @@ class VectorEnv:
                 if not mine.any():
                     continue
                 envs, actions = ids[mine], rows[mine]
-            message = self._async_request(server, envs)
-            message.step_batch.packed.actions.data = actions.tobytes()
-            server.stream.send(message)
+            reusable = isinstance(server.stream, _native.NativeSessionStream)
+            self._send_packed(server, envs, actions.tobytes(), reusable)
             self._in_flight[server.index].append((envs, actions))
             self._send_order.append(server.index)
 
-    def _async_request(self, server: "_Server", envs: np.ndarray) -> "pb.SessionRequest":
-        """A packed StepBatch request for `envs` on `server`, its actions to be set. The native
-        stream encodes a request as it is sent, so the request of a group of envs sent before
-        (the usual case: fixed groups of batch_size) is reused; grpcio's stream encodes it later,
-        on its own thread, so it gets a new one each time."""
-        reusable = isinstance(server.stream, _native.NativeSessionStream)
-        key = (server.index, envs.tobytes())
-        message = self._async_requests.get(key) if reusable else None
+    def _packed_request(
+        self, server: "_Server", envs: np.ndarray, key: bytes, handle: int, answered: bool, reusable: bool
+    ) -> "pb.SessionRequest":
+        """A packed StepBatch request for `envs` (`key`: their indices' bytes) on `server`, its
+        actions to be set: by `handle` alone when `answered`, else with the envs' names (and the
+        handle, 0: none). A request whose last use has been answered is reused where `reusable`
+        (the native stream encodes a request as it is sent; grpcio's encodes it later, on its own
+        thread, so an async request there gets a new one each time)."""
+        cache_key = (server.index, key, handle, answered)
+        message = self._requests.get(cache_key) if reusable else None
         if message is None:
             message = pb.SessionRequest()
             packed = message.step_batch.packed
-            packed.names.extend(self._names[env] for env in envs)
+            if not answered:
+                packed.names.extend(self._names[env] for env in envs)
+            packed.handle = handle
             packed.actions.dtype = self._action_dtype
-            packed.actions.shape.extend((envs.size, self.n_landers) + ((2,) if self.continuous else ()))
+            packed.actions.shape.extend((envs.size,) + self._action_shape)
             if reusable:
-                if len(self._async_requests) >= 4 * self.num_envs:  # Bounded: groups that keep changing.
-                    self._async_requests.clear()
-                self._async_requests[key] = message
+                if len(self._requests) >= 4 * self.num_envs:  # Bounded: groups that keep changing.
+                    self._requests.clear()
+                self._requests[cache_key] = message
         return message
 
     def recv(self):
@@ -571,7 +667,7 @@ class VectorEnv:
         envs, actions = self._in_flight[index].popleft()
         connection = self._connections[index]
         try:
-            pack = self._packed_reply(connection, self._streams[index].receive().step_batch)
+            pack = self._packed_reply(connection, self._receive_packed(index))
         except MLLError as error:
             if not self._lost(error, int(envs[0])):
                 self._env_in_flight[envs] = False
@@ -640,15 +736,10 @@ class VectorEnv:
         return reply.packed
 
     def _set_actions(self, actions) -> None:
-        """Checks `actions` and puts each server's rows into its reused StepBatch request."""
+        """Checks `actions` and keeps their bytes (env-major rows) as the step's."""
         self._check_no_step_in_flight()
         block = check_actions(actions, self.continuous, (self.num_envs, self.n_landers), "actions")
         self._pending = _arrays.to_rows(block, self._action_dtype)
-        if len(self._servers) == 1:
-            self._servers[0].actions.data = self._pending.tobytes()
-            return
-        for server in self._servers:
-            server.actions.data = self._pending[server.rows].tobytes()
 
     def step(self, actions, env_id=None):
         """step(actions) steps every env (batch_size == num_envs: the synchronous API). With the
@@ -664,9 +755,12 @@ class VectorEnv:
         """Sends step(actions) and returns at once; step_wait() returns its results. Between the
         two the caller is free to compute (e.g. a learning step) while the servers step."""
         self._set_actions(actions)
-        # One StepBatch per server on its Session stream, all in flight at once.
+        # One StepBatch per server on its Session stream, all in flight at once; the requests of
+        # the last step are answered, so they are reused.
+        single = len(self._servers) == 1
         for server in self._servers:
-            server.stream.send(server.message)
+            rows = self._pending if single else self._pending[server.rows]
+            self._send_packed(server, server.rows, rows.tobytes(), reusable=True)
         self._step_in_flight = True
 
     def step_wait(self):
@@ -677,7 +771,7 @@ class VectorEnv:
         replies, failure, lost = [], None, {}
         for server in self._servers:  # Every answer is read, so each stream is ready for the next step.
             try:
-                replies.append(server.stream.receive().step_batch)
+                replies.append(self._receive_packed(server.index))
             except MLLError as error:
                 replies.append(None)
                 if self._lost(error, int(server.rows[0])):
@@ -797,6 +891,7 @@ class VectorEnv:
             if new is not old:  # Renewed (a server back, the embedded one restarted): a new stream.
                 self._streams[index].close()
                 self._streams[index] = self._stream_type(new)
+                self._handles[index] = self._new_handles(index)
         return usable
 
     def _fail_over(self, lost: dict) -> None:

@@ -3,6 +3,7 @@ pytest runs this suite beside examples/dqn/tests, which has its own conftest).""
 
 import re
 import time
+import urllib.request
 
 import grpc
 import numpy as np
@@ -83,6 +84,20 @@ def url_in_log(process, pattern, timeout_s=10):
             return found.group(1)
         time.sleep(0.02)
     raise AssertionError(f"nothing matches {pattern!r} in the log: {process.log_tail()!r}")
+
+
+def metrics_url(process):
+    """The /metrics URL a ServerProcess logged at start-up (its --metrics_address had port 0)."""
+    return url_in_log(process, r"metrics on (http://\S+/metrics)")
+
+
+def metric(url, series):
+    """The value of one series, e.g. 'mll_steps_total{method="StepBatch"}', scraped from `url`."""
+    with urllib.request.urlopen(url, timeout=10) as reply:
+        for line in reply.read().decode().splitlines():
+            if line.startswith(series + " "):
+                return float(line.split()[-1])
+    raise AssertionError(f"{series} not in {url}")
 
 
 def random_actions(rng, shape, continuous):

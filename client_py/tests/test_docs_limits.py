@@ -25,7 +25,7 @@ _REQUIRED = (
     "kMaxLanders", "--max_envs", "--max_envs_per_token", "--max_message_mb", "--idle_timeout_s",
     "kMaxReclaimedNames", "kMaxKeepAliveNames", "kMaxPageSize", "--shared_memory_sessions", "kCapacity",
     "MAX_RECORD_STEPS", "kMaxRecordSteps", "kMaxVectorEnvs", "kMaxViewers", "kMaxUnixPathBytes",
-    "kMaxShutdownGraceS",
+    "kMaxShutdownGraceS", "kMaxHandle", "kMaxDeclaredEnvs",
 )
 
 

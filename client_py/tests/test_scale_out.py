@@ -4,7 +4,6 @@ server listens on TCP or on a Unix-domain socket)."""
 
 import subprocess
 import tempfile
-import urllib.request
 
 import grpc
 import numpy as np
@@ -12,9 +11,7 @@ import pytest
 
 import multi_lunar_lander as mll
 from multi_lunar_lander._stubs import pb, pb_grpc
-from mll_test_helpers import url_in_log
-
-from mll_test_helpers import listed_names, rollout
+from mll_test_helpers import listed_names, metric, metrics_url, rollout
 
 
 @pytest.fixture(scope="module")
@@ -39,20 +36,6 @@ def test_a_socket_path_too_long_for_a_unix_socket_is_invalid_argument(monkeypatc
     assert caught.value.code == grpc.StatusCode.INVALID_ARGUMENT
     assert "longer than 107 bytes" in caught.value.message and str(long_dir) in caught.value.message
     assert list(long_dir.iterdir()) == []  # Its work directory is removed.
-
-
-def metrics_url(process):
-    """The /metrics URL the server logged at start-up (its --metrics_address had port 0)."""
-    return url_in_log(process, r"metrics on (http://\S+/metrics)")
-
-
-def metric(url, series):
-    """The value of one series, e.g. 'mll_steps_total{method="StepBatch"}', scraped from `url`."""
-    with urllib.request.urlopen(url, timeout=10) as reply:
-        for line in reply.read().decode().splitlines():
-            if line.startswith(series + " "):
-                return float(line.split()[-1])
-    raise AssertionError(f"{series} not in {url}")
 
 
 def test_vector_env_spreads_envs_round_robin_over_the_servers(two_servers):

@@ -27,8 +27,10 @@ def test_the_real_server_reports_its_release_protocol_and_limits(address):
     info = mll.server_info(address)
     # Client and server are released together: the project's one version.
     assert info.server_version == CLIENT_VERSION
-    assert info.protocol == mll.PROTOCOL == (1, 1)
-    assert {"packed_step_batch", "auto_reset", "keep_alive", "shared_memory_sessions"} <= info.capabilities
+    assert info.protocol == mll.PROTOCOL == (1, 2)
+    assert {
+        "packed_step_batch", "auto_reset", "keep_alive", "shared_memory_sessions", "packed_batch_handles"
+    } <= info.capabilities
     assert info.limits == mll.ServerLimits(
         max_envs=10000,
         max_envs_per_token=0,
@@ -38,7 +40,7 @@ def test_the_real_server_reports_its_release_protocol_and_limits(address):
         threads=2,
         shared_memory_sessions=64,
     )
-    assert json.loads(json.dumps(info.as_dict()))["protocol"] == [1, 1]
+    assert json.loads(json.dumps(info.as_dict()))["protocol"] == [1, 2]
     with pytest.raises(AttributeError):  # Frozen.
         info.server_version = "x"
 
@@ -75,7 +77,7 @@ def test_another_protocol_major_is_refused_naming_both_versions(protocol, upgrad
     assert caught.value.code == grpc.StatusCode.FAILED_PRECONDITION
     message = caught.value.message
     assert f"mll_server 9.8.7 at host:1 (protocol v{protocol[0]}.{protocol[1]})" in message
-    assert f"this client (multi_lunar_lander {CLIENT_VERSION}, protocol v1.1)" in message
+    assert f"this client (multi_lunar_lander {CLIENT_VERSION}, protocol v{mll.PROTOCOL[0]}.{mll.PROTOCOL[1]})" in message
     assert upgrade in message
 
 

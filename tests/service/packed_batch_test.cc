@@ -3,7 +3,9 @@
 // the same on 1 and 2 threads, every request-level error and every per-env
 // error with the code and message a StepEnv would give, failing envs leaving
 // the other rows intact, and the form carried by a Session stream (which
-// keeps its recent batches' envs: leases renewed, gone envs not found).
+// keeps its recent batches' envs: leases renewed, gone envs not found), and
+// batches stepped by a handle (PackedSteps.handle): the same bits as by
+// names, bad handles refused naming the field, gone envs not found.
 #include <algorithm>
 #include <chrono>
 #include <cstring>
@@ -12,10 +14,14 @@
 #include <thread>
 #include <vector>
 
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "mll/core/env.h"
 #include "mll/service/convert.h"
+#include "mll/service/registry.h"
+#include "server_process.h"
 #include "test_util.h"
 
 namespace mll::service::testing {
@@ -687,6 +693,291 @@ TEST(PackedSessionTest, RepeatedBatchesRenewLeasesAndMissGoneEnvs) {
   EXPECT_THAT(not_found(step({a})), ::testing::IsEmpty());
   stream->WritesDone();
   EXPECT_TRUE(stream->Finish().ok());
+}
+
+// ---------------------------------------------------------------- handles
+
+// A Session stream with its own envs' twins: requests numbered, answers
+// checked against their sequence.
+class HandleSession {
+ public:
+  explicit HandleSession(v1::MultiLunarLander::Stub& stub)
+      : stream_(stub.Session(&context_)) {}
+  ~HandleSession() {
+    stream_->WritesDone();
+    EXPECT_TRUE(stream_->Finish().ok());
+  }
+  v1::SessionResponse Call(v1::SessionRequest request) {
+    request.set_sequence(++sequence_);
+    v1::SessionResponse response;
+    EXPECT_TRUE(stream_->Write(request) && stream_->Read(&response));
+    EXPECT_EQ(response.sequence(), sequence_);
+    return response;
+  }
+  // A packed StepBatch of `names` (empty: by the handle alone) with handle
+  // `handle` (0: none).
+  v1::SessionResponse Step(const std::vector<std::string>& names,
+                           uint32_t handle, const v1::Array& actions) {
+    v1::SessionRequest request;
+    *request.mutable_step_batch() = PackedRequest(names, actions);
+    request.mutable_step_batch()->mutable_packed()->set_handle(handle);
+    return Call(request);
+  }
+
+ private:
+  grpc::ClientContext context_;
+  std::unique_ptr<
+      grpc::ClientReaderWriter<v1::SessionRequest, v1::SessionResponse>>
+      stream_;
+  uint64_t sequence_ = 0;
+};
+
+class PackedHandleTest : public ::testing::TestWithParam<bool> {};
+
+// Stepped by a handle (declared by the first step, then the actions alone),
+// on a stream over loopback TCP and through shared memory, of the mll_server
+// binary, envs give the same bits as their twins stepped by names in unary
+// calls, across auto-resets.
+TEST_P(PackedHandleTest, StepByHandleMatchesStepByNamesBitForBit) {
+  const bool continuous = GetParam();
+  const std::vector<uint64_t> seeds = {1, 4, 9, 16, 25};
+  const int num_envs = static_cast<int>(seeds.size());
+  constexpr int kCycles = 100;
+  ServerProcess process({"--threads=2"});
+  const int port = process.WaitForPort();
+  ASSERT_GT(port, 0);
+  const std::shared_ptr<grpc::Channel> channel = grpc::CreateChannel(
+      "127.0.0.1:" + std::to_string(port), grpc::InsecureChannelCredentials());
+  const std::unique_ptr<v1::MultiLunarLander::Stub> stub =
+      v1::MultiLunarLander::NewStub(channel);
+  // Three copies of the envs: stepped by names (unary), by a handle on a
+  // stream, and by a handle through shared memory.
+  std::vector<std::string> by_names, on_stream, in_memory;
+  for (int e = 0; e < num_envs; ++e) {
+    for (auto* copy : {&by_names, &on_stream, &in_memory}) {
+      copy->push_back(CreateEnv(*stub, Config(continuous)));
+      ASSERT_TRUE(Reset(*stub, copy->back(), seeds[e]).ok());
+    }
+  }
+  HandleSession stream(*stub);
+  SharedMemorySession memory(*stub);
+  ASSERT_FALSE(memory.Attach().has_error());
+  ActionSource source(continuous, kLanders);
+  int auto_resets = 0;
+  for (int c = 0; c < kCycles; ++c) {
+    SCOPED_TRACE(c);
+    const v1::Array actions = Draw(source, num_envs).Packed(kLanders);
+    grpc::ClientContext context;
+    v1::StepBatchResponse reference;
+    ASSERT_TRUE(
+        stub->StepBatch(&context, PackedRequest(by_names, actions), &reference)
+            .ok());
+    ASSERT_EQ(reference.packed().errors_size(), 0);
+    const bool declare = c == 0;
+    const v1::SessionResponse streamed = stream.Step(
+        declare ? on_stream : std::vector<std::string>(), 3, actions);
+    ASSERT_FALSE(streamed.has_error()) << streamed.error().message();
+    EXPECT_EQ(streamed.step_batch().SerializeAsString(),
+              reference.SerializeAsString());
+    v1::SessionRequest request;
+    *request.mutable_step_batch() = PackedRequest(
+        declare ? in_memory : std::vector<std::string>(), actions);
+    request.mutable_step_batch()->mutable_packed()->set_handle(64);
+    const v1::SessionResponse mapped = memory.Call(request);
+    ASSERT_FALSE(mapped.has_error()) << mapped.error().message();
+    EXPECT_EQ(mapped.step_batch().SerializeAsString(),
+              reference.SerializeAsString());
+    for (char reset : reference.packed().auto_reset().data()) {
+      auto_resets += reset != 0;
+    }
+  }
+  EXPECT_GE(auto_resets, num_envs) << "the run must cross auto-resets";
+}
+
+INSTANTIATE_TEST_SUITE_P(DiscreteAndContinuous, PackedHandleTest,
+                         ::testing::Bool(),
+                         [](const ::testing::TestParamInfo<bool>& info) {
+                           return info.param ? "Continuous" : "Discrete";
+                         });
+
+// Bad handles are refused with the field named and nothing stepped; an env
+// of a declared batch that is gone is NOT_FOUND as when named; handles are
+// the session's; requests with names and no handle go on as before.
+TEST(PackedHandleErrorsTest, BadHandlesGoneEnvsAndOldStyleRequests) {
+  InProcess s;
+  std::vector<std::string> names;
+  for (int e = 0; e < 3; ++e) {
+    names.push_back(CreateEnv(*s.stub, Config(false)));
+    ASSERT_TRUE(Reset(*s.stub, names[e], 30 + e).ok());
+  }
+  const auto cycles_of = [&](const std::string& name) {
+    grpc::ClientContext context;
+    v1::GetEnvRequest request;
+    request.set_name(name);
+    v1::Env env;
+    EXPECT_TRUE(s.stub->GetEnv(&context, request, &env).ok());
+    return env.cycles();
+  };
+  const v1::Array three = Int32Array({3, kLanders}, 3 * kLanders);
+  HandleSession session(*s.stub);
+
+  // Not declared on this session.
+  v1::SessionResponse answer = session.Step({}, 5, three);
+  EXPECT_EQ(answer.error().code(), grpc::StatusCode::NOT_FOUND);
+  EXPECT_THAT(answer.error().message(),
+              HasSubstr("packed.handle: 5 is not declared on this session"));
+  // Out of range, with names or without.
+  answer = session.Step(names, 65, three);
+  EXPECT_EQ(answer.error().code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_THAT(answer.error().message(),
+              HasSubstr("packed.handle: 65 is out of range (allowed: 0 for "
+                        "none, 1..64)"));
+  // A declaration with a repeated name declares nothing.
+  answer = session.Step({names[0], names[0], names[1]}, 6, three);
+  EXPECT_EQ(answer.error().code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_THAT(answer.error().message(), HasSubstr("packed.names[1]"));
+  EXPECT_EQ(session.Step({}, 6, three).error().code(),
+            grpc::StatusCode::NOT_FOUND);
+  for (const std::string& name : names) EXPECT_EQ(cycles_of(name), 0);
+
+  // Declared: stepped by names, then by the handle alone.
+  answer = session.Step(names, 1, three);
+  ASSERT_FALSE(answer.has_error()) << answer.error().message();
+  EXPECT_EQ(answer.step_batch().packed().errors_size(), 0);
+  answer = session.Step({}, 1, three);
+  ASSERT_FALSE(answer.has_error()) << answer.error().message();
+  for (const std::string& name : names) EXPECT_EQ(cycles_of(name), 2);
+  // The wrong number of actions for the handle's envs.
+  answer = session.Step({}, 1, Int32Array({2, kLanders}, 2 * kLanders));
+  EXPECT_EQ(answer.error().code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_THAT(answer.error().message(),
+              HasSubstr("num_envs = the envs declared as packed.handle 1 = 3"));
+  for (const std::string& name : names) EXPECT_EQ(cycles_of(name), 2);
+
+  // An old-style request (names, no handle) in between.
+  answer = session.Step({names[2], names[0]}, 0,
+                        Int32Array({2, kLanders}, 2 * kLanders));
+  ASSERT_FALSE(answer.has_error()) << answer.error().message();
+  EXPECT_EQ(cycles_of(names[0]), 3);
+  EXPECT_EQ(cycles_of(names[1]), 2);
+
+  // An env of the batch deleted: NOT_FOUND for its row, naming it as if it
+  // had been named; the others step.
+  {
+    grpc::ClientContext context;
+    v1::DeleteEnvRequest remove;
+    remove.set_name(names[1]);
+    v1::DeleteEnvResponse removed;
+    ASSERT_TRUE(s.stub->DeleteEnv(&context, remove, &removed).ok());
+  }
+  answer = session.Step({}, 1, three);
+  ASSERT_FALSE(answer.has_error()) << answer.error().message();
+  const v1::PackedStepData& packed = answer.step_batch().packed();
+  ASSERT_EQ(packed.errors_size(), 1);
+  EXPECT_EQ(packed.errors(0).index(), 1);
+  EXPECT_EQ(packed.errors(0).error().code(), grpc::StatusCode::NOT_FOUND);
+  EXPECT_THAT(packed.errors(0).error().message(),
+              HasSubstr("packed.names[1]: " + names[1] + " does not exist"));
+  EXPECT_TRUE(RowIsZero(packed, 1, kLanders));
+  EXPECT_EQ(cycles_of(names[0]), 4);
+  EXPECT_EQ(cycles_of(names[2]), 4);
+
+  // Declared anew as other envs, the handle steps those.
+  answer = session.Step({names[2]}, 1, Int32Array({1, kLanders}, kLanders));
+  ASSERT_FALSE(answer.has_error()) << answer.error().message();
+  answer = session.Step({}, 1, Int32Array({1, kLanders}, kLanders));
+  ASSERT_FALSE(answer.has_error()) << answer.error().message();
+  EXPECT_EQ(cycles_of(names[0]), 4);
+  EXPECT_EQ(cycles_of(names[2]), 6);
+
+  // Handles are the session's: another stream has none, and a unary call
+  // cannot carry one.
+  {
+    HandleSession other(*s.stub);
+    answer = other.Step({}, 1, Int32Array({1, kLanders}, kLanders));
+    EXPECT_EQ(answer.error().code(), grpc::StatusCode::NOT_FOUND);
+  }
+  v1::StepBatchRequest unary =
+      PackedRequest({names[0]}, Int32Array({1, kLanders}, kLanders));
+  unary.mutable_packed()->set_handle(1);
+  grpc::ClientContext context;
+  v1::StepBatchResponse response;
+  const grpc::Status status = s.stub->StepBatch(&context, unary, &response);
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_THAT(status.error_message(),
+              HasSubstr("packed.handle: 1 is set on a unary StepBatch"));
+  EXPECT_EQ(cycles_of(names[0]), 4);
+}
+
+// A session's declared batches hold at most kMaxDeclaredEnvs envs together:
+// a declaration past it is RESOURCE_EXHAUSTED; declaring a handle anew
+// frees its old envs.
+TEST(PackedHandleErrorsTest, DeclaredEnvsAreBounded) {
+  InProcess s;
+  constexpr size_t kMax = SessionBatches::kMaxDeclaredEnvs;
+  // Names of no env: each row fails NOT_FOUND, but the batch is declared.
+  const auto names_from = [](size_t first, size_t count) {
+    std::vector<std::string> names;
+    for (size_t k = first; k < first + count; ++k) {
+      names.push_back(absl::StrFormat("envs/%032x", k));
+    }
+    return names;
+  };
+  const auto actions = [](size_t count) {
+    return Int32Array({static_cast<int>(count), 1}, count);
+  };
+  HandleSession session(*s.stub);
+  const size_t most = kMax - 10;
+  v1::SessionResponse answer =
+      session.Step(names_from(0, most), 1, actions(most));
+  ASSERT_FALSE(answer.has_error()) << answer.error().message();
+  EXPECT_EQ(answer.step_batch().packed().errors_size(), static_cast<int>(most));
+  answer = session.Step(names_from(most, 11), 2, actions(11));
+  EXPECT_EQ(answer.error().code(), grpc::StatusCode::RESOURCE_EXHAUSTED);
+  EXPECT_THAT(
+      answer.error().message(),
+      HasSubstr(absl::StrCat("packed.handle: declaring 2 as 11 envs "
+                             "would make this session's declared "
+                             "batches hold ",
+                             kMax + 1, " envs; allowed: at most ", kMax)));
+  EXPECT_EQ(session.Step({}, 2, actions(11)).error().code(),
+            grpc::StatusCode::NOT_FOUND);
+  // Handle 1 declared anew as fewer envs: room for handle 2.
+  answer = session.Step(names_from(0, 5), 1, actions(5));
+  ASSERT_FALSE(answer.has_error()) << answer.error().message();
+  answer = session.Step(names_from(most, 11), 2, actions(11));
+  ASSERT_FALSE(answer.has_error()) << answer.error().message();
+}
+
+// Steps by a handle renew the leases of its envs, as steps by names do.
+TEST(PackedHandleErrorsTest, HandleStepsRenewLeases) {
+  ServiceOptions options;
+  options.idle_timeout = absl::Milliseconds(800);
+  InProcess s(options);
+  std::vector<std::string> names;
+  for (int e = 0; e < 3; ++e) {
+    names.push_back(CreateEnv(*s.stub, Config(false)));
+    ASSERT_TRUE(Reset(*s.stub, names[e], 40 + e).ok());
+  }
+  HandleSession session(*s.stub);
+  const v1::Array two = Int32Array({2, kLanders}, 2 * kLanders);
+  ASSERT_FALSE(session.Step({names[0], names[1]}, 7, two).has_error());
+  // Only the handle's envs are stepped for 2.5 idle timeouts: the third is
+  // reclaimed, the handle's stay.
+  const auto start = std::chrono::steady_clock::now();
+  while (std::chrono::steady_clock::now() - start <
+         std::chrono::milliseconds(2000)) {
+    const v1::SessionResponse answer = session.Step({}, 7, two);
+    ASSERT_FALSE(answer.has_error()) << answer.error().message();
+    ASSERT_EQ(answer.step_batch().packed().errors_size(), 0)
+        << answer.step_batch().packed().errors(0).error().message();
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+  const v1::SessionResponse gone =
+      session.Step({names[2]}, 0, Int32Array({1, kLanders}, kLanders));
+  ASSERT_EQ(gone.step_batch().packed().errors_size(), 1);
+  EXPECT_THAT(gone.step_batch().packed().errors(0).error().message(),
+              HasSubstr("was reclaimed"));
 }
 
 }  // namespace

@@ -43,7 +43,7 @@ TEST(ServerInfoTest, ReportsVersionsCapabilitiesAndTheOptions) {
   EXPECT_GE(info.protocol_minor(), 1);
   EXPECT_THAT(info.capabilities(),
               ElementsAre("packed_step_batch", "auto_reset", "keep_alive",
-                          "shared_memory_sessions"));
+                          "packed_batch_handles", "shared_memory_sessions"));
   const v1::ServerLimits& limits = info.limits();
   EXPECT_EQ(limits.max_envs(), 7);
   EXPECT_EQ(limits.max_envs_per_token(), 0);  // No tokens: unlimited.
@@ -109,7 +109,8 @@ TEST(ServerInfoTest, MllServerReportsItsFlags) {
   ASSERT_TRUE(status.ok()) << status.error_message();
   EXPECT_EQ(info.server_version(), ServerVersion());
   EXPECT_THAT(info.capabilities(),
-              ElementsAre("packed_step_batch", "auto_reset", "keep_alive"));
+              ElementsAre("packed_step_batch", "auto_reset", "keep_alive",
+                          "packed_batch_handles"));
   EXPECT_EQ(info.limits().threads(), 2);
   EXPECT_EQ(info.limits().max_envs(), 11);
   EXPECT_EQ(info.limits().max_message_bytes(), 3 << 20);

@@ -445,9 +445,9 @@ class Client {
       absl::Span<const BatchStep> steps) const;
 
   // Server information and compatibility (server_info.cc). The wire
-  // protocol this client speaks: mll.v1 up to minor 1.
+  // protocol this client speaks: mll.v1 up to minor 2.
   static constexpr int kProtocolMajor = 1;
-  static constexpr int kProtocolMinor = 1;
+  static constexpr int kProtocolMinor = 2;
   // This library's release (the project's version), e.g. "0.1.0".
   static absl::string_view Version();
   // GetServerInfo of server `server` (INVALID_ARGUMENT when it is not in

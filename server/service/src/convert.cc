@@ -267,17 +267,20 @@ absl::Status ParseActions(const v1::Array& array, const core::EnvConfig& config,
 }
 
 absl::StatusOr<PackedActions> PackedActions::Parse(
-    const v1::PackedSteps& packed) {
+    const v1::PackedSteps& packed, int num_envs) {
   constexpr absl::string_view kField = "packed.actions";
   const v1::Array& array = packed.actions();
-  const int num_envs = packed.names_size();
-  const auto expected = [num_envs] {
+  const auto expected = [&packed, num_envs] {
     return absl::StrCat(
         "expected int32 [", num_envs,
         ", n_landers] for discrete actions or float32 [", num_envs,
-        ", n_landers, 2] for continuous ones: num_envs = "
-        "len(packed.names) = ",
-        num_envs, ", n_landers ", core::kMinLanders, "..", core::kMaxLanders);
+        ", n_landers, 2] for continuous ones: num_envs = ",
+        packed.names_size() == 0 && packed.handle() != 0
+            ? absl::StrCat("the envs declared as packed.handle ",
+                           packed.handle())
+            : "len(packed.names)",
+        " = ", num_envs, ", n_landers ", core::kMinLanders, "..",
+        core::kMaxLanders);
   };
   PackedActions actions;
   switch (array.dtype()) {

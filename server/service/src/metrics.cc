@@ -128,6 +128,10 @@ void Metrics::RecordStepAgent(Method method, bool acted) {
 
 void Metrics::RecordReset() { episodes_.fetch_add(1, kRelaxed); }
 
+void Metrics::RecordPackedBatch(bool by_handle) {
+  packed_batches_[by_handle ? 1 : 0].fetch_add(1, kRelaxed);
+}
+
 std::string Metrics::Render(
     int live_envs,
     const std::vector<std::pair<std::string, int>>& live_by_tenant) const {
@@ -161,6 +165,14 @@ std::string Metrics::Render(
         &out, "mll_agent_steps_total{", MethodLabel(method), "} ",
         methods_[static_cast<int>(method)].agent_steps.load(kRelaxed), "\n");
   }
+  Family("mll_packed_batches_total", "counter",
+         "Packed StepBatches stepped, by how they gave their envs: names, or "
+         "a handle declared on their Session (PackedSteps.handle).",
+         &out);
+  absl::StrAppend(&out, "mll_packed_batches_total{envs=\"names\"} ",
+                  packed_batches_[0].load(kRelaxed), "\n");
+  absl::StrAppend(&out, "mll_packed_batches_total{envs=\"handle\"} ",
+                  packed_batches_[1].load(kRelaxed), "\n");
   Family("mll_rpc_duration_seconds", "histogram",
          "Time in the server from a call's (or Session request's) arrival at "
          "its handler to its status, by method.",

@@ -317,7 +317,7 @@ absl::Status Operations::RenderEnv(const v1::RenderEnvRequest& request,
 void Operations::StepBatch(const v1::StepBatchRequest& request,
                            v1::StepBatchResponse* out,
                            std::function<void(absl::Status)> done,
-                           absl::string_view owner, RecentBatches* recent) {
+                           absl::string_view owner, SessionBatches* batches) {
   if (request.has_packed()) {
     if (request.steps_size() > 0) {
       done(absl::InvalidArgumentError(absl::StrCat(
@@ -327,7 +327,7 @@ void Operations::StepBatch(const v1::StepBatchRequest& request,
       return;
     }
     StepPacked(request.packed(), out->mutable_packed(), std::move(done), owner,
-               recent);
+               batches);
     return;
   }
   absl::Status status = CheckDistinctNames(
@@ -356,26 +356,62 @@ void Operations::StepBatch(const v1::StepBatchRequest& request,
 void Operations::StepPacked(const v1::PackedSteps& request,
                             v1::PackedStepData* out,
                             std::function<void(absl::Status)> done,
-                            absl::string_view owner, RecentBatches* recent) {
-  absl::StatusOr<PackedActions> actions = PackedActions::Parse(request);
+                            absl::string_view owner, SessionBatches* batches) {
+  const uint32_t handle = request.handle();
+  const bool by_handle = handle != 0 && request.names_size() == 0;
+  if (handle > SessionBatches::kMaxHandle) {
+    done(absl::InvalidArgumentError(absl::StrCat(
+        "packed.handle: ", handle, " is out of range (allowed: 0 for none, 1..",
+        SessionBatches::kMaxHandle, ")")));
+    return;
+  }
+  if (handle != 0 && batches == nullptr) {
+    done(absl::InvalidArgumentError(absl::StrCat(
+        "packed.handle: ", handle,
+        " is set on a unary StepBatch (allowed: 0; handles exist only on a "
+        "Session stream, which keeps them; send the names)")));
+    return;
+  }
+  // The envs stepped before and their slots: a declared batch, or a recent
+  // batch naming the same envs in the same order (distinct, then).
+  const SessionBatches::Batch* kept = nullptr;
+  if (by_handle) {
+    kept = batches->Declared(handle);
+    if (kept == nullptr) {
+      done(absl::NotFoundError(absl::StrCat(
+          "packed.handle: ", handle,
+          " is not declared on this session (a handle is declared by a "
+          "packed StepBatch carrying it with the names of its envs, on the "
+          "same Session stream; a new stream has none)")));
+      return;
+    }
+  } else if (batches != nullptr && handle == 0) {
+    kept = batches->Match(request.names());
+  }
+  const int num_envs = kept != nullptr ? static_cast<int>(kept->names.size())
+                                       : request.names_size();
+  absl::StatusOr<PackedActions> actions =
+      PackedActions::Parse(request, num_envs);
   if (!actions.ok()) {
     done(actions.status());
     return;
   }
-  // The same envs as a recent batch: distinct, and their slots at hand.
-  const RecentBatches::Batch* kept =
-      recent != nullptr ? recent->Match(request.names()) : nullptr;
   if (kept == nullptr) {
     absl::Status status = CheckDistinctNames(
         request.names_size(),
         [&request](int e) -> absl::string_view { return request.names(e); },
         [](int e) { return ItemField("packed.names[", e, "]"); }, "");
+    if (status.ok() && handle != 0) {
+      status = batches->CheckDeclare(handle, num_envs, "packed.handle");
+    }
     if (!status.ok()) {
       done(status);
       return;
     }
   }
-  const int num_envs = request.names_size();
+  // The envs' names: the declared batch's, or the request's.
+  const std::vector<std::string>* declared_names =
+      by_handle ? &kept->names : nullptr;
   // Lives until the last item is done; workers write disjoint rows of the
   // columns (sized here, once) and their own entries of `statuses` and
   // `slots`.
@@ -389,21 +425,22 @@ void Operations::StepPacked(const v1::PackedSteps& request,
     const PackedActions actions;
     const PackedColumns columns;
     std::vector<absl::Status> statuses;
-    // The slots found, for RecentBatches::Keep (empty: not kept).
+    // The slots found, for SessionBatches::Keep or Declare (empty: neither).
     std::vector<std::weak_ptr<EnvSlot>> slots;
   };
   auto batch = std::make_shared<Batch>(*std::move(actions), num_envs, out,
-                                       recent != nullptr && kept == nullptr);
+                                       batches != nullptr && kept == nullptr);
   pool_->ParallelFor(
       num_envs,
-      [this, &request, batch, owner, kept](int e) {
+      [this, &request, declared_names, batch, owner, kept](int e) {
         batch->statuses[e] = [&]() -> absl::Status {
           std::shared_ptr<EnvSlot> slot =
-              kept != nullptr ? RecentBatches::Find(*kept, e, owner) : nullptr;
+              kept != nullptr ? SessionBatches::Find(*kept, e, owner) : nullptr;
           if (slot == nullptr) {
             absl::StatusOr<std::shared_ptr<EnvSlot>> found = registry_->Find(
-                request.names(e), ItemField("packed.names[", e, "]").view(),
-                owner);
+                declared_names != nullptr ? (*declared_names)[e]
+                                          : request.names(e),
+                ItemField("packed.names[", e, "]").view(), owner);
             if (!found.ok()) return found.status();
             slot = *std::move(found);
             if (!batch->slots.empty()) batch->slots[e] = slot;
@@ -417,7 +454,7 @@ void Operations::StepPacked(const v1::PackedSteps& request,
                           });
         }();
       },
-      [batch, out, &request, recent, done = std::move(done)] {
+      [batch, out, &request, batches, handle, done = std::move(done)] {
         // Appended here, in index order: workers never touch `errors`.
         for (int e = 0; e < static_cast<int>(batch->statuses.size()); ++e) {
           if (batch->statuses[e].ok()) continue;
@@ -427,7 +464,11 @@ void Operations::StepPacked(const v1::PackedSteps& request,
         }
         // An env not found is kept as no slot: looked up again next time.
         if (!batch->slots.empty()) {
-          recent->Keep(request.names(), std::move(batch->slots));
+          if (handle != 0) {
+            batches->Declare(handle, request.names(), std::move(batch->slots));
+          } else {
+            batches->Keep(request.names(), std::move(batch->slots));
+          }
         }
         done(absl::OkStatus());
       });

@@ -292,14 +292,28 @@ void Registry::ReapLoop() {
   }
 }
 
-std::shared_ptr<EnvSlot> RecentBatches::Find(const Batch& batch, int index,
-                                             absl::string_view owner) {
+std::shared_ptr<EnvSlot> SessionBatches::Find(const Batch& batch, int index,
+                                              absl::string_view owner) {
   std::shared_ptr<EnvSlot> slot = batch.slots[index].lock();
   if (slot == nullptr || slot->removed.load() || slot->owner != owner) {
     return nullptr;
   }
   Touch(*slot);
   return slot;
+}
+
+absl::Status SessionBatches::CheckDeclare(uint32_t handle, size_t num_envs,
+                                          absl::string_view field) const {
+  const Batch* replaced = Declared(handle);
+  const size_t held =
+      declared_envs_ - (replaced != nullptr ? replaced->names.size() : 0);
+  if (held + num_envs <= kMaxDeclaredEnvs) return absl::OkStatus();
+  return absl::ResourceExhaustedError(absl::StrCat(
+      field, ": declaring ", handle, " as ", num_envs,
+      " envs would make this session's declared batches hold ", held + num_envs,
+      " envs; allowed: at most ", kMaxDeclaredEnvs,
+      " (declare the handles of batches no longer stepped anew, or send "
+      "names without a handle)"));
 }
 
 }  // namespace mll::service

@@ -19,8 +19,8 @@ v1::ServerInfo MakeServerInfo(const ServiceOptions& options) {
   info.set_protocol_major(kProtocolMajor);
   info.set_protocol_minor(kProtocolMinor);
   for (absl::string_view capability :
-       {kCapabilityPackedStepBatch, kCapabilityAutoReset,
-        kCapabilityKeepAlive}) {
+       {kCapabilityPackedStepBatch, kCapabilityAutoReset, kCapabilityKeepAlive,
+        kCapabilityPackedBatchHandles}) {
     info.add_capabilities(std::string(capability));
   }
   if (options.shared_memory_sessions > 0) {

@@ -70,14 +70,14 @@ class CallTimer {
 // table into calls of them.
 class Dispatch {
  public:
-  // `recent`: the Session's recent packed batches (null: a unary call).
+  // `batches`: the Session's packed batches (null: a unary call).
   Dispatch(Operations* operations, Metrics* metrics, Method via,
-           absl::string_view owner, RecentBatches* recent = nullptr)
+           absl::string_view owner, SessionBatches* batches = nullptr)
       : operations_(operations),
         metrics_(metrics),
         via_(via),
         owner_(owner),
-        recent_(recent) {}
+        batches_(batches) {}
 
   // An env created on a Session is bound to it unless detached.
   absl::Status CreateEnv(const v1::CreateEnvRequest& request,
@@ -131,14 +131,20 @@ class Dispatch {
   template <typename Done>
   void StepBatch(const v1::StepBatchRequest& request,
                  v1::StepBatchResponse* out, Done done) const {
+    const bool packed = request.has_packed();
+    const bool by_handle = packed && request.packed().handle() != 0 &&
+                           request.packed().names().empty();
     operations_->StepBatch(
         request, out,
-        [metrics = metrics_, via = via_, out,
+        [metrics = metrics_, via = via_, out, packed, by_handle,
          done = std::move(done)](absl::Status status) {
-          if (status.ok()) metrics->RecordStepBatch(via, *out);
+          if (status.ok()) {
+            metrics->RecordStepBatch(via, *out);
+            if (packed) metrics->RecordPackedBatch(by_handle);
+          }
           done(status);
         },
-        owner_, recent_);
+        owner_, batches_);
   }
 
  private:
@@ -148,7 +154,7 @@ class Dispatch {
   Metrics* const metrics_;
   const Method via_;
   const absl::string_view owner_;
-  RecentBatches* const recent_;
+  SessionBatches* const batches_;
 };
 
 // The SessionRequest `op` oneof's members, in the proto's order, as the
@@ -371,10 +377,13 @@ class SessionMessages {
 };
 
 // One Session stream: runs its requests one at a time, in order, and writes
-// their answers in the same order. The stream is pipelined: the next request
-// is read while one runs, and starts as soon as the one before it is done,
-// while that one's answer is still being written; so a client with several
-// requests in flight keeps the workers busy between them. At most one
+// their answers in the same order. The stream is pipelined: for a client
+// that sends before it has its answers, the next request is read while one
+// runs, and starts as soon as the one before it is done, while that one's
+// answer is still being written; so a client with several requests in
+// flight keeps the workers busy between them (a client that waits for each
+// answer gets its next request read once the answer is queued:
+// StartNextRead). At most one
 // request waits, read but not run, and at most kQueuedAnswers answers wait
 // for the client to take them; past that the stream reads no more (the
 // client's requests wait in HTTP/2 flow control). Envs it created (not
@@ -443,6 +452,9 @@ class SessionReactor final
         EndIfDone();
         return;
       }
+      // A request that comes before the last answer was written: the client
+      // pipelines.
+      pipelined_ = running_ || !answers_.empty();
       waiting_request_.emplace();
       waiting_request_->readable =
           read_buffer_.DumpToSingleSlice(&waiting_request_->bytes).ok();
@@ -504,11 +516,24 @@ class SessionReactor final
     std::optional<ReadRequest> next = std::move(waiting_request_);
     waiting_request_.reset();
     running_ = true;
-    if (!reading_ && !half_closed_) {
-      reading_ = true;
-      StartRead(&read_buffer_);
-    }
+    if (pipelined_) StartNextRead();
     return next;
+  }
+
+  // Starts reading the next request unless one is being read or waits. For
+  // a client that pipelines, as soon as a request is taken to run (so the
+  // next one is at hand when it is done); for one that waits for each answer
+  // before it sends again, once the answer is queued: a read pending while
+  // the request runs makes gRPC announce the consumed flow-control window at
+  // once, in a write (and a wake-up of the client) of its own, where a read
+  // started after the answer's write sends the announcement with the answer.
+  // Under mu_.
+  void StartNextRead() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_) {
+    if (reading_ || half_closed_ || finished_ || waiting_request_.has_value()) {
+      return;
+    }
+    reading_ = true;
+    StartRead(&read_buffer_);
   }
 
   // Ends the stream if it is over: broken, drained or half-closed, with no
@@ -596,8 +621,7 @@ class SessionReactor final
   }
 
   Dispatch dispatch() {
-    return Dispatch(operations_, metrics_, Method::kSession, owner_,
-                    &recent_batches_);
+    return Dispatch(operations_, metrics_, Method::kSession, owner_, &batches_);
   }
 
   // Runs messages.request() into messages.response() and returns its
@@ -692,7 +716,9 @@ class SessionReactor final
       }
     }
     if (EndIfDone()) return std::nullopt;
-    return TakeNextRequest();
+    std::optional<ReadRequest> next = TakeNextRequest();
+    if (!next.has_value() && !broken_ && !drain_asked_) StartNextRead();
+    return next;
   }
 
   // Creates the session's region and starts the thread that serves it.
@@ -802,6 +828,9 @@ class SessionReactor final
   absl::Mutex mu_;
   // A read is pending.
   bool reading_ ABSL_GUARDED_BY(mu_) = false;
+  // The last request came while one ran or an answer was being written
+  // (StartNextRead).
+  bool pipelined_ ABSL_GUARDED_BY(mu_) = false;
   // A request runs (from TakeNextRequest to Answer).
   bool running_ ABSL_GUARDED_BY(mu_) = false;
   // The answer at the front of answers_ is being written.
@@ -821,7 +850,7 @@ class SessionReactor final
   // Points into the Authenticator, which outlives every call.
   absl::string_view owner_;
   // The running request uses them.
-  RecentBatches recent_batches_;
+  SessionBatches batches_;
   CallTimer timer_;
   SessionMessages messages_;
   grpc::ByteBuffer read_buffer_;

@@ -130,9 +130,11 @@ absl::Status CheckActionLayout(int dtype, absl::Span<const int> shape,
 class PackedActions {
  public:
   // INVALID_ARGUMENT naming `packed.actions` and the expected shape unless
-  // the array is one of the two forms above with num_envs =
-  // len(packed.names), n_landers in 1..32 and the matching byte count.
-  static absl::StatusOr<PackedActions> Parse(const v1::PackedSteps& packed);
+  // the array is one of the two forms above with `num_envs` envs (those of
+  // packed.names, or of the batch declared as packed.handle), n_landers in
+  // 1..32 and the matching byte count.
+  static absl::StatusOr<PackedActions> Parse(const v1::PackedSteps& packed,
+                                             int num_envs);
 
   int n_landers() const { return n_landers_; }
   bool continuous() const { return continuous_; }

@@ -73,6 +73,9 @@ class Metrics {
   void RecordStepAgent(Method method, bool acted);
   // A successful ResetEnv.
   void RecordReset();
+  // A successful packed StepBatch (any method), by how it gave its envs:
+  // their names, or a declared handle alone (PackedSteps.handle).
+  void RecordPackedBatch(bool by_handle);
 
   // The exposition text, with `live_envs` as the environments gauge,
   // `live_by_tenant` (owner, envs; auth.h's owners, never a token) as the
@@ -102,6 +105,7 @@ class Metrics {
 
   std::array<PerMethod, kMethodCount> methods_;
   std::atomic<uint64_t> episodes_{0};
+  std::atomic<uint64_t> packed_batches_[2] = {};  // [by_handle].
 };
 
 }  // namespace mll::service

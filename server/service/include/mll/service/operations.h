@@ -60,21 +60,23 @@ class Operations {
   // Returns at once. A request-level error (both forms set, duplicate names,
   // a packed actions array of the wrong dtype or shape) calls done() before
   // returning, with no env stepped. `request` and `out` must live until
-  // done() runs, and `owner`'s characters too. `recent` (null: none): the
-  // caller's recent packed batches; a packed batch naming the same envs in
-  // the same order as one of them uses its slots, any other packed batch
-  // joins them. It must not be used elsewhere until done() has run.
+  // done() runs, and `owner`'s characters too. `batches` (null: a unary
+  // call, which has none): the Session's packed batches. A packed batch with
+  // a handle declares it or steps the batch declared as it; one without
+  // names the same envs in the same order as a recent one uses its slots, or
+  // joins the recent ones. It must not be used elsewhere until done() has
+  // run.
   void StepBatch(const v1::StepBatchRequest& request,
                  v1::StepBatchResponse* out,
                  std::function<void(absl::Status)> done,
                  absl::string_view owner = kAnonymousOwner,
-                 RecentBatches* recent = nullptr);
+                 SessionBatches* batches = nullptr);
 
  private:
   // StepBatch's `packed` form.
   void StepPacked(const v1::PackedSteps& request, v1::PackedStepData* out,
                   std::function<void(absl::Status)> done,
-                  absl::string_view owner, RecentBatches* recent);
+                  absl::string_view owner, SessionBatches* batches);
 
   Registry* registry_;
   WorkerPool* pool_;

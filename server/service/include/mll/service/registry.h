@@ -53,7 +53,7 @@ struct EnvSlot {
   // Steady-clock nanoseconds of the last lookup; read by the reaper.
   std::atomic<int64_t> last_touched_ns{0};
   // Set when the registry lets go of the env (deleted or reclaimed): from
-  // then on no look-up finds it, kept ones included (RecentBatches).
+  // then on no look-up finds it, kept ones included (SessionBatches).
   std::atomic<bool> removed{false};
 
   absl::Mutex mu;
@@ -162,23 +162,39 @@ class Registry {
   std::thread reaper_;
 };
 
-// The env lists of one caller's recent StepBatches (a Session stream's: one
-// owner, one batch at a time), each with its envs' slots, so that a batch
-// naming the same envs in the same order as one of them (a vector env's every
-// step, or each of an async vector env's batches) needs neither the check for
-// repeated names nor the registry's lock again. A slot is kept weakly: a
-// deleted or reclaimed env is not kept alive, and is never found again.
-class RecentBatches {
+// The env lists of one Session's packed StepBatches (one owner, one batch at
+// a time), each with its envs' slots, so that stepping them again needs
+// neither the check for repeated names nor the registry's lock and look-ups:
+//  - declared batches (PackedSteps.handle): the client names the envs once
+//    and then sends only the handle and the actions;
+//  - recent batches, for clients that send names with every step: a batch
+//    naming the same envs in the same order as one of the last kMaxRecent
+//    (a vector env's every step, or each of an async vector env's batches)
+//    reuses its slots.
+// A slot is kept weakly: a deleted or reclaimed env is not kept alive, and is
+// never found again through a batch.
+class SessionBatches {
  public:
   struct Batch {
     std::vector<std::string> names;
     std::vector<std::weak_ptr<EnvSlot>> slots;
   };
 
-  // The kept batch whose names are `names`, in order, or null.
+  // PackedSteps.handle's range (0: none) and how many envs a session's
+  // declared batches hold together (the wire contract's figures).
+  static constexpr uint32_t kMaxHandle = 64;
+  static constexpr size_t kMaxDeclaredEnvs = 65536;
+
+  // Env `index` of `batch` as Registry::Find would return it to `owner`
+  // (touched), or null when the registry no longer holds it or it was not
+  // found then. Safe to call from several threads at once.
+  static std::shared_ptr<EnvSlot> Find(const Batch& batch, int index,
+                                       absl::string_view owner);
+
+  // The kept recent batch whose names are `names`, in order, or null.
   template <typename Names>
   const Batch* Match(const Names& names) const {
-    for (const Batch& batch : batches_) {
+    for (const Batch& batch : recent_) {
       if (batch.names.size() == static_cast<size_t>(names.size()) &&
           std::equal(batch.names.begin(), batch.names.end(), names.begin())) {
         return &batch;
@@ -187,30 +203,51 @@ class RecentBatches {
     return nullptr;
   }
 
-  // Env `index` of `batch` as Registry::Find would return it to `owner`
-  // (touched), or null when the registry no longer holds it or it was not
-  // found then. Safe to call from several threads at once.
-  static std::shared_ptr<EnvSlot> Find(const Batch& batch, int index,
-                                       absl::string_view owner);
-
-  // Keeps a batch whose names are distinct, with slots[e] the slot found for
-  // names[e] (empty if none was), in place of the least recently kept one
-  // beyond kMaxBatches.
+  // Keeps a recent batch whose names are distinct, with slots[e] the slot
+  // found for names[e] (empty if none was), in place of the least recently
+  // kept one beyond kMaxRecent.
   template <typename Names>
   void Keep(const Names& names, std::vector<std::weak_ptr<EnvSlot>> slots) {
-    if (static_cast<size_t>(names.size()) > kMaxEnvsPerBatch) return;
-    if (batches_.size() == kMaxBatches) batches_.pop_front();
-    batches_.push_back(
+    if (static_cast<size_t>(names.size()) > kMaxEnvsPerRecent) return;
+    if (recent_.size() == kMaxRecent) recent_.pop_front();
+    recent_.push_back(
         Batch{std::vector<std::string>(names.begin(), names.end()),
               std::move(slots)});
   }
 
+  // The batch declared as `handle` (1..kMaxHandle), or null.
+  const Batch* Declared(uint32_t handle) const {
+    return handle < declared_.size() && !declared_[handle].names.empty()
+               ? &declared_[handle]
+               : nullptr;
+  }
+  // OK when `handle` (1..kMaxHandle) may be declared as `num_envs` envs:
+  // RESOURCE_EXHAUSTED (naming `field`) when the declared batches would then
+  // hold more than kMaxDeclaredEnvs envs.
+  absl::Status CheckDeclare(uint32_t handle, size_t num_envs,
+                            absl::string_view field) const;
+  // Declares `handle` (checked by CheckDeclare) as `names` (distinct, at
+  // least one), slots[e] the slot found for names[e] (empty if none was).
+  template <typename Names>
+  void Declare(uint32_t handle, const Names& names,
+               std::vector<std::weak_ptr<EnvSlot>> slots) {
+    if (declared_.size() <= handle) declared_.resize(handle + 1);
+    Batch& batch = declared_[handle];
+    declared_envs_ -= batch.names.size();
+    batch.names.assign(names.begin(), names.end());
+    batch.slots = std::move(slots);
+    declared_envs_ += batch.names.size();
+  }
+
  private:
   // An async vector env alternates num_envs / batch_size lists.
-  static constexpr size_t kMaxBatches = 8;
+  static constexpr size_t kMaxRecent = 8;
   // Larger batches are rare, and their per-call costs are spread thin.
-  static constexpr size_t kMaxEnvsPerBatch = 4096;
-  std::deque<Batch> batches_;
+  static constexpr size_t kMaxEnvsPerRecent = 4096;
+  std::deque<Batch> recent_;
+  // Indexed by handle; a batch without names is not declared.
+  std::vector<Batch> declared_;
+  size_t declared_envs_ = 0;
 };
 
 }  // namespace mll::service

@@ -10,10 +10,11 @@
 
 namespace mll::service {
 
-// The wire protocol this server speaks: mll.v1, minor 1. The minor goes up
-// with every field, RPC or capability added within v1 (1: GetServerInfo).
+// The wire protocol this server speaks: mll.v1, minor 2. The minor goes up
+// with every field, RPC or capability added within v1 (1: GetServerInfo; 2:
+// PackedSteps.handle).
 inline constexpr int kProtocolMajor = 1;
-inline constexpr int kProtocolMinor = 1;
+inline constexpr int kProtocolMinor = 2;
 
 // Capability names (ServerInfo.capabilities); never reused for another
 // meaning.
@@ -23,6 +24,8 @@ inline constexpr absl::string_view kCapabilityAutoReset = "auto_reset";
 inline constexpr absl::string_view kCapabilityKeepAlive = "keep_alive";
 inline constexpr absl::string_view kCapabilitySharedMemorySessions =
     "shared_memory_sessions";
+inline constexpr absl::string_view kCapabilityPackedBatchHandles =
+    "packed_batch_handles";
 
 // The project's version (CMake's PROJECT_VERSION), e.g. "0.1.0".
 absl::string_view ServerVersion();
