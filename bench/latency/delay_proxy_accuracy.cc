@@ -14,11 +14,14 @@
 //
 // --check (the ctest bench.delay_proxy_accuracy) makes it a correctness test
 // bounded in time rather than a measurement: every RTT through a delay d is at
-// least 2d, the median adds between 2d and 2d + --max_error_us to the direct
+// least 2d, the fastest adds at most 2d + --max_error_us to the fastest direct
 // one, a bulk transfer through a proxy with a small buffer comes back intact
 // and in order with its EOF, and a non-loopback --target is refused. Exits 1
-// on a failure. The medians are measured once more if the first try misses
-// their bounds (a burst of load on the machine).
+// on a failure. The check reads the fastest round trips, not the medians: a
+// loaded or slower machine delays many round trips (the medians and p99 the
+// measurement reports), but still lets a few through on time, and a proxy that
+// adds too much delays every one. The pings are measured once more if the
+// first try misses the bounds.
 #include <arpa/inet.h>
 #include <fcntl.h>
 #include <netinet/in.h>
@@ -68,8 +71,8 @@ ABSL_FLAG(bool, realtime, false, "start the proxies with --realtime");
 ABSL_FLAG(bool, check, false,
           "a bounded correctness test (ctest) instead of a measurement");
 ABSL_FLAG(int32_t, max_error_us, 300,
-          "--check: the most the median RTT may exceed the direct one by, "
-          "beyond twice the delay");
+          "--check: the most the fastest RTT through a delay may exceed the "
+          "fastest direct one by, beyond twice the delay");
 ABSL_FLAG(int32_t, bulk_mib, 16,
           "--check: MiB sent through a proxy with a 1 MiB buffer and checked");
 ABSL_FLAG(double, time_limit_s, 300, "the run fails after this long");
@@ -422,26 +425,25 @@ int Main() {
   std::vector<char> in(bytes);
   constexpr int kRound = 50;
   const int max_error = absl::GetFlag(FLAGS_max_error_us);
-  // --check: whether each delay's median RTT adds 2d to 2d + max_error to the
-  // direct one's.
-  auto medians_in_bounds = [&paths, max_error] {
-    const double direct = Percentile(paths[0].rtt_us, 0.5);
+  // --check: whether each delay's fastest RTT adds no more than
+  // 2d + max_error to the fastest direct one.
+  auto fastest_in_bounds = [&paths, max_error] {
+    const double direct = Percentile(paths[0].rtt_us, 0);
     for (const Path& path : paths) {
       if (path.delay_us <= 0) continue;
-      const double added = Percentile(path.rtt_us, 0.5) - direct;
-      if (added < 2.0 * path.delay_us ||
-          added > 2.0 * path.delay_us + max_error) {
+      if (Percentile(path.rtt_us, 0) - direct >
+          2.0 * path.delay_us + max_error) {
         return false;
       }
     }
     return true;
   };
   bool timed_out = false;
-  // --check measures again once if a burst of machine load moved a median.
+  // --check measures again once if load delayed every round trip of a path.
   for (int attempt = 0; attempt < (check ? 2 : 1) && !timed_out; ++attempt) {
     if (attempt > 0) {
-      if (medians_in_bounds()) break;
-      std::printf("a median is out of bounds; measuring once more\n");
+      if (fastest_in_bounds()) break;
+      std::printf("a fastest RTT is out of bounds; measuring once more\n");
       for (Path& path : paths) path.rtt_us.clear();
     }
     for (int done = -20; done < pings && !timed_out; done += kRound) {
@@ -538,12 +540,12 @@ int Main() {
             "%s: a round trip took %.1f us, less than twice the delay",
             path.name, minimum));
       }
-      const double added = median - direct;
-      if (added < asked || added > asked + max_error) {
+      const double added = minimum - Percentile(paths[0].rtt_us, 0);
+      if (added > asked + max_error) {
         Fail(absl::StrFormat(
-            "%s: the median RTT adds %.1f us to the direct one, outside "
-            "[%.0f, %.0f]",
-            path.name, added, asked, asked + max_error));
+            "%s: the fastest RTT adds %.1f us to the fastest direct one, more "
+            "than %.0f",
+            path.name, added, asked + max_error));
       }
     }
   }
