@@ -1,5 +1,6 @@
-"""The two ways users install the package, each into a fresh venv from a fresh clone of this
-repository's committed HEAD (so run it on committed work):
+"""The two ways users install the package from source, each into a fresh venv from a fresh clone
+of this repository's committed HEAD (so run it on committed work); the binary wheel, the third,
+is installed and run on a clean Debian by scripts/wheel-test.sh:
 
 - `pip install .` at the top builds the C++ server and CLI and installs them with the client:
   `mll_server` and `mll_cli` land in the venv's bin/, the native stream library beside the
