@@ -21,12 +21,20 @@ beside ("free-running core").
 `mll_cli bench` is the load generator, so an operator can take the same figure against a
 deployment: scrape process_cpu_seconds_total and mll_agent_steps_total while it runs.
 
+--clients_kind python: the load is C Python processes instead, each a
+`multi_lunar_lander.vector_env(E, address=..., transport=--transport, n_landers=L)` stepping
+random discrete actions with auto-reset (what a trainer runs). They are started, create and
+reset their envs, and only then are all told to go at once, so the window sees C clients
+stepping. The server's fixed CPU per call is reported beside: from the server's and the floor's
+CPU per agent-step, (server - floor) x E x L, the CPU a call costs beyond its physics.
+
 --pin (for a host with more than T cores): the server and the floor on cores 0..T-1, the
 clients on the others.
 
 Loopback only; every run is bounded by --seconds. Prints a Markdown table and one JSON line.
 
     .venv/bin/python bench/service/bench_server_cpu.py --seconds 8
+    .venv/bin/python bench/service/bench_server_cpu.py --clients_kind python --threads 2,8 --n_landers 1,3
 """
 
 from __future__ import annotations
@@ -90,12 +98,14 @@ class Server:
         return self.process.pid
 
     def scrape(self) -> dict:
-        """process_cpu_seconds_total, the agent-steps of every method, the context switches, and
+        """process_cpu_seconds_total, the agent-steps of every method, the calls (Session requests
+        included), the context switches, and
         /proc's CPU seconds read right after."""
         with urllib.request.urlopen(self.metrics_url, timeout=10) as response:
             text = response.read().decode()
         proc_cpu_s = process_cpu_s(self.pid)
-        sample = {"cpu_s": 0.0, "agent_steps": 0, "voluntary": 0, "involuntary": 0, "proc_cpu_s": proc_cpu_s}
+        sample = {"cpu_s": 0.0, "agent_steps": 0, "calls": 0, "voluntary": 0, "involuntary": 0,
+                  "proc_cpu_s": proc_cpu_s}
         for line in text.splitlines():
             if line.startswith("#"):
                 continue
@@ -104,6 +114,8 @@ class Server:
                 sample["cpu_s"] = float(value)
             elif series.startswith("mll_agent_steps_total{"):
                 sample["agent_steps"] += int(float(value))
+            elif series.startswith("mll_rpc_duration_seconds_count{"):  # Session requests count one each.
+                sample["calls"] += int(float(value))
             elif series.startswith("mll_process_context_switches_total{"):
                 sample["voluntary" if '"voluntary"' in series else "involuntary"] = int(float(value))
         return sample
@@ -120,23 +132,124 @@ class Server:
         self._dir.cleanup()
 
 
+def python_client(address: str, envs: int, n_landers: int, seconds: float, transport: str, seed: int) -> int:
+    """One Python load client (--python_client): creates and resets its vector env, prints "ready",
+    waits for a line on stdin, steps random discrete actions for `seconds` (auto-reset), prints
+    one JSON line and closes the env."""
+    import multi_lunar_lander as mll
+    import numpy as np
+
+    env = mll.vector_env(envs, address=address, transport=transport, n_landers=n_landers)
+    try:
+        env.reset(seed=seed)
+        random = np.random.default_rng(seed)
+        table = random.integers(0, 4, size=(64, envs, n_landers), dtype=np.int32)
+        print(json.dumps({"ready": True, "transport": env.transport}), flush=True)
+        sys.stdin.readline()
+        calls = 0
+        began = time.monotonic()
+        while time.monotonic() - began < seconds:
+            env.step(table[calls % len(table)])
+            calls += 1
+        elapsed = time.monotonic() - began
+        print(json.dumps({"calls": calls, "agent_steps": calls * envs * n_landers, "seconds": elapsed}), flush=True)
+    finally:
+        env.close()
+    return 0
+
+
+class PythonClients:
+    """`args.clients` Python load clients (python_client) against `address`, started together."""
+
+    def __init__(self, args, address: str, n_landers: int, cores: list[int] | None):
+        self.processes = []
+        command = _taskset(cores) + [
+            sys.executable, str(pathlib.Path(__file__).resolve()), "--python_client", address,
+            f"--envs={args.envs}", f"--seconds={args.seconds}", f"--transport={args.transport}"]
+        try:
+            for client in range(args.clients):
+                self.processes.append(subprocess.Popen(
+                    command + [f"--n_landers={n_landers}", f"--seed={1000 * client}"],
+                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+            for process in self.processes:  # Bounded: each client's own start-up is bounded by gRPC's.
+                line = process.stdout.readline()
+                if not line or not json.loads(line).get("ready"):
+                    raise RuntimeError(f"a Python client did not start: {process.stderr.read().strip()}")
+                self.transport = json.loads(line)["transport"]
+        except BaseException:
+            self.kill()
+            raise
+
+    def go(self) -> None:
+        for process in self.processes:
+            process.stdin.write("go\n")
+            process.stdin.flush()
+
+    def poll(self):
+        codes = [process.poll() for process in self.processes]
+        return None if None in codes else max(codes)
+
+    def results(self, timeout: float) -> dict:
+        outputs = []
+        for process in self.processes:
+            out, err = process.communicate(timeout=timeout)
+            if process.returncode != 0:
+                raise RuntimeError(f"a Python client failed ({process.returncode}): {err.strip()}")
+            outputs.append(json.loads(out.strip().splitlines()[-1]))
+        return {"agent_steps": sum(out["agent_steps"] for out in outputs),
+                "calls": sum(out["calls"] for out in outputs), "transport": self.transport}
+
+    def kill(self) -> None:
+        for process in self.processes:
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+
+
+class CliClients:
+    """`mll_cli bench --clients=C`: C clients in one process."""
+
+    def __init__(self, args, address: str, n_landers: int, cores: list[int] | None):
+        self.process = subprocess.Popen(
+            _taskset(cores) + [
+                args.cli, "bench", f"--address={address}", f"--envs={args.envs}", f"--n_landers={n_landers}",
+                f"--seconds={args.seconds}", f"--clients={args.clients}", f"--transport={args.transport}"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    def go(self) -> None:
+        pass
+
+    def poll(self):
+        return self.process.poll()
+
+    def results(self, timeout: float) -> dict:
+        out, err = self.process.communicate(timeout=timeout)
+        if self.process.returncode != 0:
+            raise RuntimeError(f"mll_cli bench failed ({self.process.returncode}): {err.strip()}")
+        return json.loads(out.strip().splitlines()[-1])
+
+    def kill(self) -> None:
+        if self.process.poll() is None:
+            self.process.kill()
+            self.process.wait()
+
+
 def measure_server(args, threads: int, n_landers: int, server_cores, client_cores) -> dict:
     server = Server(args.server, threads, server_cores)
     try:
         if server_cores:
             _pin(server.pid, server_cores)
-        command = _taskset(client_cores) + [
-            args.cli, "bench", f"--address={server.address}", f"--envs={args.envs}", f"--n_landers={n_landers}",
-            f"--seconds={args.seconds}", f"--clients={args.clients}", f"--transport={args.transport}"]
+        clients_type = PythonClients if args.clients_kind == "python" else CliClients
         client_before = children_cpu_s()
         run_before = process_cpu_s(server.pid)
-        cli = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        clients = clients_type(args, server.address, n_landers, client_cores)
         try:
+            clients.go()
             # The window opens once stepping has begun, plus a second; it closes a second before
             # the clients stop.
             opened = time.monotonic()
             deadline = opened + args.seconds + 60
-            while server.scrape()["agent_steps"] == 0 and time.monotonic() < deadline and cli.poll() is None:
+            while server.scrape()["agent_steps"] == 0 and time.monotonic() < deadline and clients.poll() is None:
                 time.sleep(0.05)
             stepping = time.monotonic()
             time.sleep(1.0)
@@ -145,14 +258,9 @@ def measure_server(args, threads: int, n_landers: int, server_cores, client_core
             time.sleep(max(1.0, args.seconds - (window_start - stepping) - 1.0))
             last = server.scrape()
             window_s = time.monotonic() - window_start
-            out, err = cli.communicate(timeout=args.seconds * 3 + 120)
+            result = clients.results(timeout=args.seconds * 3 + 120)
         finally:
-            if cli.poll() is None:
-                cli.kill()
-                cli.wait()
-        if cli.returncode != 0:
-            raise RuntimeError(f"mll_cli bench failed ({cli.returncode}): {err.strip()}")
-        result = json.loads(out.strip().splitlines()[-1])
+            clients.kill()
         agent_steps = last["agent_steps"] - first["agent_steps"]
         cpu_s = last["cpu_s"] - first["cpu_s"]
         proc_cpu_s = last["proc_cpu_s"] - first["proc_cpu_s"]
@@ -160,6 +268,7 @@ def measure_server(args, threads: int, n_landers: int, server_cores, client_core
             "agent_steps_per_s": agent_steps / window_s,
             "window_s": window_s,
             "window_agent_steps": agent_steps,
+            "window_calls": last["calls"] - first["calls"],
             "server_cpu_s": cpu_s,
             "server_proc_cpu_s": proc_cpu_s,
             "server_cpu_us_per_agent_step": cpu_s / agent_steps * 1e6,
@@ -168,7 +277,7 @@ def measure_server(args, threads: int, n_landers: int, server_cores, client_core
             "voluntary_switches_per_call": (last["voluntary"] - first["voluntary"])
             / max(1, agent_steps / (args.envs * n_landers)),
             "involuntary_switches_per_s": (last["involuntary"] - first["involuntary"]) / window_s,
-            # The whole run (warm-up, env creation, teardown included), from mll_cli's own count.
+            # The whole run (warm-up, env creation, teardown included), from the clients' own count.
             "run_agent_steps": result["agent_steps"],
             "run_server_cpu_us_per_agent_step": (process_cpu_s(server.pid) - run_before)
             / max(1, result["agent_steps"]) * 1e6,
@@ -197,7 +306,21 @@ def _ints(text: str) -> list[int]:
     return [int(item) for item in text.split(",") if item]
 
 
+def python_client_main() -> int:
+    parser = argparse.ArgumentParser(description="one Python load client of bench_server_cpu.py")
+    parser.add_argument("--python_client", required=True, metavar="ADDRESS")
+    parser.add_argument("--envs", type=int, required=True)
+    parser.add_argument("--n_landers", type=int, required=True)
+    parser.add_argument("--seconds", type=float, required=True)
+    parser.add_argument("--transport", required=True)
+    parser.add_argument("--seed", type=int, required=True)
+    args = parser.parse_args()
+    return python_client(args.python_client, args.envs, args.n_landers, args.seconds, args.transport, args.seed)
+
+
 def main() -> int:
+    if "--python_client" in sys.argv:
+        return python_client_main()
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--server", default=os.environ.get("MLL_SERVER_BIN", str(REPO / "build/server/service/mll_server")))
     parser.add_argument("--cli", default=str(REPO / "build/client_cpp/mll_cli"))
@@ -205,6 +328,8 @@ def main() -> int:
     parser.add_argument("--threads", type=_ints, default=[1, 2, 4, 8], help="server threads, comma-separated")
     parser.add_argument("--n_landers", type=_ints, default=[1, 3], help="landers per env, comma-separated")
     parser.add_argument("--clients", type=int, default=8, help="concurrent clients (mll_cli bench --clients)")
+    parser.add_argument("--clients_kind", default="cli", choices=["cli", "python"],
+                        help="the load: mll_cli bench, or Python vector_env processes")
     parser.add_argument("--envs", type=int, default=64, help="envs per client")
     parser.add_argument("--seconds", type=float, default=8.0, help="each run's length (server and floor), >= 4")
     parser.add_argument("--transport", default="native", choices=["native", "shared_memory"])
@@ -231,7 +356,12 @@ def main() -> int:
             core = measure_core(args, threads, n_landers, server_cores, lockstep=True)
             free_running = measure_core(args, threads, n_landers, server_cores, lockstep=False)
             server_us = server["server_cpu_us_per_agent_step"]
+            # What a call costs the server beyond its physics: its CPU over the window less the
+            # floor's CPU for the same agent-steps, per call.
+            fixed_us = (server["server_cpu_s"] * 1e6 - core["cpu_us_per_agent_step"] * server["window_agent_steps"]) / max(
+                1, server["window_calls"])
             rows.append({"threads": threads, "n_landers": n_landers, "server": server, "core": core,
+                         "fixed_us_per_call": fixed_us,
                          "free_running_core": free_running,
                          "ratio": server_us / core["cpu_us_per_agent_step"],
                          "ratio_free_running": server_us / free_running["cpu_us_per_agent_step"],
@@ -242,20 +372,23 @@ def main() -> int:
                       file=sys.stderr)
     load_after = os.getloadavg()
 
-    print(f"{args.clients} clients x {args.envs} envs (mll_cli bench, {args.transport}), {args.seconds:g} s runs, "
+    load = "mll_cli bench" if args.clients_kind == "cli" else "Python vector_env"
+    print(f"{args.clients} clients x {args.envs} envs ({load}, {args.transport}), {args.seconds:g} s runs, "
           f"{len(cores)} cores{' pinned' if args.pin else ''}; load average {load_before[0]:.2f} before, "
           f"{load_after[0]:.2f} after\n")
     print("| T | landers | agent-steps/s | vs core | server CPU us/agent-step | core CPU us/agent-step | ratio "
-          "| free-running core us/agent-step | ratio to it | context switches/call |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "| free-running core us/agent-step | ratio to it | server CPU per call beyond the floor, us "
+          "| context switches/call |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for row in rows:
         server, core = row["server"], row["core"]
         print(f"| {row['threads']} | {row['n_landers']} | {server['agent_steps_per_s']:,.0f} "
               f"| {row['throughput_vs_core']:.2f} | {server['server_cpu_us_per_agent_step']:.2f} "
               f"| {core['cpu_us_per_agent_step']:.2f} | {row['ratio']:.2f}x "
               f"| {row['free_running_core']['cpu_us_per_agent_step']:.2f} | {row['ratio_free_running']:.2f}x "
-              f"| {server['voluntary_switches_per_call']:.1f} |")
-    print(json.dumps({"benchmark": "server_cpu", "clients": args.clients, "envs": args.envs,
+              f"| {row['fixed_us_per_call']:.0f} | {server['voluntary_switches_per_call']:.1f} |")
+    print(json.dumps({"benchmark": "server_cpu", "clients": args.clients, "clients_kind": args.clients_kind,
+                      "envs": args.envs,
                       "transport": args.transport, "seconds": args.seconds, "pin": args.pin, "cores": len(cores),
                       "load_before": load_before, "load_after": load_after, "rows": rows}))
     if args.max_ratio and any(row["ratio"] > args.max_ratio for row in rows):
