@@ -11,6 +11,7 @@
 #include <string>
 #include <vector>
 
+#include "absl/strings/str_cat.h"
 #include "channel.h"
 #include "core_bridge.h"
 #include "gmock/gmock.h"
@@ -427,6 +428,91 @@ TEST_F(VectorEnvTest, AttachFliesExistingEnvsOfOneShape) {
       VectorEnv::Attach(*client, {a->name(), c->name()});
   EXPECT_EQ(mixed.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(std::string(mixed.status().message()), HasSubstr("names[1]"));
+}
+
+// The client's batch handles (session_stream.h): a list of envs goes out
+// with its names and a handle until a request declaring it is answered OK,
+// then as the handle alone with the actions; each list has its own handle;
+// past kMaxHandle lists the least recently used handle is declared anew (a
+// late answer to its old declaration counts for nothing); a new session
+// declares again; a list past kMaxDeclaredEnvs and any other request go out
+// as they are; the caller's request is left as it was.
+TEST(BatchHandlesTest, DeclaresEachListUntilAnsweredThenSendsTheHandle) {
+  internal::BatchHandles handles;
+  uint64_t sequence = 0;
+  const auto list = [](int first, int count) {
+    std::vector<std::string> names;
+    for (int k = first; k < first + count; ++k) {
+      names.push_back(absl::StrCat("envs/", k));
+    }
+    return names;
+  };
+  // Sends a packed batch of `names`; the PackedSteps that went out.
+  const auto send = [&](const std::vector<std::string>& names) {
+    v1::SessionRequest request;
+    request.set_sequence(++sequence);
+    v1::PackedSteps* packed = request.mutable_step_batch()->mutable_packed();
+    for (const std::string& name : names) packed->add_names(name);
+    packed->mutable_actions()->set_data("four");
+    const v1::SessionRequest before = request;
+    v1::SessionRequest sent;
+    EXPECT_TRUE(sent.ParseFromString(handles.Serialize(request)));
+    EXPECT_EQ(request.SerializeAsString(), before.SerializeAsString());
+    EXPECT_EQ(sent.step_batch().packed().actions().data(), "four");
+    return sent.step_batch().packed();
+  };
+  const std::vector<std::string> a = list(0, 3), b = list(3, 2);
+  v1::PackedSteps sent = send(a);
+  EXPECT_EQ(sent.handle(), 1u);
+  EXPECT_EQ(sent.names_size(), 3);
+  const uint64_t declared = sequence;
+  EXPECT_EQ(send(a).names_size(), 3);  // Not answered yet: declared again.
+  handles.Answered(sequence, /*ok=*/false);
+  EXPECT_EQ(send(a).names_size(), 3);
+  handles.Answered(declared, /*ok=*/true);
+  sent = send(a);
+  EXPECT_EQ(sent.handle(), 1u);
+  EXPECT_EQ(sent.names_size(), 0);
+  sent = send(b);
+  EXPECT_EQ(sent.handle(), 2u);
+  EXPECT_EQ(sent.names_size(), 2);
+
+  handles.Clear();  // A new session.
+  sent = send(a);
+  EXPECT_EQ(sent.handle(), 1u);
+  EXPECT_EQ(sent.names_size(), 3);
+  handles.Answered(sequence, true);
+  // Lists 1..63 more take handles 2..64; list a stays the oldest used.
+  for (int k = 1; k < static_cast<int>(internal::BatchHandles::kMaxHandle);
+       ++k) {
+    sent = send(list(100 * k, 1));
+    EXPECT_EQ(sent.handle(), static_cast<uint32_t>(k + 1));
+    handles.Answered(sequence, true);
+  }
+  EXPECT_EQ(send(list(100, 1)).names_size(), 0);
+  sent = send(b);  // Takes a's handle, the least recently used.
+  EXPECT_EQ(sent.handle(), 1u);
+  EXPECT_EQ(sent.names_size(), 2);
+  const uint64_t b_declared = sequence;
+  for (int k = 1; k < static_cast<int>(internal::BatchHandles::kMaxHandle);
+       ++k) {
+    EXPECT_EQ(send(list(100 * k, 1)).names_size(), 0);
+  }
+  const std::vector<std::string> c = list(7000, 4);
+  sent = send(c);  // Takes b's handle before b's declaration is answered.
+  EXPECT_EQ(sent.handle(), 1u);
+  EXPECT_EQ(sent.names_size(), 4);
+  handles.Answered(b_declared, true);  // Counts for b's list only.
+  EXPECT_EQ(send(c).names_size(), 4);
+
+  const v1::PackedSteps huge =
+      send(list(0, internal::BatchHandles::kMaxDeclaredEnvs + 1));
+  EXPECT_EQ(huge.handle(), 0u);
+  EXPECT_EQ(huge.names_size(),
+            static_cast<int>(internal::BatchHandles::kMaxDeclaredEnvs) + 1);
+  v1::SessionRequest reset;
+  reset.mutable_reset_env()->set_name("envs/1");
+  EXPECT_EQ(handles.Serialize(reset), reset.SerializeAsString());
 }
 
 }  // namespace
