@@ -229,22 +229,22 @@ def episode_over(tmp_path, address):
     return _raw(address, "StepEnv", request), address
 
 
-def action_range(tmp_path, address):
+def _step_message(address, actions):
+    """The message of a parallel env's step with `actions` right after its reset."""
     env = mll.parallel_env(address=address, n_landers=2)
     env.reset(seed=0)
     try:
-        return _message(env.step, {"lander_0": 7, "lander_1": 0}), address
+        return _message(env.step, actions), address
     finally:
         env.close()
+
+
+def action_range(tmp_path, address):
+    return _step_message(address, {"lander_0": 7, "lander_1": 0})
 
 
 def action_type(tmp_path, address):
-    env = mll.parallel_env(address=address, n_landers=2)
-    env.reset(seed=0)
-    try:
-        return _message(env.step, {"lander_0": 0.5, "lander_1": 0}), address
-    finally:
-        env.close()
+    return _step_message(address, {"lander_0": 0.5, "lander_1": 0})
 
 
 def reclaimed(tmp_path):
