@@ -45,6 +45,8 @@ def parse_args(argv=None):
     parser.add_argument("--lr", type=float, default=3e-4)
     parser.add_argument("--ray-address", default=None, help="an existing Ray cluster ('auto', 'ray://host:10001')")
     parser.add_argument("--num-cpus", type=int, default=None, help="CPUs of a local Ray (default: all)")
+    parser.add_argument("--sample-timeout-s", type=float, default=60.0,
+                        help="how long an iteration waits for its env runners' samples (RLlib's default 60)")
     parser.add_argument("--csv", default=None, help="write one row per iteration: agent steps, mean return")
     return parser.parse_args(argv)
 
@@ -85,7 +87,8 @@ def build(args):
     config = (
         PPOConfig()
         .environment(ENV_NAME, env_config=env_config)
-        .env_runners(num_env_runners=args.env_runners, num_envs_per_env_runner=args.envs_per_runner)
+        .env_runners(num_env_runners=args.env_runners, num_envs_per_env_runner=args.envs_per_runner,
+                     sample_timeout_s=args.sample_timeout_s)
         .multi_agent(policies={"shared"}, policy_mapping_fn=lambda agent_id, episode, **kwargs: "shared")
         .rl_module(rl_module_spec=MultiRLModuleSpec(rl_module_specs={"shared": RLModuleSpec()}))
         .training(

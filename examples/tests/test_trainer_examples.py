@@ -164,6 +164,11 @@ def _env_count(address):
     return len(listed_names(address))
 
 
+# The RLlib run's bound: about 2 min on 2 busy cores, over 5 min on one core shared with a CPU hog
+# (Ray's start-up alone took 3.5 min there). Its iterations wait as long for their samples.
+RLLIB_LIMIT_S = 900
+
+
 def test_rllib_ppo_spreads_env_runners_over_two_servers(tmp_path):
     """RLlib PPO, one shared policy, 2 env runners (Ray actors) on a local Ray, 2 iterations;
     runner k's env lives on server k mod 2, so both servers hold an env while it trains."""
@@ -173,11 +178,11 @@ def test_rllib_ppo_spreads_env_runners_over_two_servers(tmp_path):
         process = subprocess.Popen(
             [sys.executable, str(EXAMPLES / "rllib_ppo.py"), "--addresses", f"{first.address},{second.address}",
              "--env-runners", "2", "--iterations", "2", "--batch", "400", "--minibatch", "100", "--epochs", "1",
-             "--max-cycles", "100", "--num-cpus", "2", "--csv", str(curve)],
+             "--max-cycles", "100", "--num-cpus", "2", "--csv", str(curve), "--sample-timeout-s", str(RLLIB_LIMIT_S)],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         )
         most = [0, 0]
-        deadline = time.monotonic() + 300
+        deadline = time.monotonic() + RLLIB_LIMIT_S
         while process.poll() is None and time.monotonic() < deadline:
             most = [max(most[0], _env_count(first.address)), max(most[1], _env_count(second.address))]
             time.sleep(0.2)
