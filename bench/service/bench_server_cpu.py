@@ -52,7 +52,7 @@ import urllib.request
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "bench" / "python"))
-from process_cpu import children_cpu_s, process_cpu_s  # noqa: E402
+from process_cpu import children_cpu_s, process_cpu_s, threads_cpu_delta_s, threads_cpu_ns  # noqa: E402
 
 
 def _pin(pid: int, cores: list[int]) -> None:
@@ -159,9 +159,11 @@ def python_client(address: str, envs: int, n_landers: int, seconds: float, trans
 
 
 class PythonClients:
-    """`args.clients` Python load clients (python_client) against `address`, started together."""
+    """`args.clients` Python load clients (python_client) against `address`, started together;
+    `env` is their environment (default: this process's), e.g. a PYTHONPATH that picks another
+    checkout's multi_lunar_lander."""
 
-    def __init__(self, args, address: str, n_landers: int, cores: list[int] | None):
+    def __init__(self, args, address: str, n_landers: int, cores: list[int] | None, env: dict | None = None):
         self.processes = []
         command = _taskset(cores) + [
             sys.executable, str(pathlib.Path(__file__).resolve()), "--python_client", address,
@@ -170,7 +172,7 @@ class PythonClients:
             for client in range(args.clients):
                 self.processes.append(subprocess.Popen(
                     command + [f"--n_landers={n_landers}", f"--seed={1000 * client}"],
-                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env))
             for process in self.processes:  # Bounded: each client's own start-up is bounded by gRPC's.
                 line = process.stdout.readline()
                 if not line or not json.loads(line).get("ready"):
@@ -179,6 +181,10 @@ class PythonClients:
         except BaseException:
             self.kill()
             raise
+
+    @property
+    def pids(self) -> list[int]:
+        return [process.pid for process in self.processes]
 
     def go(self) -> None:
         for process in self.processes:
@@ -216,6 +222,10 @@ class CliClients:
                 f"--seconds={args.seconds}", f"--clients={args.clients}", f"--transport={args.transport}"],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
+    @property
+    def pids(self) -> list[int]:
+        return [self.process.pid]
+
     def go(self) -> None:
         pass
 
@@ -234,56 +244,73 @@ class CliClients:
             self.process.wait()
 
 
+def measure_window(args, server: Server, n_landers: int, clients_factory) -> dict:
+    """Starts clients_factory() (PythonClients or CliClients against `server`, each stepping
+    args.envs envs x n_landers for args.seconds) and measures a steady-state window inside their
+    run: the server's CPU (from /metrics and from /proc), its agent-steps and calls, and the
+    clients' own CPU (each client process's threads, /proc/<pid>/task) over the same window."""
+    client_before = children_cpu_s()
+    run_before = process_cpu_s(server.pid)
+    clients = clients_factory()
+    try:
+        clients.go()
+        # The window opens once stepping has begun, plus a second; it closes a second before
+        # the clients stop.
+        opened = time.monotonic()
+        deadline = opened + args.seconds + 60
+        while server.scrape()["agent_steps"] == 0 and time.monotonic() < deadline and clients.poll() is None:
+            time.sleep(0.05)
+        stepping = time.monotonic()
+        time.sleep(1.0)
+        first, first_clients = server.scrape(), [threads_cpu_ns(pid) for pid in clients.pids]
+        first_clients_ticks = sum(process_cpu_s(pid) for pid in clients.pids)
+        window_start = time.monotonic()
+        time.sleep(max(1.0, args.seconds - (window_start - stepping) - 1.0))
+        last, last_clients = server.scrape(), [threads_cpu_ns(pid) for pid in clients.pids]
+        last_clients_ticks = sum(process_cpu_s(pid) for pid in clients.pids)
+        window_s = time.monotonic() - window_start
+        result = clients.results(timeout=args.seconds * 3 + 120)
+    finally:
+        clients.kill()
+    agent_steps = last["agent_steps"] - first["agent_steps"]
+    cpu_s = last["cpu_s"] - first["cpu_s"]
+    proc_cpu_s = last["proc_cpu_s"] - first["proc_cpu_s"]
+    calls = last["calls"] - first["calls"]
+    clients_cpu_s = sum(threads_cpu_delta_s(before, after) for before, after in zip(first_clients, last_clients))
+    return {
+        "agent_steps_per_s": agent_steps / window_s,
+        "window_s": window_s,
+        "window_agent_steps": agent_steps,
+        "window_calls": calls,
+        "server_cpu_s": cpu_s,
+        "server_proc_cpu_s": proc_cpu_s,
+        "server_cpu_us_per_agent_step": cpu_s / agent_steps * 1e6,
+        "server_proc_cpu_us_per_agent_step": proc_cpu_s / agent_steps * 1e6,
+        # The server's threads blocking (each a later wake-up) per 64-env call (--envs per call).
+        "voluntary_switches_per_call": (last["voluntary"] - first["voluntary"])
+        / max(1, agent_steps / (args.envs * n_landers)),
+        "involuntary_switches_per_s": (last["involuntary"] - first["involuntary"]) / window_s,
+        # The clients' processes over the window, per call the server answered in it.
+        "client_window_cpu_s": clients_cpu_s,
+        "client_cpu_us_per_call": clients_cpu_s / max(1, calls) * 1e6,
+        # The same from /proc/<pid>/stat (10 ms steps; counts threads that ended in the window).
+        "client_window_proc_cpu_s": last_clients_ticks - first_clients_ticks,
+        # The whole run (warm-up, env creation, teardown included), from the clients' own count.
+        "run_agent_steps": result["agent_steps"],
+        "run_server_cpu_us_per_agent_step": (process_cpu_s(server.pid) - run_before)
+        / max(1, result["agent_steps"]) * 1e6,
+        "client_cpu_s": children_cpu_s() - client_before,
+        "cli": result,
+    }
+
+
 def measure_server(args, threads: int, n_landers: int, server_cores, client_cores) -> dict:
     server = Server(args.server, threads, server_cores)
     try:
         if server_cores:
             _pin(server.pid, server_cores)
         clients_type = PythonClients if args.clients_kind == "python" else CliClients
-        client_before = children_cpu_s()
-        run_before = process_cpu_s(server.pid)
-        clients = clients_type(args, server.address, n_landers, client_cores)
-        try:
-            clients.go()
-            # The window opens once stepping has begun, plus a second; it closes a second before
-            # the clients stop.
-            opened = time.monotonic()
-            deadline = opened + args.seconds + 60
-            while server.scrape()["agent_steps"] == 0 and time.monotonic() < deadline and clients.poll() is None:
-                time.sleep(0.05)
-            stepping = time.monotonic()
-            time.sleep(1.0)
-            first = server.scrape()
-            window_start = time.monotonic()
-            time.sleep(max(1.0, args.seconds - (window_start - stepping) - 1.0))
-            last = server.scrape()
-            window_s = time.monotonic() - window_start
-            result = clients.results(timeout=args.seconds * 3 + 120)
-        finally:
-            clients.kill()
-        agent_steps = last["agent_steps"] - first["agent_steps"]
-        cpu_s = last["cpu_s"] - first["cpu_s"]
-        proc_cpu_s = last["proc_cpu_s"] - first["proc_cpu_s"]
-        return {
-            "agent_steps_per_s": agent_steps / window_s,
-            "window_s": window_s,
-            "window_agent_steps": agent_steps,
-            "window_calls": last["calls"] - first["calls"],
-            "server_cpu_s": cpu_s,
-            "server_proc_cpu_s": proc_cpu_s,
-            "server_cpu_us_per_agent_step": cpu_s / agent_steps * 1e6,
-            "server_proc_cpu_us_per_agent_step": proc_cpu_s / agent_steps * 1e6,
-            # The server's threads blocking (each a later wake-up) per 64-env call (--envs per call).
-            "voluntary_switches_per_call": (last["voluntary"] - first["voluntary"])
-            / max(1, agent_steps / (args.envs * n_landers)),
-            "involuntary_switches_per_s": (last["involuntary"] - first["involuntary"]) / window_s,
-            # The whole run (warm-up, env creation, teardown included), from the clients' own count.
-            "run_agent_steps": result["agent_steps"],
-            "run_server_cpu_us_per_agent_step": (process_cpu_s(server.pid) - run_before)
-            / max(1, result["agent_steps"]) * 1e6,
-            "client_cpu_s": children_cpu_s() - client_before,
-            "cli": result,
-        }
+        return measure_window(args, server, n_landers, lambda: clients_type(args, server.address, n_landers, client_cores))
     finally:
         server.close()
 
