@@ -115,7 +115,8 @@ def client_lines(root: pathlib.Path) -> dict[str, int]:
 
 
 def measure(server: Server, engine: Engine, kind: str, transport: str, args) -> dict:
-    """One measurement: a Python (kind "python") or C++ ("cpp") client of `engine` on `transport`."""
+    """One measurement: a Python (kind "python") or C++ ("cpp") client of `engine` on `transport`;
+    {"refused": why} when the engine's vector_env does not start on that transport."""
     options = argparse.Namespace(clients=1, envs=args.envs, seconds=args.seconds, transport=transport,
                                  cli=engine.cli)
     if kind == "python":
@@ -124,7 +125,14 @@ def measure(server: Server, engine: Engine, kind: str, transport: str, args) -> 
     else:
         def clients():
             return CliClients(options, server.address, 1, None)
-    window = measure_window(options, server, 1, clients)
+    try:
+        window = measure_window(options, server, 1, clients)
+    except RuntimeError as error:  # E.g. a package whose vector envs have no grpcio transport.
+        if kind != "python":
+            raise
+        why = str(error).strip().splitlines()[-1]
+        print(f"{engine.name} vector_env on {transport}: {why}", file=sys.stderr)
+        return {"refused": why}
     ticks, precise = window["client_window_proc_cpu_s"], window["client_window_cpu_s"]
     if abs(ticks - precise) > 0.03 + 0.05 * precise:
         print(f"warning: {engine.name} {kind} {transport}: client CPU {precise:.3f} s (threads) against "
@@ -189,6 +197,11 @@ def main() -> int:
     for transport in transports:
         for engine in engines:
             python, cpp = results[engine.name]["python"][transport], results[engine.name]["cpp"][transport]
+            if any("refused" in one for one in python):
+                print(f"| {transport} | {engine.name} | not measured: {python[0].get('refused', 'refused')} "
+                      f"| {_summary([one['client_us_per_call'] for one in cpp])} ({CPP_TRANSPORT[transport]}) "
+                      "| | | |")
+                continue
             ratio = [p["client_us_per_call"] / c["client_us_per_call"] for p, c in zip(python, cpp)]
             ratios[f"{engine.name}/{transport}"] = ratio
 
