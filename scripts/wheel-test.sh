@@ -12,6 +12,9 @@
 #   4. offline, in a network namespace whose loopback also has 192.0.2.1 (a host that is not
 #      127.0.0.0/8): scripts/wheel_smoke.py from /, with no MLL_* variable (the embedded server,
 #      shared memory, a separate server at 192.0.2.1 over the native library, --version).
+# `scripts/wheel-test.sh --rootfs-only` makes (or finds) stage 2's cached root file system and
+# exits: scripts/test.sh runs it in the background while the tree builds, since debootstrap
+# spends its time downloading and unpacking, not computing.
 # Each stage is timed. Exit code 0 only if every check passed.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -24,6 +27,15 @@ took() { echo "wheel-test: $1: $((SECONDS - stage)) s"; stage=$SECONDS; }
 fail() { echo "wheel-test: FAIL: $*" >&2; exit 1; }
 
 [ "$(id -u)" -eq 0 ] || fail "run as root (debootstrap, chroot, namespaces)"
+source scripts/debian-rootfs.sh
+packages=(python3 python3-venv)
+tarball=$CACHE/bookworm-minbase+$(IFS=+; echo "${packages[*]}").tar
+if [ "${1:-}" = --rootfs-only ]; then
+  mkdir -p "$CACHE"
+  debian_rootfs_tarball "$tarball" "${packages[@]}"
+  took "root file system (debootstrap, or its cached tarball)"
+  exit 0
+fi
 wheels=(dist/multi_lunar_lander-*.whl)
 ((${#wheels[@]} == 1)) && [ -f "${wheels[0]}" ] || fail "want one wheel in dist/ (scripts/wheel.sh); found: ${wheels[*]}"
 wheel=${wheels[0]}
@@ -51,10 +63,7 @@ echo "$(grep -c . <<<"$contents") files; the stubs run on protobuf 4.25.1 and la
 took contents
 
 say "2. Debian 12 root file system"
-source scripts/debian-rootfs.sh
 mkdir -p "$CACHE/pip"
-packages=(python3 python3-venv)
-tarball=$CACHE/bookworm-minbase+$(IFS=+; echo "${packages[*]}").tar
 debian_rootfs_tarball "$tarball" "${packages[@]}"
 took "root file system (debootstrap, or its cached tarball)"
 root=$(mktemp -d /var/tmp/mll-wheel-test.XXXXXX)
