@@ -8,22 +8,15 @@
 #include "absl/strings/str_cat.h"
 #include "absl/time/time.h"
 #include "channel.h"
-#include "grpc/grpc.h"
 #include "mll/client.h"
+#include "native_options.h"
 #include "session_stream.h"
 
 namespace {
 
 using ::mll::client::ClientOptions;
-using ::mll::client::SessionTransport;
+using ::mll::client::internal::CodeOf;
 using ::mll::client::internal::SessionStream;
-
-// The largest message either way, as the Python client's own channels.
-constexpr int kMaxMessageBytes = 64 << 20;
-
-int CodeOf(const absl::Status& status) {
-  return static_cast<int>(status.code());
-}
 
 }  // namespace
 
@@ -38,27 +31,12 @@ mll_native_stream* mll_native_stream_new(const char* address,
                                          size_t root_cert_size,
                                          const char* server_name,
                                          const char* token, int transport) {
-  // gRPC stays initialised for the life of the process: without a reference
-  // of its own, freeing the last handle would shut gRPC down (joining its
-  // threads, a few hundred milliseconds) and the next would start it again.
-  static const bool initialised = (grpc_init(), true);
-  (void)initialised;
-  ClientOptions options;
-  options.use_tls = root_cert_pem != nullptr;
-  if (options.use_tls) {
-    options.tls_root_certificates.assign(root_cert_pem, root_cert_size);
-  }
-  if (server_name != nullptr) options.tls_target_name_override = server_name;
-  if (token != nullptr) options.token = token;
-  options.max_receive_message_bytes = kMaxMessageBytes;
-  SessionTransport mode = SessionTransport::kNative;
-  if (transport == MLL_NATIVE_TRANSPORT_AUTO) mode = SessionTransport::kAuto;
-  if (transport == MLL_NATIVE_TRANSPORT_SHARED_MEMORY) {
-    mode = SessionTransport::kSharedMemory;
-  }
+  mll::client::internal::KeepGrpcInitialised();
+  const ClientOptions options = mll::client::internal::NativeClientOptions(
+      root_cert_pem, root_cert_size, server_name, token, transport);
   return new mll_native_stream{std::make_unique<SessionStream>(
       mll::client::internal::OpenChannel(address, options), options.token,
-      absl::StrCat("server ", address), mode)};
+      absl::StrCat("server ", address), options.session_transport)};
 }
 
 int mll_native_stream_open(mll_native_stream* stream) {

@@ -12,6 +12,7 @@
 #include <utility>
 
 #include "absl/strings/str_cat.h"
+#include "absl/time/clock.h"
 #include "channel.h"
 #include "grpc/grpc.h"
 #include "mll/shared_memory_pipe.h"
@@ -438,6 +439,15 @@ absl::StatusOr<uint64_t> SessionStream::Send(v1::SessionRequest& request) {
 
 absl::Status SessionStream::Receive(uint64_t sequence,
                                     v1::SessionResponse* response) {
+  std::optional<absl::Status> status;
+  while (!(status = Receive(sequence, response, absl::InfiniteDuration()))) {
+  }
+  return *status;
+}
+
+std::optional<absl::Status> SessionStream::Receive(
+    uint64_t sequence, v1::SessionResponse* response, absl::Duration timeout) {
+  const absl::Time deadline = absl::Now() + timeout;
   if (auto early = early_answers_.find(sequence);
       early != early_answers_.end()) {
     *response = std::move(early->second);
@@ -445,9 +455,9 @@ absl::Status SessionStream::Receive(uint64_t sequence,
   } else {
     while (true) {
       absl::string_view bytes;
-      std::optional<absl::Status> status;
-      while (!(status = ReceiveBytes(&bytes, absl::InfiniteDuration()))) {
-      }
+      const std::optional<absl::Status> status = ReceiveBytes(
+          &bytes, std::max(deadline - absl::Now(), absl::ZeroDuration()));
+      if (!status.has_value()) return std::nullopt;
       if (!status->ok()) return *status;
       v1::SessionResponse answer;
       if (!answer.ParseFromArray(bytes.data(),

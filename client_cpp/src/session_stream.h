@@ -146,6 +146,12 @@ class SessionStream {
   // (BatchHandles), opening the stream first.
   absl::StatusOr<uint64_t> Send(v1::SessionRequest& request);
   absl::Status Receive(uint64_t sequence, v1::SessionResponse* response);
+  // Receive waiting at most `timeout` (until then, not in total, across
+  // answers to other requests): nothing when it ran out, and the answer is
+  // still due (call again: nothing is lost or repeated).
+  std::optional<absl::Status> Receive(uint64_t sequence,
+                                      v1::SessionResponse* response,
+                                      absl::Duration timeout);
   // Whether the typed Send uses batch handles (the server must have
   // "packed_batch_handles").
   void EnableBatchHandles(bool enabled) { batch_handles_enabled_ = enabled; }

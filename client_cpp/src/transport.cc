@@ -369,6 +369,12 @@ absl::Status StreamTransport::Receive(uint64_t sequence,
   return stream_.Receive(sequence, response);
 }
 
+std::optional<absl::Status> StreamTransport::Receive(
+    uint64_t sequence, v1::SessionResponse* response, absl::Duration timeout) {
+  absl::MutexLock lock(&mu_);
+  return stream_.Receive(sequence, response, timeout);
+}
+
 absl::Status StreamTransport::Call(v1::SessionRequest& request,
                                    v1::SessionResponse* response) {
   DecideBatchHandles(request);

@@ -128,6 +128,9 @@ class StreamTransport final : public Transport {
   // As SessionStream::Send and Receive, each under the transport's lock.
   absl::StatusOr<uint64_t> Send(v1::SessionRequest& request);
   absl::Status Receive(uint64_t sequence, v1::SessionResponse* response);
+  std::optional<absl::Status> Receive(uint64_t sequence,
+                                      v1::SessionResponse* response,
+                                      absl::Duration timeout);
   // "shared_memory" or "native" (opening the stream when none is open).
   std::string transport_name();
 

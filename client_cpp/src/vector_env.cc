@@ -1,11 +1,13 @@
 #include "mll/vector_env.h"
 
 #include <algorithm>
+#include <chrono>
 #include <cstdio>
 #include <cstring>
 #include <deque>
 #include <functional>
 #include <map>
+#include <optional>
 #include <set>
 #include <string>
 #include <type_traits>
@@ -20,7 +22,9 @@
 #include "channel.h"
 #include "env_record.h"
 #include "grpcpp/client_context.h"
+#include "result_columns.h"
 #include "transport.h"
+#include "vector_env_bridge.h"
 #include "wire.h"
 
 namespace mll::client {
@@ -36,6 +40,30 @@ constexpr int kMaxVectorEnvs = 65536;
 constexpr size_t kReplayWindow = 64;
 // How long failover waits for a server found down to answer its probe.
 constexpr absl::Duration kProbeDeadline = absl::Seconds(2);
+
+// Whether `error` says the server is lost: unreachable (UNAVAILABLE, a
+// draining server's "draining: ..." included), or stalled (it missed its
+// deadline, ClientOptions::step_timeout: DEADLINE_EXCEEDED, after which its
+// Session stream is cancelled).
+bool ServerLost(const absl::Status& error) {
+  return absl::IsUnavailable(error) || absl::IsDeadlineExceeded(error);
+}
+
+// When a wait that may return early (StepWait, Recv with a timeout) gives
+// up; kNoDeadline never comes.
+using Deadline = std::chrono::steady_clock::time_point;
+constexpr Deadline kNoDeadline = Deadline::max();
+
+Deadline DeadlineAfter(std::chrono::milliseconds timeout) {
+  return std::chrono::steady_clock::now() + timeout;
+}
+
+// The time left until `deadline` (none left: zero).
+absl::Duration Remaining(Deadline deadline) {
+  if (deadline == kNoDeadline) return absl::InfiniteDuration();
+  return std::max(absl::FromChrono(deadline - std::chrono::steady_clock::now()),
+                  absl::ZeroDuration());
+}
 
 // Every request of `requests` sent on `transport` before any answer is
 // awaited (pipelined), then the answers in order; the first failure, with the
@@ -80,32 +108,24 @@ struct Shard {
 // env order.
 using EnvErrors = std::map<int, absl::Status>;
 
-// Result columns of some envs (rows), env-major.
+// Result columns of some envs (rows), env-major: one member per column of
+// MLL_RESULT_COLUMNS.
 struct Columns {
-  std::vector<float> observations;
-  std::vector<float> rewards;
-  std::vector<uint8_t> terminations;
-  std::vector<uint8_t> truncations;
-  std::vector<uint8_t> active;
-  std::vector<uint8_t> outcomes;
-  std::vector<float> episode_returns;
-  std::vector<int32_t> episode_lengths;
-  std::vector<uint8_t> auto_reset;
-  std::vector<uint8_t> episode_over;
+#define MLL_COLUMN_MEMBER(name, type, per_agent, width) std::vector<type> name;
+  MLL_RESULT_COLUMNS(MLL_COLUMN_MEMBER)
+#undef MLL_COLUMN_MEMBER
+
+  // Elements per row of a column, with n landers.
+  static size_t RowSize(bool per_agent, int width, int n) {
+    return static_cast<size_t>(per_agent ? n : 1) * width;
+  }
 
   // `rows` rows of n landers, zero.
   void Resize(size_t rows, int n) {
-    const size_t agents = rows * static_cast<size_t>(n);
-    observations.assign(agents * kRemoteObservationSize, 0.0f);
-    rewards.assign(agents, 0.0f);
-    terminations.assign(agents, 0);
-    truncations.assign(agents, 0);
-    active.assign(agents, 0);
-    outcomes.assign(agents, 0);
-    episode_returns.assign(agents, 0.0f);
-    episode_lengths.assign(agents, 0);
-    auto_reset.assign(rows, 0);
-    episode_over.assign(rows, 0);
+#define MLL_COLUMN_RESIZE(name, type, per_agent, width) \
+  name.assign(rows* RowSize(per_agent, width, n), type{0});
+    MLL_RESULT_COLUMNS(MLL_COLUMN_RESIZE)
+#undef MLL_COLUMN_RESIZE
   }
 
   // Marks the rows that carry a transition: stepped (already in `active`)
@@ -118,20 +138,14 @@ struct Columns {
 
   // Row `from` of `source` into row `to`.
   void CopyRow(const Columns& source, size_t from, size_t to, int n) {
-    const auto copy = [&](const auto& in, auto& out, size_t width) {
-      std::copy(in.begin() + from * width, in.begin() + (from + 1) * width,
-                out.begin() + to * width);
-    };
-    copy(source.observations, observations, n * kRemoteObservationSize);
-    copy(source.rewards, rewards, n);
-    copy(source.terminations, terminations, n);
-    copy(source.truncations, truncations, n);
-    copy(source.active, active, n);
-    copy(source.outcomes, outcomes, n);
-    copy(source.episode_returns, episode_returns, n);
-    copy(source.episode_lengths, episode_lengths, n);
-    copy(source.auto_reset, auto_reset, 1);
-    copy(source.episode_over, episode_over, 1);
+#define MLL_COLUMN_COPY_ROW(name, type, per_agent, width) \
+  {                                                       \
+    const size_t size = RowSize(per_agent, width, n);     \
+    std::copy_n(source.name.begin() + from * size, size,  \
+                name.begin() + to * size);                \
+  }
+    MLL_RESULT_COLUMNS(MLL_COLUMN_COPY_ROW)
+#undef MLL_COLUMN_COPY_ROW
   }
 };
 
@@ -147,11 +161,15 @@ struct ReadyChunk {
 // server that kept it from going out, which the Recv that meets it fails
 // over), its envs and their action rows (row_bytes each, in `envs` order):
 // what their records take, and what failover sends again.
+// `answer` holds the status of the answer once a Recv with a timeout has
+// received it (the answer itself in `response`), until the Recv takes it.
 struct PendingRequest {
   int server = 0;
   absl::StatusOr<uint64_t> sequence;
   std::vector<int> envs;
   std::string actions;
+  std::optional<absl::Status> answer;
+  v1::SessionResponse response;
 };
 
 // Copies a packed column's rows (`width` elements each) into `out` at rows
@@ -425,9 +443,8 @@ struct VectorEnv::State {
   std::vector<float> last_observations;
 
   // The latest results (num_envs rows after Reset and Step, batch_size rows
-  // after Recv, whose envs are in `env_ids`).
+  // after Recv, whose envs are in `results.env_ids`).
   Columns results;
-  std::vector<int> env_ids;
 
   // The async API: batch_size, which envs have a step (or AsyncReset) whose
   // results Recv has not returned, the requests in flight in send order, and
@@ -438,6 +455,19 @@ struct VectorEnv::State {
   std::deque<PendingRequest> pending;
   std::deque<ReadyChunk> ready;
   size_t ready_rows = 0;
+
+  // StepAsync's step until StepWait has its answers: its actions (env-major),
+  // the sequence of each shard's request (or the failure that kept it from
+  // going out) and each answer's status once received.
+  bool step_in_flight = false;
+  std::string step_actions;
+  std::vector<absl::StatusOr<uint64_t>> step_sequences;
+  std::vector<std::optional<absl::Status>> step_answers;
+
+  // Where failover event lines go (SetEventLog); none: stderr.
+  std::function<void(const std::string&)> event_log;
+  // Create: env 0's mll.v1.Env as its server created it, serialized.
+  std::string spec;
 
   int num_envs() const { return static_cast<int>(names.size()); }
   int server_count() const { return session.server_count(); }
@@ -489,11 +519,10 @@ struct VectorEnv::State {
     return envs;
   }
 
-  // Whether env `env`'s `error` is one failover handles: its server is
-  // unreachable (a draining server's "draining:" UNAVAILABLE included), or
-  // it lost the env (NOT_FOUND naming it).
+  // Whether env `env`'s `error` is one failover handles: its server is lost
+  // (ServerLost), or it lost the env (NOT_FOUND naming it).
   bool Lost(const absl::Status& error, int env) const {
-    return failover && (absl::IsUnavailable(error) ||
+    return failover && (ServerLost(error) ||
                         (absl::IsNotFound(error) &&
                          absl::StrContains(error.message(), names[env])));
   }
@@ -531,23 +560,52 @@ struct VectorEnv::State {
     return DecodePacked(packed, rows, n_landers, out);
   }
 
-  // Sends every shard's request (all in flight at once) and decodes each
-  // answer into `out` at the shard's rows; the envs whose results came go
-  // to `stepped`, those failover handles to `lost`. Returns the first other
-  // failure in env order (a server's failure counts as its first env's).
-  absl::Status RunStepBatches(std::vector<Shard>& batches, Columns* out,
-                              EnvErrors* lost, std::vector<int>* stepped) {
+  // Sends every shard's request (all in flight at once): the sequence of
+  // each, or the failure that kept it from going out.
+  static std::vector<absl::StatusOr<uint64_t>> SendBatches(
+      std::vector<Shard>& batches) {
     std::vector<absl::StatusOr<uint64_t>> sequences;
     for (Shard& shard : batches) {
       sequences.push_back(shard.transport->Send(shard.request));
     }
+    return sequences;
+  }
+
+  // Waits until `deadline` for the answer to each shard's request that has
+  // none yet in `answers` (its status there, the answer in the shard's
+  // response); false when the deadline passed first (the answers still due
+  // stay due).
+  static bool AwaitBatches(
+      std::vector<Shard>& batches,
+      const std::vector<absl::StatusOr<uint64_t>>& sequences,
+      std::vector<std::optional<absl::Status>>* answers, Deadline deadline) {
+    answers->resize(batches.size());
+    for (size_t s = 0; s < batches.size(); ++s) {
+      std::optional<absl::Status>& answer = (*answers)[s];
+      if (answer.has_value()) continue;
+      if (!sequences[s].ok()) {
+        answer = sequences[s].status();
+        continue;
+      }
+      answer = batches[s].transport->Receive(
+          *sequences[s], &batches[s].response, Remaining(deadline));
+      if (!answer.has_value()) return false;
+    }
+    return true;
+  }
+
+  // Decodes each shard's answer (`answers`, as AwaitBatches left them) into
+  // `out` at the shard's rows; the envs whose results came go to `stepped`,
+  // those failover handles to `lost`. Returns the first other failure in env
+  // order (a server's failure counts as its first env's).
+  absl::Status CollectBatches(
+      std::vector<Shard>& batches,
+      const std::vector<std::optional<absl::Status>>& answers, Columns* out,
+      EnvErrors* lost, std::vector<int>* stepped) const {
     EnvErrors failed;
     for (size_t s = 0; s < batches.size(); ++s) {
       Shard& shard = batches[s];
-      absl::Status status = sequences[s].status();
-      if (status.ok()) {
-        status = shard.transport->Receive(*sequences[s], &shard.response);
-      }
+      absl::Status status = *answers[s];
       if (status.ok()) {
         status = CollectPacked(shard.response, shard.rows, shard.rows,
                                shard.transport->address(), out, lost, &failed);
@@ -566,6 +624,16 @@ struct VectorEnv::State {
     }
     std::sort(stepped->begin(), stepped->end());
     return failed.empty() ? absl::OkStatus() : failed.begin()->second;
+  }
+
+  // SendBatches, AwaitBatches with no deadline, then CollectBatches.
+  absl::Status RunStepBatches(std::vector<Shard>& batches, Columns* out,
+                              EnvErrors* lost, std::vector<int>* stepped) {
+    const std::vector<absl::StatusOr<uint64_t>> sequences =
+        SendBatches(batches);
+    std::vector<std::optional<absl::Status>> answers;
+    AwaitBatches(batches, sequences, &answers, kNoDeadline);
+    return CollectBatches(batches, answers, out, lost, stepped);
   }
 
   // Resets the envs `envs` (seeds[env] each; none: no reseed), their
@@ -750,7 +818,7 @@ struct VectorEnv::State {
     std::map<int, int> targets;  // Env -> the server it is replayed on.
     std::vector<int> homeless;   // Envs that need a server still.
     for (const auto& [env, error] : lost) {
-      if (absl::IsUnavailable(error)) down[placement[env]] = true;
+      if (ServerLost(error)) down[placement[env]] = true;
       if (!fresh) {
         if (absl::Status problem = RecordProblem(env); !problem.ok()) {
           return problem;
@@ -797,7 +865,7 @@ struct VectorEnv::State {
         absl::StatusOr<std::vector<EnvInfo>> created =
             Replay(TransportOf(target), jobs);
         if (!created.ok()) {
-          if (!absl::IsUnavailable(created.status())) {
+          if (!ServerLost(created.status())) {
             return fail(created.status());
           }
           refused.emplace(target, created.status());
@@ -816,15 +884,24 @@ struct VectorEnv::State {
     shards = ShardsOf(AllEnvs(), {});
     ++failovers;
     const absl::Status& first = lost.begin()->second;
-    std::fprintf(stderr,
-                 "mll_client: VectorEnv failover: %zu env(s) lost (%s: %s); "
-                 "recreated on %s and replayed (%zu steps) in %.3f s%s\n",
-                 lost.size(), absl::StatusCodeToString(first.code()).c_str(),
-                 std::string(first.message()).c_str(),
-                 absl::StrJoin(where, ", ").c_str(), replayed,
-                 absl::ToDoubleSeconds(absl::Now() - began),
-                 Refusals(refused).c_str());
+    char seconds[32];
+    std::snprintf(seconds, sizeof(seconds), "%.3f",
+                  absl::ToDoubleSeconds(absl::Now() - began));
+    LogEvent(absl::StrCat(
+        "VectorEnv failover: ", lost.size(), " env(s) lost (",
+        absl::StatusCodeToString(first.code()), ": ", first.message(),
+        "); recreated on ", absl::StrJoin(where, ", "), " and replayed (",
+        replayed, " steps) in ", seconds, " s", Refusals(refused)));
     return absl::OkStatus();
+  }
+
+  // One event line to the event log (SetEventLog), else to stderr.
+  void LogEvent(const std::string& line) const {
+    if (event_log) {
+      event_log(line);
+    } else {
+      std::fprintf(stderr, "mll_client: %s\n", line.c_str());
+    }
   }
 
   // "; passed over {address} ({code}: {message})" for each server whose
@@ -832,9 +909,9 @@ struct VectorEnv::State {
   std::string Refusals(const std::map<int, absl::Status>& refused) const {
     std::string out;
     for (const auto& [server, error] : refused) {
-      absl::StrAppend(&out, "; passed over ", session.address(server), " (",
-                      absl::StatusCodeToString(error.code()), ": ",
-                      error.message(), ")");
+      absl::StrAppend(
+          &out, "; passed over mll_server at ", session.address(server), " (",
+          absl::StatusCodeToString(error.code()), ": ", error.message(), ")");
     }
     return out;
   }
@@ -872,7 +949,7 @@ struct VectorEnv::State {
     for (Shard& shard : ShardsOf(envs, action_rows)) {
       absl::StatusOr<uint64_t> sequence = shard.transport->Send(shard.request);
       if (!sequence.ok()) {
-        if (!failover || !absl::IsUnavailable(sequence.status())) {
+        if (!failover || !ServerLost(sequence.status())) {
           return sequence.status();
         }
         SettleRequestsOf(shard.server, sequence.status());
@@ -887,6 +964,17 @@ struct VectorEnv::State {
                                         ->mutable_data())});
     }
     return absl::OkStatus();
+  }
+
+  // Waits until `deadline` for the answer to the oldest request in flight
+  // (kept in it for ReceiveOne); false when the deadline passed first.
+  bool AwaitOldest(Deadline deadline) {
+    PendingRequest& request = pending.front();
+    if (request.answer.has_value() || !request.sequence.ok()) return true;
+    request.answer =
+        TransportOf(request.server)
+            .Receive(*request.sequence, &request.response, Remaining(deadline));
+    return request.answer.has_value();
   }
 
   // The envs `envs` have no step in flight any more (their results are lost,
@@ -906,9 +994,12 @@ struct VectorEnv::State {
   void SettleRequestsOf(int server, const absl::Status& loss) {
     for (PendingRequest& request : pending) {
       if (request.server != server || !request.sequence.ok()) continue;
-      v1::SessionResponse unused;
-      (void)TransportOf(server).Receive(*request.sequence, &unused);
+      if (!request.answer.has_value()) {
+        v1::SessionResponse unused;
+        (void)TransportOf(server).Receive(*request.sequence, &unused);
+      }
       request.sequence = loss;
+      request.answer.reset();
     }
   }
 
@@ -973,6 +1064,7 @@ absl::StatusOr<VectorEnv> VectorEnv::Create(const Client& client, int num_envs,
   const size_t servers =
       std::min<size_t>(session->transports_.size(), num_envs);
   std::vector<EnvInfo> infos(num_envs);
+  std::string spec;
   absl::Status failure = absl::OkStatus();
   for (size_t server = 0; server < servers; ++server) {
     auto& transport =
@@ -987,6 +1079,7 @@ absl::StatusOr<VectorEnv> VectorEnv::Create(const Client& client, int num_envs,
     std::vector<v1::SessionResponse> responses;
     absl::Status status = CallPipelined(transport, requests, &responses);
     if (failure.ok()) failure = status;
+    if (server == 0) spec = responses[0].env().SerializeAsString();
     for (size_t k = 0; k < responses.size(); ++k) {
       infos[server + k * servers] = internal::DecodeEnv(responses[k].env());
       infos[server + k * servers].server = static_cast<int>(server);
@@ -999,6 +1092,7 @@ absl::StatusOr<VectorEnv> VectorEnv::Create(const Client& client, int num_envs,
       Assemble(*std::move(session), std::move(infos), batch_size);
   if (envs.ok()) {
     envs->state_->created = true;
+    envs->state_->spec = std::move(spec);
     envs->state_->failover = failover.value_or(several_servers);
   }
   return envs;
@@ -1089,6 +1183,10 @@ std::string VectorEnv::transport() {
   return "shared_memory";
 }
 
+void VectorEnv::SetEventLog(std::function<void(const std::string&)> log) {
+  state_->event_log = std::move(log);
+}
+
 bool VectorEnv::failover() const { return state_->failover; }
 int VectorEnv::failovers() const { return state_->failovers; }
 
@@ -1100,6 +1198,11 @@ absl::Status VectorEnv::Reset(std::optional<uint64_t> seed) {
 }
 
 absl::Status VectorEnv::CheckNothingInFlight() const {
+  if (state_->step_in_flight) {
+    return absl::FailedPreconditionError(
+        "a step sent by StepAsync (step_async) is in flight; StepWait "
+        "(step_wait) for its results first");
+  }
   if (state_->in_flight_count == 0) return absl::OkStatus();
   return absl::FailedPreconditionError(absl::StrCat(
       state_->in_flight_count,
@@ -1124,22 +1227,18 @@ absl::Status VectorEnv::Reset(absl::Span<const uint64_t> seeds) {
                          [&](const std::vector<int>& envs, EnvErrors* lost) {
                            return state.ResetEnvs(envs, seeds, &out, lost);
                          });
-  state.env_ids = state.AllEnvs();
+  state.results.env_ids = state.AllEnvs();
   return status;
 }
 
 absl::Status VectorEnv::Step(absl::Span<const int32_t> discrete_actions) {
-  return StepWith(
-      absl::string_view(reinterpret_cast<const char*>(discrete_actions.data()),
-                        discrete_actions.size() * sizeof(int32_t)),
-      discrete_actions.size(), /*continuous_actions=*/false);
+  absl::Status status = StepAsync(discrete_actions);
+  return status.ok() ? StepWait() : status;
 }
 
 absl::Status VectorEnv::Step(absl::Span<const float> continuous_actions) {
-  return StepWith(absl::string_view(
-                      reinterpret_cast<const char*>(continuous_actions.data()),
-                      continuous_actions.size() * sizeof(float)),
-                  continuous_actions.size(), /*continuous_actions=*/true);
+  absl::Status status = StepAsync(continuous_actions);
+  return status.ok() ? StepWait() : status;
 }
 
 absl::Status VectorEnv::CheckActions(size_t count, bool continuous_actions,
@@ -1163,8 +1262,23 @@ absl::Status VectorEnv::CheckActions(size_t count, bool continuous_actions,
   return absl::OkStatus();
 }
 
-absl::Status VectorEnv::StepWith(absl::string_view action_bytes, size_t count,
-                                 bool continuous_actions) {
+absl::Status VectorEnv::StepAsync(absl::Span<const int32_t> discrete_actions) {
+  return StepAsyncWith(
+      absl::string_view(reinterpret_cast<const char*>(discrete_actions.data()),
+                        discrete_actions.size() * sizeof(int32_t)),
+      discrete_actions.size(), /*continuous_actions=*/false);
+}
+
+absl::Status VectorEnv::StepAsync(absl::Span<const float> continuous_actions) {
+  return StepAsyncWith(
+      absl::string_view(
+          reinterpret_cast<const char*>(continuous_actions.data()),
+          continuous_actions.size() * sizeof(float)),
+      continuous_actions.size(), /*continuous_actions=*/true);
+}
+
+absl::Status VectorEnv::StepAsyncWith(absl::string_view action_bytes,
+                                      size_t count, bool continuous_actions) {
   State& state = *state_;
   if (absl::Status status = CheckNothingInFlight(); !status.ok()) return status;
   if (absl::Status status =
@@ -1184,44 +1298,77 @@ absl::Status VectorEnv::StepWith(absl::string_view action_bytes, size_t count,
                   action_bytes.data() + shard.rows[k] * env_bytes, env_bytes);
     }
   }
+  state.step_actions.assign(action_bytes.data(), action_bytes.size());
+  state.step_sequences = State::SendBatches(state.shards);
+  state.step_answers.assign(state.shards.size(), std::nullopt);
+  state.step_in_flight = true;
+  return absl::OkStatus();
+}
+
+absl::Status VectorEnv::StepWait() { return *StepWaitUntil(kNoDeadline); }
+
+std::optional<absl::Status> VectorEnv::StepWait(
+    std::chrono::milliseconds timeout) {
+  return StepWaitUntil(DeadlineAfter(timeout));
+}
+
+std::optional<absl::Status> VectorEnv::StepWaitUntil(
+    std::chrono::steady_clock::time_point deadline) {
+  State& state = *state_;
+  if (!state.step_in_flight) {
+    return absl::FailedPreconditionError(
+        "StepWait (step_wait) without a StepAsync (step_async) in flight");
+  }
+  if (!State::AwaitBatches(state.shards, state.step_sequences,
+                           &state.step_answers, deadline)) {
+    return std::nullopt;
+  }
+  state.step_in_flight = false;
+  const absl::string_view action_bytes = state.step_actions;
+  const size_t env_bytes = state.row_bytes();
   Columns& out = state.results;
   out.Resize(state.names.size(), state.n_landers);
-  // The first try steps every env with the shards' reused requests; a retry
-  // after a failover, the envs it moved, with this step's actions.
+  // The first try collects the answers to the shards' requests; a retry
+  // after a failover steps the envs it moved, with this step's actions.
   bool first_try = true;
   absl::Status status = state.WithFailover(
       state.AllEnvs(), /*fresh=*/false,
       [&](const std::vector<int>& envs, EnvErrors* lost) {
-        std::vector<Shard> retry;
-        if (!first_try) {
+        std::vector<int> stepped;
+        absl::Status result;
+        if (first_try) {
+          first_try = false;
+          result = state.CollectBatches(state.shards, state.step_answers, &out,
+                                        lost, &stepped);
+        } else {
           std::vector<absl::string_view> rows;
           for (int env : envs) {
             rows.push_back(action_bytes.substr(env * env_bytes, env_bytes));
           }
-          retry = state.ShardsOf(envs, rows);
+          std::vector<Shard> retry = state.ShardsOf(envs, rows);
+          result = state.RunStepBatches(retry, &out, lost, &stepped);
         }
-        std::vector<int> stepped;
-        absl::Status result = state.RunStepBatches(
-            first_try ? state.shards : retry, &out, lost, &stepped);
-        first_try = false;
         state.RecordSteps(stepped, action_bytes, out);
         return result;
       });
   out.MaskAutoResetRows(state.n_landers);
-  state.env_ids = state.AllEnvs();
+  out.env_ids = state.AllEnvs();
+  state.step_answers.clear();
+  state.step_sequences.clear();
   return status;
 }
 
 // ----------------------------------------------------- EnvPool's async API
 
 int VectorEnv::batch_size() const { return state_->batch_size; }
+int VectorEnv::in_flight() const { return state_->in_flight_count; }
 
 absl::Status VectorEnv::AsyncReset(std::optional<uint64_t> seed) {
   State& state = *state_;
   absl::Status status = Reset(seed);
   if (!status.ok()) return status;
   ReadyChunk chunk;
-  chunk.envs = state.env_ids;
+  chunk.envs = state.results.env_ids;
   chunk.columns = state.results;
   std::fill(chunk.columns.active.begin(), chunk.columns.active.end(), 0);
   state.ready_rows += chunk.envs.size();
@@ -1252,6 +1399,7 @@ absl::Status VectorEnv::SendWith(absl::string_view action_bytes, size_t count,
                                  bool continuous_actions,
                                  absl::Span<const int> env_ids) {
   State& state = *state_;
+  if (state.step_in_flight) return CheckNothingInFlight();
   if (env_ids.empty()) {
     return absl::InvalidArgumentError(
         "env_ids is empty; expected distinct env indices");
@@ -1295,7 +1443,13 @@ absl::Status VectorEnv::ReceiveOne() {
   StreamTransport& transport = state.TransportOf(request.server);
   v1::SessionResponse response;
   absl::Status status = request.sequence.status();
-  if (status.ok()) status = transport.Receive(*request.sequence, &response);
+  if (request.answer.has_value()) {
+    status = *std::move(request.answer);
+    request.answer.reset();
+    response = std::move(request.response);
+  } else if (status.ok()) {
+    status = transport.Receive(*request.sequence, &response);
+  }
   if (!status.ok()) {
     if (!state.Lost(status, request.envs[0])) {
       state.Release(request.envs);
@@ -1303,7 +1457,7 @@ absl::Status VectorEnv::ReceiveOne() {
     }
     EnvErrors lost;
     std::vector<PendingRequest> requests;
-    if (absl::IsUnavailable(status)) {
+    if (ServerLost(status)) {
       // The server is lost with every request in flight on it: all its envs
       // move, and those requests go again.
       for (int env = 0; env < state.num_envs(); ++env) {
@@ -1440,7 +1594,14 @@ absl::StatusOr<std::vector<float>> VectorEnv::RestoreEnv(
   return observations;
 }
 
-absl::Status VectorEnv::Recv() {
+absl::Status VectorEnv::Recv() { return *RecvUntil(kNoDeadline); }
+
+std::optional<absl::Status> VectorEnv::Recv(std::chrono::milliseconds timeout) {
+  return RecvUntil(DeadlineAfter(timeout));
+}
+
+std::optional<absl::Status> VectorEnv::RecvUntil(
+    std::chrono::steady_clock::time_point deadline) {
   State& state = *state_;
   if (state.in_flight_count < state.batch_size) {
     return absl::FailedPreconditionError(
@@ -1449,16 +1610,16 @@ absl::Status VectorEnv::Recv() {
                      " have one (Send or AsyncReset first)"));
   }
   while (state.ready_rows < static_cast<size_t>(state.batch_size)) {
+    if (!state.AwaitOldest(deadline)) return std::nullopt;
     if (absl::Status status = ReceiveOne(); !status.ok()) return status;
   }
   Columns& out = state.results;
   out.Resize(state.batch_size, state.n_landers);
-  state.env_ids.resize(state.batch_size);
   for (int row = 0; row < state.batch_size; ++row) {
     ReadyChunk& chunk = state.ready.front();
     out.CopyRow(chunk.columns, chunk.taken, row, state.n_landers);
     const int env = chunk.envs[chunk.taken];
-    state.env_ids[row] = env;
+    out.env_ids[row] = env;
     state.in_flight[env] = false;
     if (++chunk.taken == chunk.envs.size()) state.ready.pop_front();
   }
@@ -1467,7 +1628,9 @@ absl::Status VectorEnv::Recv() {
   return absl::OkStatus();
 }
 
-absl::Span<const int> VectorEnv::env_ids() const { return state_->env_ids; }
+absl::Span<const int> VectorEnv::env_ids() const {
+  return state_->results.env_ids;
+}
 
 absl::Span<const float> VectorEnv::observations() const {
   return state_->results.observations;
@@ -1528,3 +1691,28 @@ StepData VectorEnv::Result(int row) const {
 }
 
 }  // namespace mll::client
+
+namespace mll::client::internal {
+
+const std::string& VectorEnvBridge::Spec(const VectorEnv& envs) {
+  return envs.state_->spec;
+}
+
+int VectorEnvBridge::ServerCount(const VectorEnv& envs) {
+  return std::min(envs.state_->server_count(), envs.num_envs());
+}
+
+const std::string& VectorEnvBridge::ServerAddress(const VectorEnv& envs,
+                                                  int server) {
+  return envs.state_->session.address(server);
+}
+
+absl::StatusOr<std::string> VectorEnvBridge::ServerInfo(VectorEnv& envs,
+                                                        int server) {
+  absl::StatusOr<v1::ServerInfo> info =
+      envs.state_->TransportOf(server).ServerInfo();
+  if (!info.ok()) return info.status();
+  return info->SerializeAsString();
+}
+
+}  // namespace mll::client::internal

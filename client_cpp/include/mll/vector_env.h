@@ -34,7 +34,9 @@
 // Failover: the VectorEnv keeps each env's record (its options, the seed of
 // its last seeded reset, and every operation since: each step's actions,
 // auto-reset steps, unseeded resets). When a server becomes unreachable
-// (UNAVAILABLE, a draining server's "draining: ..." included) or loses an env
+// (UNAVAILABLE, a draining server's "draining: ..." included), stalls (it
+// misses its deadline, ClientOptions::step_timeout: DEADLINE_EXCEEDED; its
+// stream is cancelled, so nothing it answers late is taken) or loses an env
 // (NOT_FOUND naming it) during Reset, Step or Recv, the VectorEnv recreates
 // each lost env on a reachable server (round robin over the servers not found
 // down and those found down that answer again on a new channel, asked at each
@@ -49,9 +51,10 @@
 // replayed to the last results received, and the steps that were in flight
 // on it sent again on the envs' new servers, so Recv returns the same
 // per-env results as without the fault. Each event counts in failovers() and
-// is logged once on stderr with its cause. A record holds at most 100,000
-// operations since its seeded reset; past it failover and EnvSnapshot of that
-// env fail FAILED_PRECONDITION naming it, until its next seeded reset.
+// is logged once with its cause (on stderr, or where SetEventLog says). A
+// record holds at most 100,000 operations since its seeded reset; past it
+// failover and EnvSnapshot of that env fail FAILED_PRECONDITION naming it,
+// until its next seeded reset.
 //
 // Snapshots: EnvSnapshot(i) gives env i's record as bytes in the Python
 // client's format (multi_lunar_lander/_record.py: "MLLS", format version, the
@@ -62,7 +65,9 @@
 #ifndef MLL_VECTOR_ENV_H_
 #define MLL_VECTOR_ENV_H_
 
+#include <chrono>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <string>
@@ -75,6 +80,10 @@
 #include "mll/client.h"
 
 namespace mll::client {
+
+namespace internal {
+struct VectorEnvBridge;
+}  // namespace internal
 
 class VectorEnv {
  public:
@@ -124,6 +133,22 @@ class VectorEnv {
   absl::Status Step(absl::Span<const int32_t> discrete_actions);
   absl::Status Step(absl::Span<const float> continuous_actions);
 
+  // Step split in two (Step is StepAsync then StepWait): StepAsync checks
+  // the actions and sends the step (one packed StepBatch per server, all in
+  // flight at once) and returns; StepWait waits for the answers and makes
+  // them the results, the same bits as Step (the latest results stay as
+  // they were until then). Failover and the step's errors are StepWait's.
+  // One step in flight at a time: Reset, Step, StepAsync, AsyncReset, Send,
+  // EnvSnapshot and RestoreEnv fail FAILED_PRECONDITION while it is, as does
+  // StepWait without one.
+  absl::Status StepAsync(absl::Span<const int32_t> discrete_actions);
+  absl::Status StepAsync(absl::Span<const float> continuous_actions);
+  absl::Status StepWait();
+  // StepWait waiting at most `timeout`: nothing when it passed first (the
+  // step stays in flight; call again: nothing is lost or repeated), so a
+  // caller can wait in slices and handle its signals between them.
+  std::optional<absl::Status> StepWait(std::chrono::milliseconds timeout);
+
   // EnvPool's async API: AsyncReset resets every env (seeds as Reset) and
   // makes their first observations the results of the next Recv calls. Send
   // sends one step of the envs `env_ids` (distinct, 0..num_envs-1, none with
@@ -141,12 +166,18 @@ class VectorEnv {
   // ends the steps in flight of the envs it concerns (their results are
   // lost).
   int batch_size() const;
+  // Envs with a step (or AsyncReset) in flight whose results Recv has not
+  // returned.
+  int in_flight() const;
   absl::Status AsyncReset(std::optional<uint64_t> seed = std::nullopt);
   absl::Status Send(absl::Span<const int32_t> discrete_actions,
                     absl::Span<const int> env_ids);
   absl::Status Send(absl::Span<const float> continuous_actions,
                     absl::Span<const int> env_ids);
   absl::Status Recv();
+  // Recv waiting at most `timeout`, as StepWait(timeout): nothing when it
+  // passed first (the answers received meanwhile are kept for the next Recv).
+  std::optional<absl::Status> Recv(std::chrono::milliseconds timeout);
   // The env of each row of the latest results (0..num_envs-1 after Reset and
   // Step).
   absl::Span<const int> env_ids() const;
@@ -177,6 +208,10 @@ class VectorEnv {
   // Whether failover is on, and the failover events so far.
   bool failover() const;
   int failovers() const;
+  // Where each failover event's line goes (one line, no newline): by
+  // default stderr, prefixed "mll_client: "; to `log` instead once set (none
+  // to stderr then); an empty `log` restores stderr.
+  void SetEventLog(std::function<void(const std::string& line)> log);
 
   // Env `env`'s snapshot: bytes that recreate it at this point to the same
   // bits on any server of the same release (RestoreEnv here, restore_env or
@@ -196,6 +231,7 @@ class VectorEnv {
                                                 absl::string_view snapshot);
 
  private:
+  friend struct internal::VectorEnvBridge;
   struct State;
   explicit VectorEnv(std::unique_ptr<State> state);
   static absl::StatusOr<VectorEnv> Assemble(Client session,
@@ -204,8 +240,12 @@ class VectorEnv {
   absl::Status CheckNothingInFlight() const;
   absl::Status CheckActions(size_t count, bool continuous_actions,
                             size_t envs) const;
-  absl::Status StepWith(absl::string_view action_bytes, size_t count,
-                        bool continuous_actions);
+  absl::Status StepAsyncWith(absl::string_view action_bytes, size_t count,
+                             bool continuous_actions);
+  std::optional<absl::Status> StepWaitUntil(
+      std::chrono::steady_clock::time_point deadline);
+  std::optional<absl::Status> RecvUntil(
+      std::chrono::steady_clock::time_point deadline);
   absl::Status SendWith(absl::string_view action_bytes, size_t count,
                         bool continuous_actions, absl::Span<const int> env_ids);
   absl::Status ReceiveOne();
