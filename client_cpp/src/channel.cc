@@ -12,6 +12,7 @@
 #include "grpcpp/security/credentials.h"
 #include "grpcpp/support/channel_arguments.h"
 #include "mll/http2_flow_control.h"
+#include "mll/http2_keepalive.h"
 
 namespace mll::client {
 namespace internal {
@@ -96,9 +97,11 @@ absl::StatusOr<std::shared_ptr<grpc::Channel>> OpenChannel(
     credentials = grpc::InsecureChannelCredentials();
   }
   arguments.SetMaxReceiveMessageSize(options.max_receive_message_bytes);
-  SetHttp2FlowControl([&arguments](const char* name, int value) {
+  const auto set = [&arguments](const char* name, int value) {
     arguments.SetInt(name, value);
-  });
+  };
+  SetHttp2FlowControl(set);
+  SetClientKeepalive(set);
   // Each channel its own subchannels (connections): a new channel to a server
   // found down (VectorEnv failover's probe) must not inherit the reconnect
   // backoff of an older channel's subchannel to the same address.

@@ -24,7 +24,7 @@ absl::StatusOr<v1::ServerInfo> Transport::ServerInfo() {
   absl::MutexLock lock(&server_info_mu_);
   if (server_info_.has_value()) return *server_info_;
   grpc::ClientContext context;
-  Prepare(&context, /*unary=*/true);
+  const absl::Duration timeout = Prepare(&context, /*unary=*/true);
   v1::ServerInfo info;
   const grpc::Status status =
       stub_->GetServerInfo(&context, v1::GetServerInfoRequest(), &info);
@@ -34,7 +34,7 @@ absl::StatusOr<v1::ServerInfo> Transport::ServerInfo() {
     info.set_protocol_major(1);
     info.set_protocol_minor(0);
   } else if (!status.ok()) {
-    return FromGrpc(status);
+    return FromCall(status, timeout);
   }
   server_info_ = info;
   return info;

@@ -41,6 +41,12 @@ constexpr char kSessionMethod[] = "/mll.v1.MultiLunarLander/Session";
 // How long one futex wait on the region lasts before the stream is looked
 // at (did the session end?) and the caller's deadline checked.
 constexpr auto kRegionWaitSlice = std::chrono::milliseconds(20);
+// A StepBatch's answer may take this much longer than step_timeout per
+// lander action it carries: the server steps about 80,000 lander actions a
+// second per core (12 us each, DESIGN.md's floor); 100 us each is that cost
+// eight times over, for a loaded server, so that a slow server with a large
+// batch is not taken for a stopped one.
+constexpr absl::Duration kAnswerTimePerAction = absl::Microseconds(100);
 
 void* TagOf(intptr_t operation) {
   return reinterpret_cast<void*>(operation + 1);
@@ -132,11 +138,12 @@ void BatchHandles::Clear() {
 
 SessionStream::SessionStream(
     absl::StatusOr<std::shared_ptr<grpc::Channel>> channel, std::string token,
-    std::string what, SessionTransport mode)
+    std::string what, SessionTransport mode, absl::Duration step_timeout)
     : channel_status_(channel.status()),
       token_(std::move(token)),
       what_(std::move(what)),
-      mode_(mode) {
+      mode_(mode),
+      step_timeout_(step_timeout) {
   if (channel.ok()) {
     stub_ = std::make_unique<grpc::GenericStub>(*std::move(channel));
   }
@@ -166,8 +173,11 @@ absl::Status SessionStream::OpenStream() {
   stream_ = stub_->PrepareCall(context_.get(), kSessionMethod, queue_.get());
   stream_->StartCall(TagOf(kStart));
   const std::optional<bool> started =
-      Await(kStart, gpr_inf_future(GPR_CLOCK_MONOTONIC));
-  if (!started.value_or(false)) return EndStream();
+      Await(kStart, DeadlineAfter(step_timeout_));
+  if (!started.has_value()) {
+    return Abandon("the start of its Session stream", step_timeout_);
+  }
+  if (!*started) return EndStream();
   return absl::OkStatus();
 }
 
@@ -203,7 +213,9 @@ absl::Status SessionStream::NegotiateSharedMemory() {
   // The attach request's write is done before the region is used (its
   // completion is not to be taken later for the session's end).
   if (write_outstanding_) {
-    (void)Await(kWrite, gpr_inf_future(GPR_CLOCK_MONOTONIC));
+    if (!Await(kWrite, DeadlineAfter(step_timeout_)).has_value()) {
+      return Abandon("the hand-over of a request", step_timeout_);
+    }
     write_outstanding_ = false;
   }
   status = MapRegion(answer.attach_shared_memory());
@@ -278,6 +290,11 @@ void SessionStream::DropRegion() {
 }
 
 absl::Status SessionStream::SendBytes(absl::string_view request) {
+  return SendWithTimeout(request, step_timeout_);
+}
+
+absl::Status SessionStream::SendWithTimeout(absl::string_view request,
+                                            absl::Duration timeout) {
   if (stream_ == nullptr) {
     absl::Status status = Open();
     if (!status.ok()) return status;
@@ -289,6 +306,7 @@ absl::Status SessionStream::SendBytes(absl::string_view request) {
           " bytes; allowed: up to the shared-memory region's ", capacity_)));
     }
     ++sent_;
+    timeouts_.emplace_back(absl::Now(), timeout);
     FeedRegion();  // The region is free once the previous answer was taken.
     if (!region_busy_ && region_queue_.empty()) {
       WriteToRegion(request);
@@ -298,7 +316,10 @@ absl::Status SessionStream::SendBytes(absl::string_view request) {
     return absl::OkStatus();
   }
   absl::Status status = WriteToStream(request);
-  if (status.ok()) ++sent_;
+  if (status.ok()) {
+    ++sent_;
+    timeouts_.emplace_back(absl::Now(), timeout);
+  }
   return Fail(status);
 }
 
@@ -308,7 +329,11 @@ absl::Status SessionStream::WriteToStream(absl::string_view request) {
   // control).
   if (write_outstanding_) {
     const std::optional<bool> written =
-        Await(kWrite, gpr_inf_future(GPR_CLOCK_MONOTONIC));
+        Await(kWrite, DeadlineAfter(step_timeout_));
+    if (!written.has_value()) {
+      // The server stopped reading (its flow-control window is spent).
+      return Abandon("the hand-over of a request", step_timeout_);
+    }
     write_outstanding_ = false;
     if (!written.value_or(false)) {
       // Reported here, and to the Receives of the requests in flight.
@@ -352,7 +377,28 @@ std::optional<absl::Status> SessionStream::ReceiveBytes(
     return Fail(
         absl::FailedPreconditionError("receive without a request in flight"));
   }
-  const gpr_timespec deadline = DeadlineAfter(timeout);
+  // The caller's timeout, or the server's deadline if that comes first.
+  const absl::Time due = AnswerDue();
+  const absl::Duration to_due =
+      std::max(due - absl::Now(), absl::ZeroDuration());
+  const bool due_first = to_due <= timeout;
+  std::optional<absl::Status> answer =
+      ReceiveWithin(response, DeadlineAfter(std::min(timeout, to_due)));
+  if (answer.has_value() || !due_first) return answer;
+  absl::Status missed =
+      Abandon("the answer to a request", timeouts_.front().second);
+  --lost_;  // This request's, reported here.
+  return missed;
+}
+
+absl::Time SessionStream::AnswerDue() const {
+  if (timeouts_.empty()) return absl::InfiniteFuture();
+  const auto& [sent, timeout] = timeouts_.front();
+  return std::max(sent, last_answer_) + timeout;
+}
+
+std::optional<absl::Status> SessionStream::ReceiveWithin(
+    absl::string_view* response, gpr_timespec deadline) {
   if (attached_) return ReceiveFromRegion(response, deadline);
   if (!read_outstanding_) {
     stream_->Read(&response_buffer_, TagOf(kRead));
@@ -366,7 +412,7 @@ std::optional<absl::Status> SessionStream::ReceiveBytes(
     --lost_;
     return Fail(lost_status_);
   }
-  ++received_;
+  Answered();
   if (!response_buffer_.DumpToSingleSlice(&response_slice_).ok()) {
     return Fail(absl::InternalError("cannot read the Session answer's bytes"));
   }
@@ -409,7 +455,7 @@ std::optional<absl::Status> SessionStream::ReceiveFromRegion(
     }
   }
   region_busy_ = false;
-  ++received_;
+  Answered();
   const uint64_t size = header.response_size.load(std::memory_order_acquire);
   if (size > capacity_) {
     return Fail(absl::InternalError(
@@ -420,16 +466,44 @@ std::optional<absl::Status> SessionStream::ReceiveFromRegion(
   return absl::OkStatus();
 }
 
+void SessionStream::Answered() {
+  ++received_;
+  timeouts_.pop_front();
+  last_answer_ = absl::Now();
+}
+
+absl::Duration AnswerTimeout(absl::Duration step_timeout,
+                             const v1::SessionRequest& request) {
+  if (step_timeout == absl::InfiniteDuration() || !request.has_step_batch()) {
+    return step_timeout;
+  }
+  // Discrete actions are 4 bytes each, continuous ones 8: counted as two,
+  // which errs on the long side.
+  size_t action_bytes = request.step_batch().packed().actions().data().size();
+  for (const v1::StepEnvRequest& step : request.step_batch().steps()) {
+    action_bytes += step.actions().data().size();
+  }
+  return step_timeout +
+         kAnswerTimePerAction * static_cast<int64_t>(action_bytes / 4);
+}
+
+absl::Duration StepTimeout(const ClientOptions& options) {
+  if (options.step_timeout.count() <= 0) return absl::InfiniteDuration();
+  return absl::FromChrono(options.step_timeout);
+}
+
 absl::StatusOr<uint64_t> SessionStream::Send(v1::SessionRequest& request) {
   request.set_sequence(++last_sequence_);
+  const absl::Duration timeout = AnswerTimeout(step_timeout_, request);
   if (!batch_handles_enabled_) {
-    absl::Status status = SendBytes(request.SerializeAsString());
+    absl::Status status = SendWithTimeout(request.SerializeAsString(), timeout);
     if (!status.ok()) return status;
     return last_sequence_;
   }
   // The handles are those of the session that gets the request.
   if (absl::Status status = Open(); !status.ok()) return status;
-  absl::Status status = SendBytes(batch_handles_.Serialize(request));
+  absl::Status status =
+      SendWithTimeout(batch_handles_.Serialize(request), timeout);
   if (!status.ok()) {
     batch_handles_.Answered(last_sequence_, /*ok=*/false);
     return status;
@@ -533,6 +607,7 @@ absl::Status SessionStream::EndStream() {
   write_outstanding_ = false;
   read_outstanding_ = false;
   DropRegion();
+  timeouts_.clear();
   // Added: requests lost with an earlier stream stay lost (their Receives
   // still owe them an error) when a reopened stream fails too.
   lost_ += sent_ - received_;
@@ -542,6 +617,20 @@ absl::Status SessionStream::EndStream() {
         absl::StrCat(what_, " ended the Session stream"));
   }
   return FromGrpc(final_status);
+}
+
+absl::Status SessionStream::Abandon(absl::string_view waiting_for,
+                                    absl::Duration timeout) {
+  // Cancelled, the stream's pending operations complete at once.
+  context_->TryCancel();
+  (void)EndStream();
+  lost_status_ = absl::DeadlineExceededError(absl::StrCat(
+      what_, " did not answer within ", absl::FormatDuration(timeout),
+      " (step timeout ", absl::FormatDuration(step_timeout_), ") waiting for ",
+      waiting_for,
+      "; its Session stream is cancelled and the requests in flight on it "
+      "are lost (a late answer is never taken)"));
+  return Fail(lost_status_);
 }
 
 absl::Status SessionStream::Fail(absl::Status status) {

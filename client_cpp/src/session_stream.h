@@ -21,6 +21,19 @@
 // stream's gRPC status to every waiting Receive; the next Send opens a new
 // stream (and asks for shared memory again, as the first did).
 //
+// Deadlines (ClientOptions::step_timeout): the server must start the stream
+// and take each write within step_timeout, and answer each request within
+// its allowance (AnswerTimeout) from when it was sent or the previous answer
+// came, whichever is later (so pipelined requests wait their turn), however
+// the caller splits its waiting into timed Receives. A server that misses a
+// deadline (stopped, frozen, or cut off with its connection open) fails that
+// wait and every request in flight with DEADLINE_EXCEEDED naming the server
+// and the timeout, and the stream is cancelled: an answer that comes late
+// has no stream to arrive on, so it is never taken for a later request
+// (which goes out on a new stream, a new session, whose bound envs are new
+// ones), and the server ends the cancelled session, deleting its bound envs,
+// when it runs again.
+//
 // Batch handles (PackedSteps.handle, for a server with the capability
 // "packed_batch_handles"; off until EnableBatchHandles): the typed Send gives
 // every packed StepBatch that names its envs a handle of the session. The
@@ -99,14 +112,26 @@ class BatchHandles {
   absl::flat_hash_map<uint64_t, std::pair<uint32_t, uint64_t>> declaring_;
 };
 
+// How long a server may take to answer `request`: `step_timeout`, plus 100
+// us for each lander action of a StepBatch (a batch of many envs takes the
+// server longer); infinite when `step_timeout` is. The deadline of every
+// request of the C++ client (ClientOptions::step_timeout).
+absl::Duration AnswerTimeout(absl::Duration step_timeout,
+                             const v1::SessionRequest& request);
+
+// ClientOptions::step_timeout as a Duration (zero: infinite, no deadline).
+absl::Duration StepTimeout(const ClientOptions& options);
+
 class SessionStream {
  public:
   // A stream to the server of `channel` (an error status there is reported
   // by the first Open or Send), sending `token` on its call. `what` names
   // the server in messages ("server 127.0.0.1:50051"). Nothing is opened
   // until the first Open or Send.
+  // `step_timeout`: the deadline of each wait (above); infinite: none.
   SessionStream(absl::StatusOr<std::shared_ptr<grpc::Channel>> channel,
-                std::string token, std::string what, SessionTransport mode);
+                std::string token, std::string what, SessionTransport mode,
+                absl::Duration step_timeout = absl::InfiniteDuration());
   // Cancels the open stream.
   ~SessionStream();
   SessionStream(const SessionStream&) = delete;
@@ -135,6 +160,8 @@ class SessionStream {
   // call on the stream), or the status of the broken stream (the server's
   // code and message; UNAVAILABLE when it ended the stream cleanly), after
   // which nothing is in flight. FAILED_PRECONDITION when nothing is.
+  // DEADLINE_EXCEEDED when the server missed its deadline (Deadlines above)
+  // before `timeout` ran out.
   std::optional<absl::Status> ReceiveBytes(absl::string_view* response,
                                            absl::Duration timeout);
 
@@ -162,6 +189,8 @@ class SessionStream {
   // flight is lost.
   void Close();
 
+  absl::Duration step_timeout() const { return step_timeout_; }
+
   // The last status message of a failed call, for the C interface.
   const std::string& last_message() const { return last_message_; }
 
@@ -181,6 +210,19 @@ class SessionStream {
                                                 gpr_timespec deadline);
   std::optional<bool> Await(Operation operation, gpr_timespec deadline);
   absl::Status EndStream();
+  // The server missed the deadline `timeout` of `waiting_for` ("its answer",
+  // ...): the stream is cancelled and ended, and what was in flight lost
+  // with DEADLINE_EXCEEDED naming the server and the timeout (returned).
+  absl::Status Abandon(absl::string_view waiting_for, absl::Duration timeout);
+  // When the oldest request in flight is due (see Deadlines above).
+  absl::Time AnswerDue() const;
+  // ReceiveBytes without the step deadline, waiting until `deadline`.
+  std::optional<absl::Status> ReceiveWithin(absl::string_view* response,
+                                            gpr_timespec deadline);
+  // The oldest request in flight is answered.
+  void Answered();
+  absl::Status SendWithTimeout(absl::string_view request,
+                               absl::Duration timeout);
   absl::Status Fail(absl::Status status);
 
   absl::Status channel_status_;
@@ -188,6 +230,7 @@ class SessionStream {
   std::string token_;
   std::string what_;
   SessionTransport mode_;
+  absl::Duration step_timeout_;
 
   std::unique_ptr<grpc::CompletionQueue> queue_;
   std::unique_ptr<grpc::ClientContext> context_;
@@ -198,6 +241,10 @@ class SessionStream {
   bool read_outstanding_ = false;
   uint64_t sent_ = 0;
   uint64_t received_ = 0;
+  // When each request in flight on the open stream was sent and its
+  // AnswerTimeout, oldest first; when the latest answer came.
+  std::deque<std::pair<absl::Time, absl::Duration>> timeouts_;
+  absl::Time last_answer_ = absl::InfinitePast();
   // Requests lost with a broken stream, whose Receives report lost_status_.
   uint64_t lost_ = 0;
   absl::Status lost_status_;

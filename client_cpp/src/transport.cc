@@ -101,7 +101,7 @@ class UnaryTransport final : public Transport {
     switch (request.op_case()) {
 #define MLL_UNARY_CALL(op_case, request_member, rpc, response_member) \
   case v1::SessionRequest::op_case:                                   \
-    return Unary(&Stub::rpc, request.request_member(),                \
+    return Unary(&Stub::rpc, request, request.request_member(),       \
                  response->mutable_##response_member());
       MLL_SESSION_OPS(MLL_UNARY_CALL)
 #undef MLL_UNARY_CALL
@@ -142,13 +142,14 @@ class UnaryTransport final : public Transport {
       bool completed = false;
     };
     auto pending = std::make_shared<Pending>();
-    Prepare(&pending->context, /*unary=*/true);
+    const absl::Duration timeout =
+        Prepare(&pending->context, /*unary=*/true, &request);
     pending->reader = stub_->PrepareAsyncStepBatch(
         &pending->context, request.step_batch(), &pending->queue);
     pending->reader->StartCall();
     pending->reader->Finish(response->mutable_step_batch(), &pending->status,
                             pending.get());
-    return std::async(std::launch::deferred, [pending] {
+    return std::async(std::launch::deferred, [this, pending, timeout] {
       void* tag = nullptr;
       bool ok = false;
       // Finish's tag always comes back, with ok true (the status says how
@@ -158,7 +159,7 @@ class UnaryTransport final : public Transport {
       if (!got) {
         return absl::InternalError("StepBatch completion queue shut down");
       }
-      return FromGrpc(pending->status);
+      return FromCall(pending->status, timeout);
     });
   }
 
@@ -166,10 +167,13 @@ class UnaryTransport final : public Transport {
   template <typename Request, typename Response>
   absl::Status Unary(grpc::Status (v1::MultiLunarLander::Stub::*method)(
                          grpc::ClientContext*, const Request&, Response*),
+                     const v1::SessionRequest& operation,
                      const Request& request, Response* response) {
     grpc::ClientContext context;
-    Prepare(&context, /*unary=*/true);
-    return FromGrpc((stub_.get()->*method)(&context, request, response));
+    const absl::Duration timeout =
+        Prepare(&context, /*unary=*/true, &operation);
+    return FromCall((stub_.get()->*method)(&context, request, response),
+                    timeout);
   }
 };
 
@@ -257,19 +261,38 @@ std::future<absl::Status> Transport::CallAsync(v1::SessionRequest& request,
   });
 }
 
-void Transport::Prepare(grpc::ClientContext* context, bool unary) const {
+absl::Duration Transport::Prepare(grpc::ClientContext* context, bool unary,
+                                  const v1::SessionRequest* request) const {
   AddToken(context, options_.token);
-  if (unary && options_.call_timeout.count() > 0) {
-    context->set_deadline(std::chrono::system_clock::now() +
-                          options_.call_timeout);
+  if (!unary) return absl::InfiniteDuration();
+  const absl::Duration timeout =
+      options_.call_timeout.count() > 0
+          ? absl::FromChrono(options_.call_timeout)
+      : request == nullptr ? StepTimeout(options_)
+                           : AnswerTimeout(StepTimeout(options_), *request);
+  if (timeout != absl::InfiniteDuration()) {
+    context->set_deadline(absl::ToChronoTime(absl::Now() + timeout));
   }
+  return timeout;
+}
+
+absl::Status Transport::FromCall(const grpc::Status& status,
+                                 absl::Duration timeout) const {
+  if (status.error_code() != grpc::StatusCode::DEADLINE_EXCEEDED) {
+    return FromGrpc(status);
+  }
+  return absl::DeadlineExceededError(absl::StrCat(
+      "server ", address_, " did not answer within ",
+      absl::FormatDuration(timeout),
+      options_.call_timeout.count() > 0 ? " (call timeout)" : " (step timeout)",
+      ": ", status.error_message()));
 }
 
 absl::Status Transport::ListEnvs(const v1::ListEnvsRequest& request,
                                  v1::ListEnvsResponse* response) const {
   grpc::ClientContext context;
-  Prepare(&context, /*unary=*/true);
-  return FromGrpc(stub_->ListEnvs(&context, request, response));
+  const absl::Duration timeout = Prepare(&context, /*unary=*/true);
+  return FromCall(stub_->ListEnvs(&context, request, response), timeout);
 }
 
 absl::Status Transport::CheckHealth(absl::string_view service) const {
@@ -278,13 +301,13 @@ absl::Status Transport::CheckHealth(absl::string_view service) const {
   grpc::ByteBuffer request(&request_slice, 1);
   grpc::ByteBuffer response;
   grpc::ClientContext context;
-  Prepare(&context, /*unary=*/true);
+  const absl::Duration timeout = Prepare(&context, /*unary=*/true);
   grpc::GenericStub stub(channel_);
   std::promise<grpc::Status> done;
   stub.UnaryCall(&context, kHealthCheckMethod, grpc::StubOptions(), &request,
                  &response,
                  [&done](grpc::Status status) { done.set_value(status); });
-  absl::Status status = FromGrpc(done.get_future().get());
+  absl::Status status = FromCall(done.get_future().get(), timeout);
   if (!status.ok()) return status;
   grpc::Slice response_slice;
   status = FromGrpc(response.DumpToSingleSlice(&response_slice));
@@ -324,7 +347,7 @@ StreamTransport::StreamTransport(std::string address,
                                  ClientOptions options)
     : Transport(std::move(address), std::move(channel), std::move(options)),
       stream_(channel_, options_.token, absl::StrCat("server ", address_),
-              options_.session_transport) {}
+              options_.session_transport, StepTimeout(options_)) {}
 
 // Half-closing is not needed: cancelling the stream ends the session, and
 // the server deletes its bound envs as it does.

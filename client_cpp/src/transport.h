@@ -84,8 +84,15 @@ class Transport {
   absl::StatusOr<v1::ServerInfo> ServerInfo();
 
  protected:
-  // Adds the token and, for unary calls, the deadline.
-  void Prepare(grpc::ClientContext* context, bool unary) const;
+  // Adds the token and, for unary calls, the deadline: call_timeout, or
+  // else the step timeout's answer time for `request` (when given).
+  // Returns the deadline's timeout (infinite: none).
+  absl::Duration Prepare(grpc::ClientContext* context, bool unary,
+                         const v1::SessionRequest* request = nullptr) const;
+  // A unary call's status; a missed deadline `timeout` (Prepare's) says
+  // which server missed what timeout.
+  absl::Status FromCall(const grpc::Status& status,
+                        absl::Duration timeout) const;
 
   std::string address_;
   std::shared_ptr<grpc::Channel> channel_;

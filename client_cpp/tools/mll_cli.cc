@@ -95,7 +95,13 @@ ABSL_FLAG(int, batch_size, 0,
 ABSL_FLAG(int, clients, 1,
           "bench: independent clients (threads), each with its own --envs "
           "envs and Session streams, 1..256.");
-ABSL_FLAG(int, timeout_ms, 30000, "Deadline of each call in ms; 0 for none.");
+ABSL_FLAG(int, timeout_ms, 30000,
+          "Deadline of each unary call in ms; 0: --step_timeout_s's.");
+ABSL_FLAG(double, step_timeout_s, 5.0,
+          "How long a server may take to answer a request of the play and "
+          "bench Session streams (plus 100 us per lander action of a batch) "
+          "before it counts as stalled: DEADLINE_EXCEEDED naming it, or "
+          "failover with several servers; 0 for none.");
 ABSL_FLAG(std::string, name, "",
           "Environment name envs/ID (or give it as the argument after the "
           "command). For play: fly this env instead of creating one.");
@@ -251,6 +257,14 @@ absl::StatusOr<ClientOptions> OptionsFromFlags() {
         absl::StrCat("timeout_ms is ", timeout_ms, "; must be >= 0"));
   }
   options.call_timeout = std::chrono::milliseconds(timeout_ms);
+  const double step_timeout_s = absl::GetFlag(FLAGS_step_timeout_s);
+  if (!(step_timeout_s >= 0 && step_timeout_s <= 86400)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "step_timeout_s is ", step_timeout_s, "; must be in [0, 86400]"));
+  }
+  // At least 1 ms when set: 0 would mean none.
+  options.step_timeout = std::chrono::milliseconds(std::max<int64_t>(
+      step_timeout_s > 0, std::llround(step_timeout_s * 1000)));
   absl::StatusOr<std::string> token = Token();
   if (!token.ok()) return token.status();
   options.token = *std::move(token);
@@ -924,8 +938,8 @@ std::string CommandNames() {
 }
 
 constexpr absl::string_view kConnectionFlags[] = {
-    "address",         "timeout_ms", "tls",       "tls_root_cert",
-    "tls_server_name", "token",      "token_file"};
+    "address",       "timeout_ms",      "step_timeout_s", "tls",
+    "tls_root_cert", "tls_server_name", "token",          "token_file"};
 
 // `mll_cli --help`, or `mll_cli COMMAND --help` for one command's flags.
 std::string Help(const std::vector<std::string>& words) {

@@ -1,9 +1,12 @@
 // VectorEnv's failover and env snapshot, against real mll_server processes: a
 // server killed (kill -9) mid-run, in Step or in a Send/Recv loop, costs no
 // episode and no bit; a dead failover target is passed over; failover off
-// reports the loss; a snapshot (after Step or Send/Recv steps) restores on
-// another server to the same bits, and a damaged or foreign snapshot is refused
-// with the env untouched.
+// reports the loss; a server stopped (SIGSTOP) or cut off with its connection
+// open (a stopped proxy) costs one pause of at most its deadline plus the
+// replay, and no bit, and its envs are gone once it runs again; a snapshot
+// (after Step or Send/Recv steps) restores on another server to the same bits,
+// and a damaged or foreign snapshot is refused with the env untouched.
+#include <unistd.h>
 #include <zlib.h>
 
 #include <algorithm>
@@ -12,11 +15,15 @@
 #include <cstring>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <random>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "absl/time/clock.h"
+#include "absl/time/time.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "mll/client.h"
@@ -41,10 +48,13 @@ std::vector<std::unique_ptr<ServerProcess>> StartServers(int count) {
   return servers;
 }
 
+// A client of `servers` (with the default step timeout unless one is given).
 Client ClientOf(const std::vector<std::unique_ptr<ServerProcess>>& servers,
-                SessionTransport transport = SessionTransport::kAuto) {
+                SessionTransport transport = SessionTransport::kAuto,
+                std::optional<std::chrono::milliseconds> step_timeout = {}) {
   ClientOptions options;
   options.session_transport = transport;
+  if (step_timeout.has_value()) options.step_timeout = *step_timeout;
   std::vector<std::string> addresses;
   for (const auto& server : servers) addresses.push_back(server->address());
   absl::StatusOr<Client> client = Client::Create(addresses, options);
@@ -348,9 +358,10 @@ Row RowOf(const VectorEnv& envs, int row) {
 // AsyncReset, each env sent its next actions as soon as Recv returned it;
 // `fault` runs before the Send that follows Recv number `fault_at` (so the
 // fault meets the steps sent from then on, whatever the server had answered
-// before).
+// before). The longest Recv goes to `slowest` when given.
 std::vector<std::vector<Row>> SendRecvRun(VectorEnv& envs, int fault_at,
-                                          const std::function<void()>& fault) {
+                                          const std::function<void()>& fault,
+                                          absl::Duration* slowest = nullptr) {
   const auto deadline = std::chrono::steady_clock::now() + kLoopTime;
   std::vector<std::vector<Row>> rows(envs.num_envs());
   std::vector<int> steps(envs.num_envs(), 0);
@@ -362,7 +373,11 @@ std::vector<std::vector<Row>> SendRecvRun(VectorEnv& envs, int fault_at,
                     << kLoopTime.count() << " s";
       break;
     }
+    const absl::Time began = absl::Now();
     status = envs.Recv();
+    if (slowest != nullptr) {
+      *slowest = std::max(*slowest, absl::Now() - began);
+    }
     EXPECT_TRUE(status.ok()) << "recv " << count << ": " << status;
     if (!status.ok()) break;
     const std::vector<int> ids(envs.env_ids().begin(), envs.env_ids().end());
@@ -415,10 +430,14 @@ bool AnyAutoReset(const std::vector<std::vector<Row>>& rows) {
   return false;
 }
 
-// `killed` of the three servers killed (kill -9) mid-way through a Send/Recv
-// loop: each env's results equal an uninterrupted run's, on both
-// transports, and no env is left on a killed server.
-void ExpectSendRecvSurvives(const std::vector<int>& killed, int failovers) {
+// `killed` of the three servers killed (kill -9; `fault` instead when given,
+// e.g. Pause) mid-way through a Send/Recv loop: each env's results equal an
+// uninterrupted run's, on both transports, and no env is left on a killed
+// server. The longest Recv goes to `slowest` when given.
+void ExpectSendRecvSurvives(
+    const std::vector<int>& killed, int failovers,
+    void (ServerProcess::*fault)() = &ServerProcess::Kill,
+    absl::Duration* slowest = nullptr) {
   OnThreeServersPerTransport([&](Servers& servers, Client& client) {
     absl::StatusOr<VectorEnv> reference =
         VectorEnv::Create(client, kAsyncEnvs, SmallConfig(), kBatch);
@@ -434,10 +453,12 @@ void ExpectSendRecvSurvives(const std::vector<int>& killed, int failovers) {
     for (int server : killed) {
       killed_addresses.push_back(servers[server]->address());
     }
-    const std::vector<std::vector<Row>> got =
-        SendRecvRun(*envs, kRecvs / 2, [&] {
-          for (int server : killed) servers[server]->Kill();
-        });
+    const std::vector<std::vector<Row>> got = SendRecvRun(
+        *envs, kRecvs / 2,
+        [&] {
+          for (int server : killed) ((*servers[server]).*fault)();
+        },
+        slowest);
     EXPECT_EQ(envs->failovers(), failovers);
     ExpectSameRows(got, expected, kRecvs * kBatch / kAsyncEnvs / 2);
     EXPECT_TRUE(AnyAutoReset(expected));
@@ -481,6 +502,161 @@ TEST(FailoverTest, SendRecvWithNoServerLeftNamesTheServersTried) {
   EXPECT_THAT(message, HasSubstr(servers[0]->address()));
   EXPECT_THAT(message, HasSubstr(servers[1]->address()));
   EXPECT_EQ(envs->failovers(), 0);
+}
+
+// ------------------------------------------------ stalls: SIGSTOP, partitions
+
+// The deadline of the default options, and the bound the tests put on the one
+// pause a stall costs: the deadline plus a generous allowance for the probe
+// of the stalled server and the replay (a bound, not a measurement).
+const absl::Duration kDefaultStepTimeout =
+    absl::FromChrono(ClientOptions().step_timeout);
+const absl::Duration kPauseBound = kDefaultStepTimeout + absl::Seconds(10);
+
+// Whether the server at `address` holds no env (ListEnvs), within `seconds`:
+// a stalled server's envs go once it runs again (their session was
+// cancelled).
+bool HoldsNoEnvWithin(const std::string& address, int seconds) {
+  absl::StatusOr<Client> client = Client::Create(address);
+  if (!client.ok()) return false;
+  return Eventually(
+      [&] {
+        const absl::StatusOr<std::vector<EnvInfo>> envs = client->ListEnvs();
+        return envs.ok() && envs->empty();
+      },
+      seconds);
+}
+
+// As Fly, with `fault` before step `at`; the longest time between two
+// steps' starts (one step and its bookkeeping) goes to `slowest`.
+Trajectory FlyTimed(VectorEnv& envs, int at, const std::function<void()>& fault,
+                    absl::Duration* slowest) {
+  absl::Time last = absl::Now();
+  return FlyWith(envs, [&](int step) {
+    const absl::Time now = absl::Now();
+    *slowest = std::max(*slowest, now - last);
+    if (step == at) fault();
+    last = absl::Now();
+  });
+}
+
+// One of three servers stopped (SIGSTOP: its sockets stay open, it answers
+// nothing) mid-run, default options: one pause of at most the deadline plus
+// the replay, one failover, every bit of an uninterrupted run, on both
+// transports. Resumed, the server holds none of the envs any more (their
+// session was cancelled), so none is stepped by two servers.
+TEST(StallTest, AStoppedServerCostsOnePauseAndNoBit) {
+  constexpr int kEnvs = 9;
+  OnThreeServersPerTransport([&](Servers& servers, Client& client) {
+    Trajectory expected;
+    absl::StatusOr<VectorEnv> envs = WithReferenceRun(client, kEnvs, &expected);
+    ASSERT_TRUE(envs.ok()) << envs.status();
+    const std::string stopped = servers[1]->address();
+    absl::Duration slowest;
+    const Trajectory got = FlyTimed(
+        *envs, 70, [&] { servers[1]->Pause(); }, &slowest);
+    EXPECT_EQ(envs->failovers(), 1);
+    ExpectSameRun(got, expected);
+    EXPECT_GE(slowest, kDefaultStepTimeout);
+    EXPECT_LE(slowest, kPauseBound);
+    for (int env = 0; env < kEnvs; ++env) {
+      EXPECT_NE(envs->address(env), stopped) << "env " << env;
+    }
+    servers[1]->Resume();
+    EXPECT_TRUE(HoldsNoEnvWithin(stopped, 30));
+  });
+}
+
+// The same during a Send/Recv loop: the Recv that meets the stopped server
+// waits at most the deadline plus the replay.
+TEST(StallTest, AServerStoppedDuringSendRecvCostsOnePauseAndNoBit) {
+  absl::Duration slowest;
+  ExpectSendRecvSurvives({1}, 1, &ServerProcess::Pause, &slowest);
+  EXPECT_GE(slowest, kDefaultStepTimeout);
+  EXPECT_LE(slowest, kPauseBound);
+}
+
+// A partition with the connection left open: each server behind a proxy
+// (bench/latency/delay_proxy, no delay), one proxy stopped mid-run. The
+// stream transport (shared memory would bypass the proxy).
+TEST(StallTest, AStoppedLinkCostsOnePauseAndNoBit) {
+  if (access(MLL_DELAY_PROXY_PATH, X_OK) != 0) {
+    GTEST_SKIP() << MLL_DELAY_PROXY_PATH << " is not built (benchmarks off)";
+  }
+  constexpr int kEnvs = 9;
+  Servers servers = StartServers(3);
+  ASSERT_EQ(servers.size(), 3u);
+  Servers proxies;
+  for (const auto& server : servers) {
+    absl::StatusOr<std::unique_ptr<ServerProcess>> proxy =
+        ServerProcess::StartProgram(
+            {MLL_DELAY_PROXY_PATH, "--listen=127.0.0.1:0",
+             "--target=" + server->address(), "--delay_us=0"});
+    ASSERT_TRUE(proxy.ok()) << proxy.status();
+    proxies.push_back(*std::move(proxy));
+  }
+  Client client = ClientOf(proxies, SessionTransport::kNative);
+  Trajectory expected;
+  absl::StatusOr<VectorEnv> envs = WithReferenceRun(client, kEnvs, &expected);
+  ASSERT_TRUE(envs.ok()) << envs.status();
+  absl::Duration slowest;
+  const Trajectory got = FlyTimed(
+      *envs, 70, [&] { proxies[1]->Pause(); }, &slowest);
+  EXPECT_EQ(envs->failovers(), 1);
+  ExpectSameRun(got, expected);
+  EXPECT_GE(slowest, kDefaultStepTimeout);
+  EXPECT_LE(slowest, kPauseBound);
+  for (int env = 0; env < kEnvs; ++env) {
+    EXPECT_NE(envs->address(env), proxies[1]->address()) << "env " << env;
+  }
+  // The link heals: the server ends the cancelled session.
+  proxies[1]->Resume();
+  EXPECT_TRUE(HoldsNoEnvWithin(servers[1]->address(), 30));
+}
+
+// Failover off and the only server stopped: Step, and Recv, fail with
+// DEADLINE_EXCEEDED naming the server and the timeout within the deadline
+// (and a margin), on both transports; resumed, the server holds no env.
+TEST(StallTest, OffAStoppedServerFailsWithinTheDeadline) {
+  constexpr auto kTimeout = std::chrono::milliseconds(1500);
+  for (SessionTransport transport :
+       {SessionTransport::kSharedMemory, SessionTransport::kNative}) {
+    SCOPED_TRACE(SessionTransportName(transport));
+    Servers servers = StartServers(1);
+    ASSERT_EQ(servers.size(), 1u);
+    Client client = ClientOf(servers, transport, kTimeout);
+    absl::StatusOr<VectorEnv> envs =
+        VectorEnv::Create(client, 4, SmallConfig());
+    absl::StatusOr<VectorEnv> async_envs =
+        VectorEnv::Create(client, 4, SmallConfig(), /*batch_size=*/2);
+    ASSERT_TRUE(envs.ok()) << envs.status();
+    ASSERT_TRUE(async_envs.ok()) << async_envs.status();
+    EXPECT_FALSE(envs->failover());
+    ASSERT_TRUE(envs->Reset(uint64_t{1}).ok());
+    ASSERT_TRUE(async_envs->AsyncReset(uint64_t{1}).ok());
+    servers[0]->Pause();
+    const auto expect_deadline = [&](const absl::Status& status,
+                                     absl::Duration took) {
+      EXPECT_EQ(status.code(), absl::StatusCode::kDeadlineExceeded) << status;
+      EXPECT_THAT(std::string(status.message()),
+                  HasSubstr(servers[0]->address()));
+      EXPECT_THAT(std::string(status.message()), HasSubstr("1.5s"));
+      EXPECT_GE(took, absl::FromChrono(kTimeout));
+      EXPECT_LE(took, absl::FromChrono(kTimeout) + absl::Seconds(5));
+    };
+    absl::Time began = absl::Now();
+    const absl::Status status =
+        envs->Step(absl::MakeConstSpan(ActionsOf(0, 4)));
+    expect_deadline(status, absl::Now() - began);
+    // The Recvs of results already received return at once; the first that
+    // waits for the server meets its deadline.
+    began = absl::Now();
+    const absl::Status async_status = RecvAndSendUntilAnError(*async_envs);
+    expect_deadline(async_status, absl::Now() - began);
+    EXPECT_EQ(envs->failovers(), 0);
+    servers[0]->Resume();
+    EXPECT_TRUE(HoldsNoEnvWithin(servers[0]->address(), 30));
+  }
 }
 
 // The snapshot's bytes with `edit` applied and a valid CRC again.

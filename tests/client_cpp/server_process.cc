@@ -87,11 +87,17 @@ bool WaitFor(pid_t pid, int seconds, int* status) {
 absl::StatusOr<std::unique_ptr<ServerProcess>> ServerProcess::Start(
     const std::string& server_path,
     const std::vector<std::string>& extra_args) {
+  std::vector<std::string> argv = {server_path, "--address=127.0.0.1:0"};
+  argv.insert(argv.end(), extra_args.begin(), extra_args.end());
+  return StartProgram(std::move(argv));
+}
+
+absl::StatusOr<std::unique_ptr<ServerProcess>> ServerProcess::StartProgram(
+    std::vector<std::string> argv) {
+  const std::string server_path = argv[0];
   absl::StatusOr<std::string> port_file = MakeTempFile("mll_port");
   if (!port_file.ok()) return port_file.status();
-  std::vector<std::string> argv = {server_path, "--address=127.0.0.1:0",
-                                   absl::StrCat("--port_file=", *port_file)};
-  argv.insert(argv.end(), extra_args.begin(), extra_args.end());
+  argv.push_back(absl::StrCat("--port_file=", *port_file));
   absl::StatusOr<pid_t> pid = Spawn(argv, "", "");
   if (!pid.ok()) return pid.status();
 
@@ -136,6 +142,7 @@ int ServerProcess::Signal(int signal_number, int grace_seconds) {
   if (pid_ <= 0) return -1;
   int status = 0;
   kill(pid_, signal_number);
+  kill(pid_, SIGCONT);  // A paused process handles the signal once resumed.
   if (!WaitFor(pid_, grace_seconds, &status)) {
     kill(pid_, SIGKILL);
     waitpid(pid_, &status, 0);
@@ -168,6 +175,10 @@ void ServerProcess::Pause() {
     if (all_stopped) return;
     std::this_thread::sleep_for(std::chrono::milliseconds(1));
   }
+}
+
+void ServerProcess::Resume() {
+  if (pid_ > 0) kill(pid_, SIGCONT);
 }
 
 int ServerProcess::Terminate() { return Signal(SIGTERM, 10); }

@@ -21,6 +21,10 @@ class ServerProcess {
   static absl::StatusOr<std::unique_ptr<ServerProcess>> Start(
       const std::string& server_path,
       const std::vector<std::string>& extra_args = {});
+  // Any program that writes its port to the file of a --port_file flag:
+  // `argv --port_file=F`, waited for as Start does (e.g. a delay_proxy).
+  static absl::StatusOr<std::unique_ptr<ServerProcess>> StartProgram(
+      std::vector<std::string> argv);
 
   // Stops the server (SIGTERM, then SIGKILL after 10 s).
   ~ServerProcess();
@@ -30,9 +34,11 @@ class ServerProcess {
 
   // SIGKILL and reap: the server is gone at once, as after a crash.
   void Kill();
-  // SIGSTOP: the server answers nothing until killed (requests sent meanwhile
-  // stay in flight).
+  // SIGSTOP: the server answers nothing until killed or resumed (requests
+  // sent meanwhile stay in flight).
   void Pause();
+  // SIGCONT: a paused server runs again.
+  void Resume();
   // SIGTERM and reap; the exit status as waitpid reports it.
   int Terminate();
 

@@ -16,6 +16,7 @@
 #include "listen_address.h"
 #include "metrics_http.h"
 #include "mll/http2_flow_control.h"
+#include "mll/http2_keepalive.h"
 
 namespace mll::service {
 namespace {
@@ -156,9 +157,11 @@ absl::StatusOr<std::unique_ptr<Server>> Server::Start(
   // gRPC sets SO_REUSEPORT by default, with which a second server on a port
   // in use would share it (and its clients' envs) instead of failing.
   builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
-  SetHttp2FlowControl([&builder](const char* name, int value) {
+  const auto set = [&builder](const char* name, int value) {
     builder.AddChannelArgument(name, value);
-  });
+  };
+  SetHttp2FlowControl(set);
+  SetServerKeepalivePolicy(set);
   ListenAddress asked;
   if (!options.address.empty()) {
     asked = *ParseListenAddress("--address", options.address, kExamplePort,
