@@ -1,8 +1,9 @@
 """docs/cpp.md's API references cover the C++ client's public headers, client_cpp/include/mll/
-client.h and vector_env.h: every class, struct and enum of namespace mll::client has a heading `### \\`Name\\``
-in the reference, every public method of a class or struct is named in its section (as `Method`
-or `Name::Method`), and every free function is named in the reference. A declaration added to
-the header without its documentation fails this test, which lists everything missing.
+client.h (with the plain types of client_types.h, which it includes) and vector_env.h: every
+class, struct and enum of namespace mll::client has a heading `### \\`Name\\`` in the reference,
+every public method of a class or struct is named in its section (as `Method` or
+`Name::Method`), and every free function is named in the reference. A declaration added to a
+header without its documentation fails this test, which lists everything missing.
 
 The header is read with a few regular expressions (comments, then brace-balanced blocks), not a
 C++ parser: it expects the header's style (Google C++ style, one declaration per statement).
@@ -69,9 +70,21 @@ def _namespace_body(text: str) -> str:
     return body
 
 
+def _declarations(header: str) -> str:
+    """The header's namespace mll::client, followed by that of each client header it includes
+    that has no reference of its own (client.h's client_types.h)."""
+    text = (_INCLUDE / header).read_text()
+    bodies = [_namespace_body(_strip_comments(text))]
+    for included in re.findall(r'^#include "mll/(\w+\.h)"', text, flags=re.MULTILINE):
+        if included not in _HEADERS and (_INCLUDE / included).exists():
+            bodies.append(_declarations(included))
+    return "\n".join(bodies)
+
+
 def public_api(header: str = "client.h") -> tuple[dict[str, list[str]], list[str]]:
-    """({type name: its public methods}, free functions) declared in the header."""
-    body = _namespace_body(_strip_comments((_INCLUDE / header).read_text()))
+    """({type name: its public methods}, free functions) declared in the header (and the client
+    headers it includes that have no reference of their own)."""
+    body = _declarations(header)
     types: dict[str, list[str]] = {}
     for match in re.finditer(r"\b(class|struct|enum class|enum)\s+(\w+)\s*(?::[^{;]*)?\{", body):
         # Only declarations at namespace level: skip those inside an earlier type's block.

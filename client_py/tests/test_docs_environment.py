@@ -27,7 +27,7 @@ import multi_lunar_lander as mll
 _REPO = pathlib.Path(__file__).resolve().parents[2]
 _DOC = _REPO / "docs" / "environment.md"
 _FRAME_PNG = _REPO / "docs" / "environment_frame.png"
-_CONFIG_H = _REPO / "server" / "core" / "include" / "mll" / "core" / "env_config.h"
+_CONFIG_H = _REPO / "proto" / "include" / "mll" / "env_spec.h"
 _CONSTANTS_H = _REPO / "server" / "core" / "src" / "constants.h"
 _RENDERER_H = _REPO / "server" / "core" / "include" / "mll" / "core" / "renderer.h"
 
@@ -81,15 +81,15 @@ def _options_in_code() -> dict[str, tuple[str, str, str]]:
     body = body[: body.index("\n\n")].replace("\\\n", " ")
     found = {}
     for kind, name, default, range_call in re.findall(
-        r"X\((\w+),\s*(\w+),\s*([^,]+),\s*::mll::core::OptionRange::(\w+\([^)]*\)?\)?)", body
+        r"X\((\w+),\s*(\w+),\s*([^,]+),\s*::mll::OptionRange::(\w+\([^)]*\)?\)?)", body
     ):
         found[name] = (kind, default.strip(), _describe(range_call))
     return found
 
 
 def _describe(range_call: str) -> str:
-    """OptionRange::Describe() of a range written in env_config.h."""
-    constants = {"::mll::core::kMinLanders": "1", "::mll::core::kMaxLanders": "32"}
+    """OptionRange::Describe() of a range written in env_spec.h."""
+    constants = {"::mll::kMinLanders": "1", "::mll::kMaxLanders": "32"}
     for name, value in constants.items():
         range_call = range_call.replace(name, value)
     kind, _, args = range_call.partition("(")

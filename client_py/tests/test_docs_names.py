@@ -172,7 +172,7 @@ def _absl_flags(*paths: str) -> set[str]:
 
 @functools.lru_cache(maxsize=None)
 def _option_names() -> set[str]:
-    header = (_REPO / "server/core/include/mll/core/env_config.h").read_text(encoding="utf-8")
+    header = (_REPO / "proto/include/mll/env_spec.h").read_text(encoding="utf-8")
     body = header[header.index("#define MLL_ENV_OPTIONS"):]
     body = body[: body.index("\n\n")]
     return set(re.findall(r"X\(\s*[\w:]+\s*,\s*(\w+)\s*,", body))

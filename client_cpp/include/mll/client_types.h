@@ -6,7 +6,8 @@
 // and mll/vector_env.h's VectorEnv, take and return these.
 //
 // No protobuf or gRPC type appears here, and nothing of the simulation core:
-// the option list comes from beside the wire contract.
+// the option list and the observation size come from mll/env_spec.h, beside
+// the wire contract.
 //
 // Everything here is in namespace mll::client.
 #ifndef MLL_CLIENT_TYPES_H_
@@ -20,7 +21,7 @@
 
 #include "absl/strings/string_view.h"
 #include "absl/types/span.h"
-#include "mll/core/env_config.h"
+#include "mll/env_spec.h"
 
 namespace mll::client {
 
@@ -107,8 +108,8 @@ struct SpaceSpec {
 };
 
 // Options of a new environment (docs/environment.md). One optional member
-// per option of MLL_ENV_OPTIONS (mll/core/env_config.h, the one definition
-// of every option's type, name, default, range and help), e.g. n_landers
+// per option of MLL_ENV_OPTIONS (mll/env_spec.h, the one definition of
+// every option's type, name, default, range and help), e.g. n_landers
 // (1..32, default 3), continuous, max_cycles, gravity, ... An unset member
 // takes the server's default; the server validates every value
 // (INVALID_ARGUMENT naming the field, the value and the range).
@@ -156,8 +157,9 @@ struct EnvInfo {
   bool continuous() const { return config.continuous.value_or(false); }
 };
 
-inline constexpr int kRemoteObservationSize = 12;
-inline constexpr int kRemoteContinuousActionSize = 2;
+// An agent's observation and continuous action sizes (mll/env_spec.h).
+inline constexpr int kRemoteObservationSize = ::mll::kObservationSize;
+inline constexpr int kRemoteContinuousActionSize = ::mll::kContinuousActionSize;
 
 // The per-agent columns that a reset, a parallel step and an AEC step all
 // report, indexed by agent.

@@ -1,46 +1,8 @@
 #include "mll/core/env_config.h"
 
-#include <cmath>
-
 #include "absl/strings/str_cat.h"
 
 namespace mll::core {
-
-bool OptionRange::Contains(double value) const {
-  switch (kind_) {
-    case Kind::kAny:
-      return true;
-    case Kind::kIntegers:
-      return value >= low_ && value <= high_;
-    case Kind::kAtLeast:
-      return value >= low_;
-    case Kind::kClosed:
-      return std::isfinite(value) && value >= low_ && value <= high_;
-    case Kind::kOpen:
-      return std::isfinite(value) && value > low_ && value < high_;
-    case Kind::kFinite:
-      return std::isfinite(value);
-  }
-  return false;
-}
-
-std::string OptionRange::Describe() const {
-  switch (kind_) {
-    case Kind::kAny:
-      return "any value";
-    case Kind::kIntegers:
-      return absl::StrCat(low_, "..", high_);
-    case Kind::kAtLeast:
-      return absl::StrCat(">= ", low_);
-    case Kind::kClosed:
-      return absl::StrCat("[", low_, ", ", high_, "]");
-    case Kind::kOpen:
-      return absl::StrCat("(", low_, ", ", high_, "), exclusive");
-    case Kind::kFinite:
-      return "any finite value";
-  }
-  return "";
-}
 
 absl::Status ValidateEnvConfig(const EnvConfig& config) {
   // The fields in list order: the error names the first bad one.
