@@ -47,7 +47,7 @@ constexpr float kNeighborReach = 2.0f;
 // Replaces each neighbor's offset in x[8:12] by its direction times
 // exp(-distance / kNeighborReach); an absent neighbor (zero offset) stays 0.
 void SeeNeighborsByCloseness(std::vector<float>& x) {
-  for (int slot = 8; slot < 12; slot += 2) {
+  for (int slot = 8; slot < kRemoteObservationSize; slot += 2) {
     const float dx = x[slot] * kNeighborScale[0];
     const float dy = x[slot + 1] * kNeighborScale[1];
     const float distance = std::sqrt(dx * dx + dy * dy);
@@ -119,10 +119,10 @@ absl::StatusOr<QNetwork> QNetwork::Parse(const std::string& data,
     if (i > 0) expected += size_t{4} * size * (network.sizes_[i - 1] + 1);
   }
   if (network.neighbor_input_ == NeighborInput::kCloseness &&
-      network.sizes_.front() != 12) {
+      network.sizes_.front() != kRemoteObservationSize) {
     return invalid("has ", network.sizes_.front(),
-                   " inputs; a network that sees neighbors by closeness has "
-                   "12");
+                   " inputs; a network that sees neighbors by closeness has ",
+                   kRemoteObservationSize);
   }
   if (data.size() != expected) {
     return invalid("has ", data.size(), " bytes; layer sizes [",

@@ -78,7 +78,7 @@ class MultiLunarLanderEnv(RemoteEnvBase, AECEnv):
         self.truncations: dict[str, bool] = {}
         self.infos: dict[str, dict] = {}
         self.agent_selection = self.possible_agents[0]
-        self._observations = np.zeros((len(self.possible_agents), 12), dtype=np.float32)
+        self._observations = np.zeros((len(self.possible_agents), self._observation_size), dtype=np.float32)
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> None:
         request = pb.ResetEnvRequest()

@@ -30,9 +30,11 @@
 
 namespace mll::core {
 
-inline constexpr int kObservationSize = 12;
-inline constexpr int kDiscreteActionCount = 4;
-inline constexpr int kContinuousActionSize = 2;
+// mll/env_spec.h (through env_config.h): shared with the service and the
+// client.
+using ::mll::kContinuousActionSize;
+using ::mll::kDiscreteActionCount;
+using ::mll::kObservationSize;
 
 // How a lander's episode ended (or kNone while it is active).
 enum class Outcome : uint8_t {
