@@ -15,7 +15,7 @@ import numpy as np
 
 from . import _arrays, _lease, _record
 from ._errors import MLLError
-from ._channel import Security, parse_addresses
+from ._channel import Security, parse_addresses, step_timeout_value
 from ._remote import Connection, choose_server, config_dict, connect_single, make_config, rebuild, space_from_proto
 from ._server_info import ServerInfo
 from ._stubs import pb
@@ -53,15 +53,19 @@ class RemoteEnvBase:
         tls_server_name: str | None = None,
         token: str | None = None,
         failover: bool | None = None,
+        step_timeout_s: float | None = None,
         **options: Any,
     ):
         """Creates the environment on one server of `address` (see the package docstring for
         address lists, server_index, TLS and token); `options` are the EnvConfig options.
-        failover: None is on with several servers or the embedded one (docs/python.md)."""
+        failover: None is on with several servers or the embedded one (docs/python.md).
+        step_timeout_s: the deadline of each call (None: 5 s; 0: none); a server that misses it
+        counts as lost (failover) or raises DEADLINE_EXCEEDED."""
         super().__init__()  # pettingzoo.AECEnv / ParallelEnv, next in the subclass's MRO.
         security = Security.from_options(tls_root_cert, tls_server_name, token)
+        step_timeout = step_timeout_value(step_timeout_s)
         config = make_config(render_mode, False, options)
-        connection, server_index = connect_single(address, server_index, security)
+        connection, server_index = connect_single(address, server_index, security, step_timeout)
         # What a pickle carries (__reduce__): the arguments that make the same environment on the
         # same server again (the one it lives on now), never the connection.
         addresses = parse_addresses(address)
@@ -71,11 +75,12 @@ class RemoteEnvBase:
             server_index=server_index if addresses else None,
             render_mode=render_mode,
             failover=failover,
+            step_timeout_s=step_timeout_s,
             **security.as_options(),
         )
         self.failover = _record.failover_on(failover, addresses)
         self.failovers = 0  # Failover events so far.
-        self._security, self._addresses = security, addresses
+        self._security, self._addresses, self._step_timeout = security, addresses, step_timeout
         self._server_index = server_index  # Into addresses (0 for the embedded server).
         self._down: set[int] = set()  # Servers found unreachable or draining (probed again at each failover).
         try:
@@ -190,10 +195,11 @@ class RemoteEnvBase:
         old_connection, old_name, old_index = self._connection, self._name, self._server_index
         # One connection per server, to pick from; the env's own among them.
         connections = [
-            old_connection if index == old_index else Connection(address, self._security, self._addresses)
+            old_connection if index == old_index
+            else Connection(address, self._security, self._addresses, self._step_timeout)
             for index, address in enumerate(self._addresses)
         ] or [old_connection]
-        unreachable = cause.code == grpc.StatusCode.UNAVAILABLE
+        unreachable = _record.loses_server(cause)
         target, adopted = old_index, None
         try:
             for _ in range(len(connections) + 1):
@@ -214,9 +220,9 @@ class RemoteEnvBase:
                         self._actions.shape,
                     )
                 except MLLError as error:
-                    if error.code != grpc.StatusCode.UNAVAILABLE:
+                    if not _record.loses_server(error):
                         raise
-                    unreachable = True  # It went too (or drains): the next one.
+                    unreachable = True  # It went too (or drains, or stalls): the next one.
                     continue
                 adopted = connections[target]
                 break

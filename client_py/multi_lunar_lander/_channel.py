@@ -12,6 +12,8 @@ token="" sends no token even when $MLL_TOKEN is set.
 
 from __future__ import annotations
 
+import math
+import numbers
 import os
 from dataclasses import dataclass, field
 from typing import Sequence
@@ -33,7 +35,37 @@ CHANNEL_OPTIONS = (
     # Each channel its own subchannels: a new connection to a server found down (failover's
     # probe) must not inherit the reconnection backoff of the old channel's subchannel.
     ("grpc.use_local_subchannel_pool", 1),
+    # HTTP/2 keepalive as the C++ client's, which the server's ping policy accepts
+    # (proto/include/mll/http2_keepalive.h): a ping every 20 s, idle connections included, and
+    # the connection closed when the server does not acknowledge within 10 s.
+    ("grpc.keepalive_time_ms", 20000),
+    ("grpc.keepalive_timeout_ms", 10000),
+    ("grpc.keepalive_permit_without_calls", 1),
+    ("grpc.http2.max_pings_without_data", 0),
 )
+
+# step_timeout_s's default: how long a server may take to answer one call before it counts as
+# stalled (DEADLINE_EXCEEDED; failover moves the env). The C++ client's ClientOptions::step_timeout
+# default; far above a loaded server's slowest answers (docs/benchmarks.md, "Step deadline").
+DEFAULT_STEP_TIMEOUT_S = 5.0
+
+
+def step_timeout_value(step_timeout_s) -> float | None:
+    """The deadline in seconds of a `step_timeout_s=` argument: None takes the default, 0 means no
+    deadline (returned as None); INVALID_ARGUMENT for anything but a finite number >= 0."""
+    if step_timeout_s is None:
+        return DEFAULT_STEP_TIMEOUT_S
+    if (
+        isinstance(step_timeout_s, bool)
+        or not isinstance(step_timeout_s, numbers.Real)
+        or not math.isfinite(step_timeout_s)
+        or step_timeout_s < 0
+    ):
+        raise invalid_argument(
+            f"step_timeout_s is {step_timeout_s!r}; expected None (the default, {DEFAULT_STEP_TIMEOUT_S:g} s), "
+            "0 (no deadline) or a finite number of seconds > 0"
+        )
+    return float(step_timeout_s) or None
 
 
 def parse_addresses(address: str | Sequence[str] | None) -> tuple[str, ...]:

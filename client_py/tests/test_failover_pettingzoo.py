@@ -1,11 +1,15 @@
 """Failover of the PettingZoo envs (issue "A fleet that loses no episode"): a parallel or AEC env
-whose server dies (kill -9), drains (SIGTERM), or loses it goes on from its record on a reachable
-server; every turn shows the bits of an env that ran without the fault, with the same seed and
-actions. Each test drives the env in lockstep with such a reference env."""
+whose server dies (kill -9), drains (SIGTERM), stalls (SIGSTOP: it answers nothing within
+step_timeout_s), or loses it goes on from its record on a reachable server; every turn shows the
+bits of an env that ran without the fault, with the same seed and actions. Each test drives the env
+in lockstep with such a reference env."""
 
+import contextlib
 import logging
 import os
+import pathlib
 import pickle
+import re
 import signal
 import time
 
@@ -14,7 +18,9 @@ import numpy as np
 import pytest
 
 import multi_lunar_lander as mll
+from multi_lunar_lander import _channel
 from multi_lunar_lander._stubs import pb
+from mll_test_helpers import listed_names
 
 KINDS = {"parallel": mll.parallel_env, "aec": mll.env}
 
@@ -66,16 +72,20 @@ TURNS = {"parallel": _parallel_turn, "aec": _aec_turn}
 def _lockstep(kind, env, reference, turns, fault_at=None, fault=None, seed=7):
     """`turns` turns of `env` and `reference` with the same seed and actions, fault() called
     before turn `fault_at` (mid-episode); asserts every turn shows the same bits in both
-    (pickled: -0.0 and 0.0 differ)."""
+    (pickled: -0.0 and 0.0 differ). Returns the longest turn's seconds."""
     rng = np.random.default_rng(seed)
     first = [e.reset(seed=seed) for e in (env, reference)]
     assert pickle.dumps(first[0]) == pickle.dumps(first[1])
+    slowest = 0.0
     for turn in range(turns):
         if turn == fault_at:
             assert reference.agents, "the fault is meant to come mid-episode"
             fault()
+        began = time.monotonic()
         got, want = TURNS[kind](env, reference, rng)
+        slowest = max(slowest, time.monotonic() - began)
         assert pickle.dumps(got) == pickle.dumps(want), f"turn {turn} differs"
+    return slowest
 
 
 def _lockstep_on(kind, env, twin, turns=60):
@@ -230,3 +240,108 @@ def test_aec_snapshot_restores_clones_and_refuses_the_other_step_api(address):
             assert raised.value.code == grpc.StatusCode.INVALID_ARGUMENT
         for e in (env, elsewhere, twin, parallel):
             e.close()
+
+
+# ------------------------------------------------------------------ stalls
+
+# The bound on the one pause a stall costs: the deadline plus a generous allowance for the probe
+# of the stalled server and the replay (a bound, not a measurement).
+PAUSE_BOUND_S = _channel.DEFAULT_STEP_TIMEOUT_S + 10
+
+
+@contextlib.contextmanager
+def _stopped(server):
+    """The server stopped (SIGSTOP: its sockets stay open, it answers nothing) once every thread
+    reads as stopped (at most 10 s); continued (SIGCONT) on leaving, whatever happened."""
+    os.kill(server.pid, signal.SIGSTOP)
+    try:
+        tasks = pathlib.Path(f"/proc/{server.pid}/task")
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            states = [(task / "stat").read_text().rsplit(")", 1)[1].split()[0] for task in tasks.iterdir()]
+            if all(state in "Tt" for state in states):
+                break
+            time.sleep(0.001)
+        yield
+    finally:
+        os.kill(server.pid, signal.SIGCONT)
+
+
+def _holds_no_env_within(address, seconds):
+    """Whether the server at `address` lists no env within `seconds` (polled)."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        if not listed_names(address):
+            return True
+        time.sleep(0.1)
+    return False
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_stopped_server_costs_one_pause_and_no_bit(kind, caplog):
+    """Default step_timeout_s: the turn that meets the stopped server waits its deadline, then the
+    env moves (one failover, DEADLINE_EXCEEDED) with every bit of a run without the fault. Resumed,
+    the server reclaims the abandoned env by its lease (the client no longer renews it)."""
+    with (
+        mll.ServerProcess(threads=1) as a,
+        mll.ServerProcess(threads=1, idle_timeout_s=2) as b,
+        mll.ServerProcess(threads=1) as c,
+    ):
+        env = KINDS[kind](address=[a.address, b.address, c.address], server_index=1, n_landers=2)
+        reference = KINDS[kind](address=a.address, n_landers=2)
+        turns = 120 if kind == "parallel" else 240
+        with caplog.at_level(logging.WARNING, logger="multi_lunar_lander"), contextlib.ExitStack() as stack:
+            slowest = _lockstep(kind, env, reference, turns, turns // 2 + 5, lambda: stack.enter_context(_stopped(b)))
+            assert env.failovers == 1 and env.address in (a.address, c.address)
+        assert _channel.DEFAULT_STEP_TIMEOUT_S <= slowest <= PAUSE_BOUND_S
+        warnings = _failover_warnings(caplog)
+        assert len(warnings) == 1 and "DEADLINE_EXCEEDED" in warnings[0] and b.address in warnings[0], warnings
+        assert _holds_no_env_within(b.address, 30)
+        for e in (env, reference):
+            e.close()
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_failover_off_a_stopped_server_raises_deadline_exceeded_within_the_timeout(kind):
+    with mll.ServerProcess(threads=1) as server:
+        env = KINDS[kind](address=server.address, n_landers=2, step_timeout_s=1.5)
+        assert not env.failover
+        env.reset(seed=1)
+        with _stopped(server), pytest.raises(mll.MLLError) as raised:
+            began = time.monotonic()
+            try:
+                env.step({agent: 0 for agent in env.agents} if kind == "parallel" else 0)
+            finally:
+                took = time.monotonic() - began
+        assert raised.value.code == grpc.StatusCode.DEADLINE_EXCEEDED
+        assert server.address in raised.value.message and "1.5 s" in raised.value.message, raised.value.message
+        assert 1.5 <= took <= 1.5 + 5
+        assert env.failovers == 0
+        env.close()
+
+
+@pytest.mark.parametrize("value", [-1, float("nan"), float("inf"), "5", True])
+def test_step_timeout_s_must_be_a_finite_number_of_seconds(value, address):
+    with pytest.raises(mll.MLLError) as raised:
+        mll.parallel_env(address=address, step_timeout_s=value)
+    assert raised.value.code == grpc.StatusCode.INVALID_ARGUMENT and "step_timeout_s" in raised.value.message
+
+
+def test_deadline_and_keepalive_settings_are_the_cpp_clients():
+    """step_timeout_s's default and the channels' keepalive are the C++ client's (and the keepalive
+    is what the server's ping policy accepts: proto/include/mll/http2_keepalive.h)."""
+    root = pathlib.Path(__file__).resolve().parents[2]
+    types = (root / "client_cpp/include/mll/client_types.h").read_text()
+    step_ms = int(re.search(r"std::chrono::milliseconds step_timeout\{(\d+)\};", types).group(1))
+    assert _channel.DEFAULT_STEP_TIMEOUT_S == step_ms / 1000
+    keepalive = (root / "proto/include/mll/http2_keepalive.h").read_text()
+
+    def constant(name):
+        return int(re.search(rf"inline constexpr int {name} = (\d+);", keepalive).group(1))
+
+    options = dict(_channel.CHANNEL_OPTIONS)
+    assert options["grpc.keepalive_time_ms"] == constant("kKeepaliveTimeMs")
+    assert options["grpc.keepalive_timeout_ms"] == constant("kKeepaliveTimeoutMs")
+    assert options["grpc.keepalive_permit_without_calls"] == 1
+    assert options["grpc.http2.max_pings_without_data"] == 0
+    assert constant("kKeepaliveMinReceivedPingIntervalMs") <= options["grpc.keepalive_time_ms"] // 2
