@@ -12,17 +12,22 @@
 # checkout's mll_server on loopback. The floor venv then takes gymnasium 1.0.0, gym_vector_env's
 # own floor, and runs its test again. CI runs it after the full suite (.ci/run).
 #
-# Environment: PYTHON (default /usr/bin/python3), MLL_SERVER_BIN (default build/'s server).
+# Environment: PYTHON (default /usr/bin/python3), MLL_SERVER_BIN (default build/'s server),
+# MLL_NATIVE_LIBRARY (default build/'s libmll_native_stream.so, which vector_env needs).
 # pip's downloads come from its cache (~/.cache/pip) after the first run.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 root=$PWD
 python=${PYTHON:-/usr/bin/python3}
 server=${MLL_SERVER_BIN:-$root/build/server/service/mll_server}
-if [ ! -x "$server" ]; then
-  echo "dependency-ranges: no server at $server; build it first (scripts/build.sh)" >&2
-  exit 1
-fi
+# The pure-Python wheel has no native library, which vector_env needs: the build's.
+library=${MLL_NATIVE_LIBRARY:-$root/build/client_cpp/libmll_native_stream.so}
+for built in "$server" "$library"; do
+  if [ ! -e "$built" ]; then
+    echo "dependency-ranges: no $built; build it first (scripts/build.sh)" >&2
+    exit 1
+  fi
+done
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
 start=$SECONDS
@@ -48,7 +53,7 @@ smoke() {  # smoke PYTHON [VAR=VALUE...] [-- PYTEST ARGS...]: the two test files
   while (($#)) && [ "$1" != "--" ]; do vars+=("$1"); shift; done
   (($#)) && shift
   args=("$@")
-  (cd "$work" && env MLL_SERVER_BIN="$server" MLL_EXPECT_INSTALLED=1 "${vars[@]}" \
+  (cd "$work" && env MLL_SERVER_BIN="$server" MLL_NATIVE_LIBRARY="$library" MLL_EXPECT_INSTALLED=1 "${vars[@]}" \
     "$venv_python" -m pytest -q -p no:cacheprovider --disable-warnings "${args[@]}" \
     "$root/client_py/tests/test_dependency_smoke.py" "$root/client_py/tests/test_dependency_stubs.py")
 }

@@ -99,8 +99,9 @@ def parallel_env(address=None, render_mode: str | None = None, **options) -> Mul
 
 
 def vector_env(num_envs: int, address=None, **options) -> VectorEnv:
-    """`num_envs` environments stepped with one StepBatch per server per step, over
-    `transport=` "auto" (the default), "shared_memory", "native" or "grpc" (see VectorEnv)."""
+    """`num_envs` environments stepped with one StepBatch per server per step by the C++ client's
+    engine in the native library, over `transport=` "auto" (the default), "shared_memory" or
+    "native" (see VectorEnv)."""
     return VectorEnv(num_envs, address=address, **options)
 
 

@@ -11,10 +11,9 @@ from __future__ import annotations
 import math
 from typing import Sequence
 
-import grpc
 import numpy as np
 
-from ._errors import MLLError, invalid_argument
+from ._errors import invalid_argument
 from ._stubs import pb
 
 # Wire dtype -> little-endian numpy dtype.
@@ -65,33 +64,6 @@ def to_numpy(array: "pb.Array") -> np.ndarray:
     return from_bytes(array.data, array.dtype, array.shape)
 
 
-class Column:
-    """A result column whose wire dtype and shape the caller knows (e.g. one field of a packed
-    StepBatch): `decode` checks that the message says the same and decodes it with one
-    frombuffer and one conversion, to `as_dtype` (default: the native dtype; bool for 0/1
-    flags). Everything that does not change between calls is worked out once, here."""
-
-    __slots__ = ("name", "dtype", "shape", "as_dtype", "_little", "_shape_list", "_nbytes")
-
-    def __init__(self, name: str, dtype: int, shape: Sequence[int], as_dtype=None):
-        self.name, self.dtype, self.shape = name, dtype, tuple(shape)
-        self._little = _WIRE_TO_NUMPY.get(dtype) or wire_dtype_to_numpy(dtype)
-        self.as_dtype = np.dtype(as_dtype or _WIRE_TO_NATIVE[dtype])
-        self._shape_list = list(self.shape)
-        self._nbytes = math.prod(self.shape) * self._little.itemsize
-
-    def decode(self, array: "pb.Array") -> np.ndarray:
-        data = array.data
-        if array.dtype != self.dtype or len(data) != self._nbytes or array.shape != self._shape_list:
-            dtype = pb.DType.Name(array.dtype) if array.dtype in pb.DType.values() else array.dtype
-            raise MLLError(
-                grpc.StatusCode.INTERNAL,
-                f"{self.name} arrived as {dtype} {list(array.shape)} in {len(data)} bytes; expected "
-                f"{pb.DType.Name(self.dtype)} {self._shape_list} in {self._nbytes} bytes",
-            )
-        return np.frombuffer(data, self._little).astype(self.as_dtype).reshape(self.shape)
-
-
 def to_proto(values, dtype: int, out: "pb.Array | None" = None) -> "pb.Array":
     """Encodes `values` (anything np.asarray accepts) as an `Array` of the wire dtype `dtype`.
 
@@ -118,15 +90,3 @@ def to_proto(values, dtype: int, out: "pb.Array | None" = None) -> "pb.Array":
     out.shape.extend(converted.shape)
     out.data = np.ascontiguousarray(converted).tobytes()
     return out
-
-
-def stack_bytes(chunks: Sequence[bytes], dtype: int, shape: Sequence[int], as_dtype=None) -> np.ndarray:
-    """Decodes many same-shaped arrays' bytes (e.g. one field of every env of a batch) with one
-    join and one frombuffer; `shape` is the shape of the stacked result."""
-    return from_bytes(b"".join(chunks), dtype, shape, as_dtype)
-
-
-def to_rows(values: np.ndarray, dtype: int) -> np.ndarray:
-    """A copy of `values` as the little-endian bytes of the wire dtype `dtype`, one uint8 row per
-    item of the first dimension (e.g. each env's actions)."""
-    return np.array(values, dtype=_WIRE_TO_NUMPY[dtype]).view(np.uint8).reshape(len(values), -1)

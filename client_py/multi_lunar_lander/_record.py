@@ -3,8 +3,10 @@ and the failover that uses it.
 
 An env is deterministic to the bit: it is fully described by its config, the seed of its last
 seeded reset and every operation since (steps with their actions, auto-reset steps, unseeded
-resets, which continue the generator's stream). The clients keep this record to fail over (an
-env lost with its server is recreated elsewhere and replayed) and to give `snapshot()` / restore.
+resets, which continue the generator's stream). The AEC and parallel envs keep this record to fail
+over (an env lost with its server is recreated elsewhere and replayed) and to give `snapshot()` /
+restore; vector envs keep theirs in the C++ engine (client_cpp/src/env_record.cc), in the same
+snapshot format.
 
 Operations (one byte each) and their action row (the wire bytes of the step's actions: int32
 [n_landers] or float32 [n_landers, 2]; zeros where ignored):
@@ -77,12 +79,9 @@ class EnvRecord:
 
 
 class GrowingLog:
-    """Operations of one or more envs: row r holds each env's operation kind (0: none) and action
-    bytes. append() adds a row for every env (envs that act together: a vector env's synchronous
-    steps, a single env's steps); append_envs() adds one operation for some envs, each at its own
-    next row (envs that step on their own: EnvPool's send/recv), so each env's operations stay
-    dense, row_bytes + 1 bytes each. Grows by doubling; past MAX_RECORD_STEPS rows it stops
-    growing and is `full` (the records are incomplete)."""
+    """Operations of one or more envs that act together: row r holds each env's operation kind
+    (0: none) and action bytes. Grows by doubling; past MAX_RECORD_STEPS rows it stops growing
+    and is `full` (the records are incomplete)."""
 
     def __init__(self, num_envs: int, row_bytes: int):
         self.num_envs, self.row_bytes = num_envs, row_bytes
@@ -90,72 +89,31 @@ class GrowingLog:
         self.actions = np.zeros((64, num_envs, row_bytes), np.uint8)
         self.length = 0
         self.full = False
-        # Each env's next row for append_envs, valid while `length` is `_ends_length`: an append()
-        # or clear() since puts every env's next row at `length`.
-        self._ends = np.zeros(num_envs, np.int64)
-        self._ends_length = 0
 
     def clear(self) -> None:
         self.length = 0
         self.full = False
-        self._ends[:] = 0
-        self._ends_length = 0
-
-    def _grow(self, rows: int) -> None:
-        """Room for at least `rows` rows (at most MAX_RECORD_STEPS), doubling."""
-        capacity = self.kinds.shape[0]
-        while capacity < rows:
-            capacity *= 2
-        capacity = min(capacity, MAX_RECORD_STEPS)
-        self.kinds = np.resize(self.kinds, (capacity, self.num_envs))
-        self.actions = np.resize(self.actions, (capacity, self.num_envs, self.row_bytes))
 
     def append(self, kinds, actions) -> None:
         """One row: kinds (num_envs,) uint8, actions (num_envs, row_bytes) uint8 or bytes."""
         if self.length >= MAX_RECORD_STEPS:
             self.full = True
             return
-        if self.length == self.kinds.shape[0]:
-            self._grow(self.length + 1)
+        if self.length == self.kinds.shape[0]:  # Doubled, up to MAX_RECORD_STEPS rows.
+            capacity = min(2 * self.length, MAX_RECORD_STEPS)
+            self.kinds = np.resize(self.kinds, (capacity, self.num_envs))
+            self.actions = np.resize(self.actions, (capacity, self.num_envs, self.row_bytes))
         self.kinds[self.length] = kinds
         if isinstance(actions, (bytes, bytearray, memoryview)):
             actions = np.frombuffer(actions, np.uint8).reshape(self.num_envs, self.row_bytes)
         self.actions[self.length] = actions
         self.length += 1
 
-    def append_envs(self, envs: np.ndarray, kinds: np.ndarray, actions: np.ndarray) -> None:
-        """One operation of each of `envs` (distinct env indices), each at its env's next row:
-        kinds (len(envs),) uint8, actions (len(envs), row_bytes) uint8."""
-        ends = self.ends()
-        rows = ends[envs]
-        top = int(rows.max()) + 1
-        if top > MAX_RECORD_STEPS:
-            self.full = True
-            return
-        if top > self.kinds.shape[0]:
-            self._grow(top)
-        self.kinds[rows, envs] = kinds
-        self.actions[rows, envs] = actions
-        ends[envs] = rows + 1
-        self.length = self._ends_length = max(self.length, top)
-
-    def ends(self) -> np.ndarray:
-        """Each env's next row (past its last operation), int64 (num_envs,)."""
-        if self._ends_length != self.length:
-            # Rows were appended for every env since append_envs: the rows an env skipped before
-            # them hold nothing of it, and every env goes on after them.
-            for env in np.flatnonzero(self._ends < self._ends_length):
-                self.kinds[self._ends[env] : self._ends_length, env] = 0
-            self._ends[:] = self.length
-            self._ends_length = self.length
-        return self._ends
-
     def of_env(self, env: int, start: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """Env `env`'s operations from row `start` on: (kinds, action rows)."""
-        end = int(self.ends()[env])
-        kinds = self.kinds[start:end, env]
+        kinds = self.kinds[start : self.length, env]
         used = kinds != 0
-        return kinds[used].copy(), self.actions[start:end, env][used].copy()
+        return kinds[used].copy(), self.actions[start : self.length, env][used].copy()
 
 
 def encode_snapshot(
@@ -392,17 +350,13 @@ def failover_on(failover: bool | None, addresses: Sequence[str]) -> bool:
     return len(addresses) != 1 if failover is None else bool(failover)
 
 
-def loses_server(error: MLLError) -> bool:
-    """Whether `error` says the server is lost: unreachable (UNAVAILABLE, a draining server's
-    "draining: ..." included) or stalled (it missed the call's deadline, step_timeout_s:
-    DEADLINE_EXCEEDED; gRPC cancelled the call, so a late answer is never taken)."""
-    return error.code in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED)
-
-
 def loses_env(error: MLLError, name: str) -> bool:
-    """Whether `error`, of a call on env `name`, is one failover handles: the server lost
-    (loses_server), or the env gone from a server that answers (NOT_FOUND naming it)."""
-    return loses_server(error) or (error.code == grpc.StatusCode.NOT_FOUND and name in error.message)
+    """Whether `error`, of a call on env `name`, is one failover handles: the server unreachable
+    (UNAVAILABLE, a draining server's "draining: ..." included), or the env gone from a server
+    that answers (NOT_FOUND naming it)."""
+    return error.code == grpc.StatusCode.UNAVAILABLE or (
+        error.code == grpc.StatusCode.NOT_FOUND and name in error.message
+    )
 
 
 def gave_up(tries: int) -> MLLError:
@@ -433,7 +387,7 @@ def usable_servers(connections: list[Connection], down: set[int]) -> list[int]:
 def log_failover(
     client: str, moved: int, cause: MLLError, targets: Iterable[str], operations: int, began: float, detail: str = ""
 ) -> None:
-    """The one warning of a failover event of `client` (e.g. "vector_env"): `moved` envs lost to
+    """The one warning of a failover event of `client` (e.g. "MultiLunarLanderEnv"): `moved` envs lost to
     `cause`, recreated on `targets` (addresses) with `operations` replayed since `began`
     (time.monotonic()); `detail` is appended."""
     _LOG.warning(

@@ -4,10 +4,8 @@ encoding and the per-agent info dicts."""
 
 from __future__ import annotations
 
-import collections
 import numbers
 import os
-import queue
 import weakref
 import threading
 from typing import Any, Callable, NamedTuple, Sequence
@@ -18,8 +16,8 @@ from gymnasium import spaces
 
 from . import _arrays, _server_info
 from ._actions import check_actions
-from ._channel import DEFAULT_STEP_TIMEOUT_S, Security, open_channel, parse_addresses
-from ._errors import MLLError, from_item_error, from_rpc_error, invalid_argument
+from ._channel import Security, open_channel, parse_addresses
+from ._errors import MLLError, from_rpc_error, invalid_argument
 from ._server import acquire_embedded
 from ._stubs import pb, pb_grpc
 
@@ -177,18 +175,16 @@ def choose_server(addresses: tuple[str, ...], server_index: int | None) -> int:
     return placed % count
 
 
-def connect_single(
-    address, server_index: int | None, security: Security, step_timeout_s: float | None = DEFAULT_STEP_TIMEOUT_S
-) -> tuple["Connection", int]:
+def connect_single(address, server_index: int | None, security: Security) -> tuple["Connection", int]:
     """The connection of one AEC or parallel environment, pinned to one of the servers of
     `address` for its lifetime (address=None: the embedded server), and that server's index."""
     addresses = parse_addresses(address)
     if not addresses:
         if server_index not in (None, 0):
             raise invalid_argument(f"server_index is {server_index!r} but address is None (one embedded server)")
-        return Connection(None, security, step_timeout_s=step_timeout_s), 0
+        return Connection(None, security), 0
     index = choose_server(addresses, server_index)
-    return Connection(addresses[index], security, addresses, step_timeout_s), index
+    return Connection(addresses[index], security, addresses), index
 
 
 def rebuild(cls, kwargs: dict):
@@ -196,47 +192,61 @@ def rebuild(cls, kwargs: dict):
     return cls(**kwargs)
 
 
+def check_process(pid: int, what: str) -> None:
+    """FAILED_PRECONDITION in a forked child of process `pid`, which opened `what` (e.g. "this
+    environment's connection to host:port"): a child must not use its parent's connections."""
+    if os.getpid() != pid:
+        raise MLLError(
+            grpc.StatusCode.FAILED_PRECONDITION,
+            f"{what} was opened by process {pid}, not this one ({os.getpid()}); a forked process must make its "
+            "own environments (pickle the environment object, as SuperSuit and multiprocessing do, or create a "
+            "new one)",
+        )
+
+
+def describe_server(address: str, security: Security, peers: Sequence[str] = (), embedded: bool = False) -> str:
+    """The server at `address` as an error that did not reach it names it: how the client connects
+    (TLS, token), the other servers given (`peers`) and what to try."""
+    if embedded:
+        return f"embedded mll_server at {address}"
+    others = [peer for peer in peers if peer != address]
+    hint = (
+        "the server's certificate must be signed by tls_root_cert and name the host or tls_server_name"
+        if security.tls
+        else "a TLS server needs tls_root_cert="
+    )
+    return (
+        f"mll_server at {address} ({security.describe()}"
+        + (f"; the servers given: {', '.join(peers)}" if others else "")
+        + f"; start one with `mll_server --address={address}`, or pass address=None for an "
+        f"embedded server; {hint})"
+    )
+
+
+def embedded_lease(security: Security):
+    """A lease on this process's embedded server (address=None), which speaks plaintext:
+    INVALID_ARGUMENT when `security` asks for TLS."""
+    if security.tls:
+        raise invalid_argument(
+            "tls_root_cert is set but address is None; the embedded server speaks "
+            "plaintext on loopback, so pass address='host:port' of a TLS server"
+        )
+    return acquire_embedded()
+
+
 class Connection:
     """A channel and stub to one server. `address=None` leases the shared embedded server.
 
     `peers` are all the addresses the caller was given (this one among them), named in the
-    message of a server that cannot be reached. Every call carries `security`'s token metadata,
-    and a deadline: its `timeout`, else `step_timeout_s` (None: none); a server that misses it
-    raises DEADLINE_EXCEEDED naming the server and the timeout (gRPC cancels the call, so its late
-    answer is never taken).
+    message of a server that cannot be reached. Every call carries `security`'s token metadata.
     """
 
-    def __init__(
-        self,
-        address: str | None,
-        security: Security = Security(),
-        peers: Sequence[str] = (),
-        step_timeout_s: float | None = DEFAULT_STEP_TIMEOUT_S,
-    ):
-        self.step_timeout_s = step_timeout_s
+    def __init__(self, address: str | None, security: Security = Security(), peers: Sequence[str] = ()):
         self._lease = None
         if address is None:
-            if security.tls:
-                raise invalid_argument(
-                    "tls_root_cert is set but address is None; the embedded server speaks "
-                    "plaintext on loopback, so pass address='host:port' of a TLS server"
-                )
-            self._lease = acquire_embedded()
+            self._lease = embedded_lease(security)
             address = self._lease.address
-            self._what = f"embedded mll_server at {address}"
-        else:
-            others = [peer for peer in peers if peer != address]
-            hint = (
-                "the server's certificate must be signed by tls_root_cert and name the host or tls_server_name"
-                if security.tls
-                else "a TLS server needs tls_root_cert="
-            )
-            self._what = (
-                f"mll_server at {address} ({security.describe()}"
-                + (f"; the servers given: {', '.join(peers)}" if others else "")
-                + f"; start one with `mll_server --address={address}`, or pass address=None for an "
-                f"embedded server; {hint})"
-            )
+        self._what = describe_server(address, security, peers, embedded=self._lease is not None)
         self.address = address
         self.security = security
         self._peers = tuple(peers)
@@ -253,20 +263,12 @@ class Connection:
         """A new connection made as this one was: a new channel to the same address (which
         resolves a host name again and keeps none of this channel's reconnection backoff), or for
         the embedded server a new lease, which restarts the server if it died."""
-        return Connection(
-            None if self._lease is not None else self.address, self.security, self._peers, self.step_timeout_s
-        )
+        return Connection(None if self._lease is not None else self.address, self.security, self._peers)
 
     def check_process(self) -> None:
         """A forked child inherits its parent's objects but must not use their connections: the
         socket is the parent's. Raises FAILED_PRECONDITION there, before any byte is sent."""
-        if os.getpid() != self._pid:
-            raise MLLError(
-                grpc.StatusCode.FAILED_PRECONDITION,
-                f"this environment's connection to {self.address} was opened by process {self._pid}, "
-                f"not this one ({os.getpid()}); a forked process must make its own environments "
-                "(pickle the environment object, as SuperSuit and multiprocessing do, or create a new one)",
-            )
+        check_process(self._pid, f"this environment's connection to {self.address}")
 
     @property
     def server_info(self) -> _server_info.ServerInfo:
@@ -283,40 +285,25 @@ class Connection:
         _server_info.check_compatible(self.server_info, self.address, needs, feature)
 
     def call(self, method: str, request, timeout: float | None = None):
-        """Calls a unary method (deadline: `timeout`, else step_timeout_s); a failure raises MLLError
-        with the server's code and message."""
+        """Calls a unary method; a failure raises MLLError with the server's code and message."""
         self.check_process()
-        deadline = self.step_timeout_s if timeout is None else timeout
         try:
-            return getattr(self.stub, method)(request, timeout=deadline, metadata=self._metadata)
+            return getattr(self.stub, method)(request, timeout=timeout, metadata=self._metadata)
         except grpc.RpcError as error:
-            raise self._error(error, method, deadline, timeout is None) from None
+            raise from_rpc_error(error, self._what) from None
 
     def future(self, method: str, request) -> Callable[[], Any]:
-        """Starts a unary call (deadline: step_timeout_s); the returned function waits for it
-        (raising MLLError)."""
+        """Starts a unary call; the returned function waits for it (raising MLLError)."""
         self.check_process()
-        call = getattr(self.stub, method).future(request, timeout=self.step_timeout_s, metadata=self._metadata)
+        call = getattr(self.stub, method).future(request, metadata=self._metadata)
 
         def result():
             try:
                 return call.result()
             except grpc.RpcError as error:
-                raise self._error(error, method, self.step_timeout_s, True) from None
+                raise from_rpc_error(error, self._what) from None
 
         return result
-
-    def _error(self, error: grpc.RpcError, method: str, deadline: float | None, step: bool) -> MLLError:
-        """The MLLError of a failed call of `method`; a missed `deadline` says which server missed
-        what timeout (`step`: step_timeout_s's)."""
-        if deadline is not None and error.code() == grpc.StatusCode.DEADLINE_EXCEEDED:
-            return MLLError(
-                grpc.StatusCode.DEADLINE_EXCEEDED,
-                f"mll_server at {self.address} did not answer {method} within {deadline:g} s"
-                + (" (step_timeout_s)" if step else "")
-                + "; the call is cancelled (a late answer is never taken)",
-            )
-        return from_rpc_error(error, self._what)
 
     @staticmethod
     def _close(channel, lease, pid: int) -> None:
@@ -332,99 +319,3 @@ class Connection:
     @property
     def closed(self) -> bool:
         return not self._finalizer.alive
-
-
-# Ends a SessionStream's request iterator (the stream half-closes).
-_END_OF_REQUESTS = object()
-
-
-class SessionStream:
-    """One `Session` stream to a connection's server: send() puts a SessionRequest on the stream,
-    receive() waits for the answer to the oldest request not yet received (several may be in
-    flight: the server answers a stream's requests in order). An operation on an open
-    stream skips a unary call's set-up on both sides (no new call, HTTP/2 stream, headers or
-    trailers): a 64-env packed StepBatch round trip takes about 80-100 us less. Opened by the first send(); a stream that breaks raises MLLError from receive()
-    and is opened anew by the next send(). Envs are not created on it, so its end deletes none."""
-
-    def __init__(self, connection: "Connection"):
-        self._connection = connection
-        self._requests: queue.SimpleQueue | None = None
-        self._responses = None
-        self._sequence = 0
-        self._awaited: collections.deque[int] = collections.deque()  # Sequences sent, not received.
-        self._finalizer = None
-        # Counts close() calls: the session's state (e.g. its batch handles) ends with each.
-        self.closes = 0
-
-    def _number(self, request: "pb.SessionRequest") -> None:
-        """Gives `request` the next sequence number."""
-        self._sequence += 1
-        request.sequence = self._sequence
-
-    @property
-    def in_flight(self) -> int:
-        """Requests sent and not yet received."""
-        return len(self._awaited)
-
-    def send(self, request: "pb.SessionRequest") -> None:
-        """Puts `request` (its sequence number set here) on the stream; the caller must not change
-        it until receive() has returned."""
-        self._connection.check_process()
-        if self._responses is None:
-            self._requests = queue.SimpleQueue()
-            self._responses = self._connection.stub.Session(
-                iter(self._requests.get, _END_OF_REQUESTS), metadata=self._connection._metadata
-            )
-            # Ends gRPC's request-reading thread even if close() is never called.
-            self._finalizer = weakref.finalize(self, self._requests.put, _END_OF_REQUESTS)
-        self._number(request)
-        self._requests.put(request)
-        self._awaited.append(request.sequence)
-
-    def receive(self) -> "pb.SessionResponse":
-        """The answer to the oldest send() not yet received; the operation's error, or the
-        stream's, as MLLError."""
-        try:
-            response = next(self._responses)
-        except grpc.RpcError as error:
-            self.close()
-            raise from_rpc_error(error, self._connection._what) from None
-        except StopIteration:
-            self.close()
-            raise MLLError(
-                grpc.StatusCode.UNAVAILABLE, f"{self._connection._what}: the server ended the Session stream"
-            ) from None
-        except BaseException:  # E.g. Ctrl-C while the server is slow: the answer is not awaited.
-            self.close()
-            raise
-        return self._answer(response)
-
-    def _answer(self, response: "pb.SessionResponse") -> "pb.SessionResponse":
-        """`response` if it answers the oldest send() not yet received; its operation's error as
-        MLLError; INTERNAL (and the stream closed) if it answers another request."""
-        self._check_sequence(response)
-        if response.HasField("error"):
-            raise from_item_error(response.error.code, response.error.message)
-        return response
-
-    def _check_sequence(self, response: "pb.SessionResponse") -> None:
-        """INTERNAL (and the stream closed) unless `response` answers the oldest send() not yet
-        received."""
-        expected = self._awaited.popleft() if self._awaited else None
-        if response.sequence != expected:
-            self.close()
-            raise MLLError(
-                grpc.StatusCode.INTERNAL,
-                f"{self._connection.address} answered Session request {response.sequence}; "
-                f"expected the answer to {expected}",
-            )
-
-    def close(self) -> None:
-        """Half-closes and cancels the stream (idempotent); the next send() opens a new one. What
-        was in flight is lost."""
-        self._awaited.clear()
-        self.closes += 1
-        if self._responses is not None:
-            self._finalizer()
-            self._responses.cancel()
-            self._responses = self._requests = self._finalizer = None

@@ -108,7 +108,7 @@ class GymVectorEnv(gymnasium.vector.VectorEnv):
     """`num_envs` Multi Lunar Lander environments as a gymnasium.vector.VectorEnv of
     num_envs x n_landers sub-environments, one per lander (see the module docstring for the
     layout, NEXT_STEP autoreset and the idle-lander rule). Arguments as for `vector_env`,
-    transport= included (how the steps travel: "auto", "shared_memory", "native" or "grpc").
+    transport= included (how the steps travel: "auto", "shared_memory" or "native").
 
     reset(seed=None, options=None): seed s gives env i the seed s + i (the same bits as
       vector_env(...).reset(seed=s)); None continues each env's generator stream.

@@ -122,3 +122,49 @@ def rollout(vector, seed, steps):
         record.extend(result[:-1])
         record.extend(result[-1][key] for key in sorted(result[-1]))
     return record
+
+
+def check_against_parallel_envs(vector, seed, steps):
+    """Steps `vector` as rollout does (reset(seed), then `steps` random steps) beside one
+    parallel_env per env with the same options, seeds and actions (a code path of its own: unary
+    grpcio calls, no vector engine) and checks every row against them bit for bit: each
+    transition (active) row's reward, termination and truncation, and observation while the lander
+    flies on; each auto-reset row's new episode (an unseeded reset of the parallel env); and that
+    a row is active exactly when the parallel env's lander acted. Returns how many auto-resets
+    there were."""
+    options = dict(vector.config, address=vector.address)
+    envs = [mll.parallel_env(**options) for _ in range(vector.num_envs)]
+    agents = vector.possible_agents
+    rng = np.random.default_rng(seed)
+    auto_resets = 0
+    try:
+        observations, _ = vector.reset(seed=seed)
+        for i, env in enumerate(envs):
+            expected, _ = env.reset(seed=seed + i)
+            assert all(same_bits(observations[i, k], expected[agent]) for k, agent in enumerate(agents))
+        for _ in range(steps):
+            actions = random_actions(rng, (vector.num_envs, vector.n_landers), vector.continuous)
+            observations, rewards, terminations, truncations, active, infos = vector.step(actions)
+            for i, env in enumerate(envs):
+                if not env.agents:  # Its episode was over: the vector env started the next one.
+                    expected, _ = env.reset()
+                    assert infos["auto_reset"][i] and not active[i].any()
+                    assert all(same_bits(observations[i, k], expected[agent]) for k, agent in enumerate(agents))
+                    auto_resets += 1
+                    continue
+                assert not infos["auto_reset"][i]
+                obs, rew, term, trunc, _ = env.step({agent: actions[i, k] for k, agent in enumerate(agents)
+                                                     if agent in env.agents})
+                for k, agent in enumerate(agents):
+                    assert active[i, k] == (agent in rew)
+                    if agent not in rew:
+                        continue
+                    assert same_bits(rewards[i, k], np.float32(rew[agent]))
+                    assert (terminations[i, k], truncations[i, k]) == (term[agent], trunc[agent])
+                    if not (term[agent] or trunc[agent]):
+                        assert same_bits(observations[i, k], obs[agent])
+                assert infos["episode_over"][i] == (not env.agents)
+    finally:
+        for env in envs:
+            env.close()
+    return auto_resets

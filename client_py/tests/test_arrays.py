@@ -50,32 +50,3 @@ def test_non_integral_values_are_not_truncated_into_int32():
         _arrays.to_proto(np.array([1.0, 2.5]), pb.DTYPE_INT32)
     assert caught.value.code == grpc.StatusCode.INVALID_ARGUMENT
     assert _arrays.to_numpy(_arrays.to_proto(np.array([1.0, 3.0]), pb.DTYPE_INT32)).tolist() == [1, 3]
-
-
-def test_stack_bytes_joins_many_messages_in_order():
-    parts = [np.full((2, 12), i, dtype=np.float32) for i in range(4)]
-    stacked = _arrays.stack_bytes(
-        [_arrays.to_proto(p, pb.DTYPE_FLOAT32).data for p in parts], pb.DTYPE_FLOAT32, (4, 2, 12)
-    )
-    np.testing.assert_array_equal(stacked, np.stack(parts))
-
-
-def test_to_rows_are_a_copy_in_the_wire_dtype_little_endian_one_row_per_item():
-    block = np.arange(12, dtype=">i8").reshape(3, 4)
-    rows = _arrays.to_rows(block[::2], pb.DTYPE_INT32)
-    assert rows.dtype == np.uint8 and rows.shape == (2, 16)
-    assert rows.tobytes() == np.array([[0, 1, 2, 3], [8, 9, 10, 11]], "<i4").tobytes()
-    block[0, 0] = 7  # The rows are the values when sent, whatever the caller does next.
-    assert rows[0, 0] == 0
-
-
-def test_column_checks_dtype_and_shape_and_converts_once():
-    flags = _arrays.to_proto(np.array([[0, 1], [1, 0]], np.uint8), pb.DTYPE_UINT8)
-    decoded = _arrays.Column("terminations", pb.DTYPE_UINT8, (2, 2), bool).decode(flags)
-    assert decoded.dtype == bool and decoded.tolist() == [[False, True], [True, False]]
-    assert decoded.flags.writeable
-    for dtype, shape in ((pb.DTYPE_INT32, (2, 2)), (pb.DTYPE_UINT8, (4,)), (pb.DTYPE_UINT8, (2, 3))):
-        with pytest.raises(MLLError) as caught:
-            _arrays.Column("terminations", dtype, shape).decode(flags)
-        assert caught.value.code == grpc.StatusCode.INTERNAL
-        assert "terminations arrived as DTYPE_UINT8 [2, 2] in 4 bytes; expected" in caught.value.message

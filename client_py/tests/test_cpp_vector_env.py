@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 import multi_lunar_lander as mll
-from multi_lunar_lander import _native
 from multi_lunar_lander._server import checkout_build_path
 
 CLI = pathlib.Path(os.environ.get("MLL_CLI_BIN") or checkout_build_path("client_cpp", "mll_cli"))
@@ -72,8 +71,7 @@ def test_mll_cli_play_and_python_vector_env_fly_the_same_bits(address, cpp_trans
     )
     assert lines[-1]["transport"] == cpp_transport
     cpp = _cli_episode(lines)
-    python_transports = ["grpc"] + (["native", "shared_memory"] if _native.available() else [])
-    for transport in python_transports:
+    for transport in ("native", "shared_memory"):
         with mll.vector_env(N_ENVS, address=address, n_landers=N_LANDERS, transport=transport) as vector:
             assert _python_episode(vector) == cpp, transport
     assert all(steps > 20 for steps, *_ in cpp)  # Real flights.

@@ -19,7 +19,7 @@ import grpc
 import pytest
 
 import multi_lunar_lander as mll
-from multi_lunar_lander import _native, _server, _server_info
+from multi_lunar_lander import _server, _server_info
 from multi_lunar_lander._stubs import pb, pb_grpc
 
 from mll_test_helpers import wait_draining
@@ -181,8 +181,6 @@ def max_envs(tmp_path):
 
 
 def shared_memory_off(tmp_path):
-    if not _native.uses_native("auto"):
-        pytest.skip("the native library is not built")
     with mll.ServerProcess(threads=1, extra_args=("--shared_memory_sessions=0",)) as process:
         return _message(mll.vector_env, 2, address=process.address, transport="shared_memory"), process.address
 
@@ -191,7 +189,7 @@ def no_native_library(tmp_path):
     code = (
         "import multi_lunar_lander as mll, sys\n"
         "try:\n"
-        "    mll.vector_env(1, address=sys.argv[1], transport='native')\n"
+        "    mll.vector_env(1, address=sys.argv[1])\n"
         "except mll.MLLError as error:\n"
         "    print(str(error))\n"
     )

@@ -128,9 +128,9 @@ def test_vector_env_snapshot_moves_an_env_between_server_processes(address):
         vector.reset(seed=21)
         target.reset(seed=99)
         for _ in range(70):  # Past max_cycles: auto-resets in the record.
-            vector.step(random_actions(rng, (3, 2), False))
+            last = vector.step(random_actions(rng, (3, 2), False))[0]
         observations = target.restore_env(2, vector.env_snapshot(1))
-        assert same_bits(observations, vector._last_observations[1])
+        assert same_bits(observations, last[1])
         for _ in range(50):
             actions = random_actions(rng, (3, 2), False)
             want = vector.step(actions)

@@ -13,14 +13,13 @@ import numpy as np
 import pytest
 
 import multi_lunar_lander as mll
-from multi_lunar_lander import _native
 
 from mll_test_helpers import random_actions, wait_draining
 
 NUM_ENVS, BATCH, RECVS, KILL_AT = 24, 8, 120, 60
 OPTIONS = dict(n_landers=2, max_cycles=30)  # Each env's episodes end (truncated) within its ~40 steps.
 SECONDS = 120  # Every loop's time bound.
-TRANSPORTS = ["grpc"] + (["native", "shared_memory"] if _native.available() else [])
+TRANSPORTS = ["native", "shared_memory"]
 
 
 def _kill(server):

@@ -1,10 +1,12 @@
-"""vector_env's transport= option: steps over the native library (libmll_native_stream.so), on
-its gRPC stream or through shared memory, give the same bits and the same errors as steps over
-grpcio; the option is checked, survives
-pickling, and "auto" falls back to grpcio when the library is missing."""
+"""vector_env's transport= option: its steps travel over the native library's gRPC C++ stream or
+through shared memory, with the same bits as each other and as parallel envs stepped alone, and the
+same errors; the option is checked and survives pickling; "grpc" is gone, and without the library
+vector_env says how to get it."""
 
 import gc
+import json
 import multiprocessing
+import os
 import pickle
 
 import grpc
@@ -12,17 +14,14 @@ import numpy as np
 import pytest
 
 import multi_lunar_lander as mll
+import subprocess
+import sys
+
 from multi_lunar_lander import _native
-from multi_lunar_lander._channel import Security
-from multi_lunar_lander._remote import Connection
 from multi_lunar_lander._stubs import pb
 
-from mll_test_helpers import delete_env, rollout, same_bits
+from mll_test_helpers import check_against_parallel_envs, delete_env, rollout, same_bits
 
-needs_native = pytest.mark.skipif(
-    not _native.available(),
-    reason=f"{_native.LIBRARY_NAME} is not built (looked at {', '.join(map(str, _native.library_paths()))})",
-)
 TOKEN = "native-stream-token"
 
 
@@ -40,37 +39,33 @@ def auth_server(tmp_path_factory):
         yield process.address
 
 
-@needs_native
 @pytest.mark.parametrize("n_landers", [1, 3])
 @pytest.mark.parametrize("servers", ["one", "two"])
-@pytest.mark.parametrize("transport", ["native", "shared_memory"])
-def test_native_and_grpc_give_the_same_bits_across_auto_resets(
-        address, two_servers, continuous, n_landers, servers, transport):
+def test_native_and_shared_memory_give_the_bits_of_parallel_envs_across_auto_resets(
+        address, two_servers, continuous, n_landers, servers):
     # max_cycles 20 over 60 steps auto-resets every env at least twice.
     where = address if servers == "one" else list(two_servers)
     options = dict(address=where, n_landers=n_landers, continuous=continuous, max_cycles=20)
-    with mll.vector_env(5, transport=transport, **options) as native, \
-            mll.vector_env(5, transport="grpc", **options) as grpcio:
-        assert (native.transport, grpcio.transport) == (transport, "grpc")
-        ours, reference = rollout(native, 9, 60), rollout(grpcio, 9, 60)
+    with mll.vector_env(5, transport="native", **options) as native, \
+            mll.vector_env(5, transport="shared_memory", **options) as shared:
+        assert (native.transport, shared.transport) == ("native", "shared_memory")
+        ours, reference = rollout(shared, 9, 60), rollout(native, 9, 60)
+        assert check_against_parallel_envs(native, 9, 60) >= 10
     assert len(ours) == len(reference)
     for got, expected in zip(ours, reference):
         assert same_bits(got, expected) and got.dtype == expected.dtype
 
 
-@needs_native
 def test_auto_uses_the_native_library_and_shared_memory_with_a_local_server(address):
     with mll.vector_env(2, address=address, n_landers=1) as vector:
         assert vector.transport == "shared_memory"
-        assert isinstance(vector._servers[0].stream, _native.NativeSessionStream)
 
 
-@needs_native
 def test_step_async_overlaps_two_native_vector_envs(address):
     options = dict(address=address, n_landers=2, max_cycles=30)
     with mll.vector_env(3, transport="native", **options) as first, \
             mll.vector_env(3, transport="native", **options) as second, \
-            mll.vector_env(3, transport="grpc", **options) as reference:
+            mll.vector_env(3, transport="shared_memory", **options) as reference:
         for vector in (first, second, reference):
             vector.reset(seed=4)
         rng = np.random.default_rng(2)
@@ -84,8 +79,7 @@ def test_step_async_overlaps_two_native_vector_envs(address):
                     assert same_bits(got, want)
 
 
-@needs_native
-@pytest.mark.parametrize("transport", ["native", "grpc"])
+@pytest.mark.parametrize("transport", ["native", "shared_memory"])
 def test_an_env_deleted_behind_the_vector_envs_back_is_not_found_with_its_index(address, raw_stub, transport):
     with mll.vector_env(3, address=address, n_landers=1, transport=transport) as vector:
         vector.reset(seed=0)
@@ -101,7 +95,6 @@ def test_an_env_deleted_behind_the_vector_envs_back_is_not_found_with_its_index(
             vector.step(np.zeros((3, 1), np.int32))
 
 
-@needs_native
 def test_the_token_goes_with_native_steps_and_a_wrong_one_is_unauthenticated(auth_server, monkeypatch):
     monkeypatch.delenv(mll.TOKEN_ENV, raising=False)
     with mll.vector_env(2, address=auth_server, n_landers=1, token=TOKEN, transport="native") as vector:
@@ -109,20 +102,12 @@ def test_the_token_goes_with_native_steps_and_a_wrong_one_is_unauthenticated(aut
         observations = vector.step(np.zeros((2, 1), np.int32))[0]
         assert observations.shape == (2, 1, 12) and np.isfinite(observations).all()
     for token in ("wrong-token", ""):
-        connection = Connection(auth_server, Security.from_options(token=token))
-        stream = _native.NativeSessionStream(connection)
-        try:
-            stream.send(pb.SessionRequest(get_env=pb.GetEnvRequest(name="envs/any")))
-            with pytest.raises(mll.MLLError) as caught:
-                stream.receive()
-            assert caught.value.code == grpc.StatusCode.UNAUTHENTICATED
-            assert "authorization" in caught.value.message and "wrong-token" not in caught.value.message
-        finally:
-            stream.close()
-            connection.close()
+        with pytest.raises(mll.MLLError) as caught:
+            mll.vector_env(2, address=auth_server, n_landers=1, token=token, transport="native")
+        assert caught.value.code == grpc.StatusCode.UNAUTHENTICATED
+        assert "authorization" in caught.value.message and "wrong-token" not in caught.value.message
 
 
-@needs_native
 @pytest.mark.parametrize("transport", ["native", "shared_memory"])
 def test_a_stopped_server_is_unavailable_naming_its_address(transport):
     server = mll.ServerProcess(threads=1)
@@ -141,28 +126,15 @@ def test_a_stopped_server_is_unavailable_naming_its_address(transport):
         server.stop()
 
 
-@needs_native
 @pytest.mark.parametrize("transport", ["native", "shared_memory"])
-def test_a_closed_native_stream_is_reopened_by_the_next_step(address, transport):
-    with mll.vector_env(2, address=address, n_landers=2, transport=transport) as vector, \
-            mll.vector_env(2, address=address, n_landers=2, transport="grpc") as reference:
-        actions = np.zeros((2, 2), np.int32)
-        for env in (vector, reference):
-            env.reset(seed=5)
-            env.step(actions)
-        vector._servers[0].stream.close()
-        assert same_bits(vector.step(actions)[0], reference.step(actions)[0])
-        assert vector.transport == transport  # A new stream attaches shared memory again.
-
-
-def test_transport_survives_pickling(address):
-    with mll.vector_env(2, address=address, n_landers=1, transport="grpc") as vector:
+def test_transport_survives_pickling(address, transport):
+    with mll.vector_env(2, address=address, n_landers=1, transport=transport) as vector:
         copy = pickle.loads(pickle.dumps(vector))
-        assert copy.transport == "grpc" and copy._init_kwargs["transport"] == "grpc"
+        assert copy.transport == transport
         copy.close()
-    gym_env = mll.gym_vector_env(2, address=address, n_landers=1, transport="grpc")
+    gym_env = mll.gym_vector_env(2, address=address, n_landers=1, transport=transport)
     copy = pickle.loads(pickle.dumps(gym_env))
-    assert copy.vector.transport == "grpc"
+    assert copy.vector.transport == transport
     copy.close()
     gym_env.close()
 
@@ -171,22 +143,42 @@ def test_a_bogus_transport_is_invalid_argument(address):
     with pytest.raises(mll.MLLError) as caught:
         mll.vector_env(2, address=address, transport="bogus")
     assert caught.value.code == grpc.StatusCode.INVALID_ARGUMENT
-    assert caught.value.message == "transport is 'bogus'; allowed: 'auto', 'shared_memory', 'native', 'grpc'"
+    assert caught.value.message == "transport is 'bogus'; allowed: 'auto', 'shared_memory', 'native'"
 
 
-def test_without_the_library_native_is_refused_and_auto_uses_grpc(address, tmp_path, monkeypatch):
-    missing = tmp_path / "libmll_native_stream.so"
-    monkeypatch.setenv(_native.LIBRARY_ENV, str(missing))
-    monkeypatch.setattr(_native, "_loaded", None)  # Looked for again, at $MLL_NATIVE_LIBRARY only.
+def test_the_grpc_transport_is_gone_and_the_error_says_what_to_use(address):
     with pytest.raises(mll.MLLError) as caught:
-        mll.vector_env(2, address=address, transport="native")
-    assert caught.value.code == grpc.StatusCode.FAILED_PRECONDITION
-    assert str(missing) in caught.value.message and _native.LIBRARY_ENV in caught.value.message
-    with mll.vector_env(2, address=address, n_landers=1) as vector:
-        assert vector.transport == "grpc"
-        vector.reset(seed=0)
-        assert vector.step(np.zeros((2, 1), np.int32))[0].shape == (2, 1, 12)
-    monkeypatch.setattr(_native, "_loaded", None)  # The next test loads the library again.
+        mll.vector_env(2, address=address, transport="grpc")
+    assert caught.value.code == grpc.StatusCode.INVALID_ARGUMENT
+    message = caught.value.message
+    assert message.startswith("transport is 'grpc'") and "transport='auto'" in message and "parallel_env" in message
+
+
+_WITHOUT_LIBRARY = """
+import json, sys
+import multi_lunar_lander as mll
+try:
+    mll.vector_env(2, address=sys.argv[1])
+except mll.MLLError as error:
+    print(json.dumps([error.code.name, error.message]))
+penv = mll.parallel_env(address=sys.argv[1], n_landers=1)  # Needs no library.
+penv.reset(seed=0)
+penv.close()
+"""
+
+
+def test_without_the_library_vector_env_says_how_to_get_it_and_parallel_env_works(address, tmp_path):
+    missing = tmp_path / "libmll_native_stream.so"
+    env = dict(os.environ, **{_native.LIBRARY_ENV: str(missing)})
+    for factory in ("vector_env", "gym_vector_env"):
+        script = _WITHOUT_LIBRARY.replace("mll.vector_env", f"mll.{factory}")
+        result = subprocess.run([sys.executable, "-c", script, address], env=env, capture_output=True, text=True,
+                                timeout=120)
+        assert result.returncode == 0, result.stderr
+        code, message = json.loads(result.stdout)
+        assert code == "FAILED_PRECONDITION"
+        assert str(missing) in message and _native.LIBRARY_ENV in message and "wheel" in message
+        assert "pip install ." in message
 
 
 # The parent's vector env, inherited by a forked child through memory.
@@ -201,43 +193,43 @@ def _step_inherited_then_own(address):
         refused = (error.code.name, error.message)
     _INHERITED.clear()  # The child's copy goes without closing the parent's stream.
     gc.collect()
-    try:
-        mll.vector_env(2, address=address, n_landers=1, transport="native")
-        native_refused = None
-    except mll.MLLError as error:
-        native_refused = (error.code.name, error.message)
-    with mll.vector_env(2, address=address, n_landers=1) as own:
-        own.reset(seed=2)
-        shape = own.step(np.zeros((2, 1), np.int32))[0].shape
-        transport = own.transport
-    return refused, native_refused, transport, shape
+    own_refused = []
+    for transport in ("native", "auto"):
+        try:
+            mll.vector_env(2, address=address, n_landers=1, transport=transport)
+            own_refused.append(None)
+        except mll.MLLError as error:
+            own_refused.append((error.code.name, error.message))
+    penv = mll.parallel_env(address=address, n_landers=1)  # Unary grpcio calls: no native library.
+    penv.reset(seed=2)
+    shape = penv.step({"lander_0": 0})[0]["lander_0"].shape
+    penv.close()
+    return refused, own_refused, shape
 
 
-@needs_native
-def test_a_forked_child_refuses_the_parents_native_stream_and_steps_its_own_over_grpc(address):
+def test_a_forked_child_refuses_the_parents_vector_env_and_vector_envs_of_its_own(address):
     """gRPC C++ does not survive a fork: after the parent has used the native library, a forked
-    child is refused its parent's stream and native streams of its own, and "auto" steps over
-    grpcio there."""
+    child is refused its parent's vector env and vector envs of its own (saying to start workers
+    with spawn or forkserver); parallel_env works there."""
     vector = mll.vector_env(2, address=address, n_landers=1, transport="native")
     vector.reset(seed=1)
     vector.step(np.zeros((2, 1), np.int32))
     _INHERITED[:] = [vector]
     with multiprocessing.get_context("fork").Pool(1) as pool:
-        refused, native_refused, transport, shape = pool.apply_async(
-            _step_inherited_then_own, (address,)).get(timeout=60)
+        refused, own_refused, shape = pool.apply_async(_step_inherited_then_own, (address,)).get(timeout=60)
     _INHERITED.clear()
     assert refused[0] == "FAILED_PRECONDITION" and "forked process must make its own environments" in refused[1]
-    assert native_refused[0] == "FAILED_PRECONDITION" and "does not survive a fork" in native_refused[1]
-    assert (transport, shape) == ("grpc", (2, 1, 12))
-    assert vector.step(np.zeros((2, 1), np.int32))[0].shape == (2, 1, 12)  # The parent's stream still works.
+    for code, message in own_refused:
+        assert code == "FAILED_PRECONDITION" and "does not survive a fork" in message and "spawn" in message
+    assert shape == (12,)
+    assert vector.step(np.zeros((2, 1), np.int32))[0].shape == (2, 1, 12)  # The parent's streams still work.
     vector.close()
 
 
-@needs_native
-@pytest.mark.parametrize("transport", ["native", "shared_memory", "grpc"])
+@pytest.mark.parametrize("transport", ["native", "shared_memory"])
 def test_ctrl_c_interrupts_a_step_that_waits_for_a_stalled_server(transport):
     """KeyboardInterrupt reaches a step whose server does not answer (stopped with SIGSTOP);
-    the interrupted stream is closed, and once the server runs again the next step works."""
+    once the server runs again the next step works (the interrupted one's results are dropped)."""
     import _thread
     import os
     import signal

@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 
 import multi_lunar_lander as mll
-from multi_lunar_lander import _native
 
 from mll_test_helpers import listed_names, random_actions, same_bits, wait_draining
 
@@ -59,7 +58,7 @@ def _run(addresses, transport, servers=None, seed=3):
     the names its server lists (before the vector env's close deletes them); else None. Fourth,
     the most envs any one address held after a step."""
     vector = mll.vector_env(NUM_ENVS, address=addresses, n_landers=2, transport=transport)
-    assert transport == "grpc" or vector.transport == transport
+    assert vector.transport == transport
     rng = np.random.default_rng(seed)
     observations, infos = vector.reset(seed=seed)
     record = [observations, infos["episode_length"]]
@@ -90,16 +89,14 @@ def _run(addresses, transport, servers=None, seed=3):
     return record, failovers, placement, most_on_one
 
 
-# Sessions on grpcio's stream, and on shared memory (the native library's; Sessions attached to
-# it are ended by the drain as well); servers given by IP address, and by host name.
+# Sessions on gRPC C++'s stream, and on shared memory (Sessions attached to it are ended by the
+# drain as well); servers given by IP address, and by host name.
 @pytest.mark.parametrize(
     "transport, address_of",
-    [("grpc", lambda server: server.address), ("shared_memory", lambda server: server.address), ("grpc", _name)],
-    ids=["grpc", "shared_memory", "grpc-host-names"],
+    [("native", lambda server: server.address), ("shared_memory", lambda server: server.address), ("native", _name)],
+    ids=["native", "shared_memory", "native-host-names"],
 )
 def test_rolling_restart_of_three_servers_under_load_loses_nothing(caplog, transport, address_of):
-    if transport == "shared_memory" and not _native.available():
-        pytest.skip("the native library is not built")
     servers = [_server(), _server(), _server()]
     originals = list(servers)
     try:

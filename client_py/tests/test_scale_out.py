@@ -69,11 +69,12 @@ def test_each_step_is_one_step_batch_per_server_on_its_session_stream():
         vector.close()
         for process, envs in ((a, 3), (b, 2)):
             url = metrics_url(process)
-            # Each step is one request on the server's Session, a StepBatch of its envs.
-            assert metric(url, 'mll_rpc_duration_seconds_count{method="Session"}') == 7 + attach
+            # Each step is one request on the server's Session, a StepBatch of its envs; each env
+            # was created and reset there too (one request each), none by a unary call.
+            assert metric(url, 'mll_rpc_duration_seconds_count{method="Session"}') == 7 + attach + 2 * envs
             assert metric(url, 'mll_steps_total{method="Session"}') == 7 * envs
-            assert metric(url, 'mll_rpc_duration_seconds_count{method="StepBatch"}') == 0
-            assert metric(url, 'mll_rpc_duration_seconds_count{method="ResetEnv"}') == envs
+            for method in ("StepBatch", "CreateEnv", "ResetEnv"):
+                assert metric(url, f'mll_rpc_duration_seconds_count{{method="{method}"}}') == 0
 
 
 @pytest.mark.parametrize("spec", ["list", "comma_string", "unix_socket_and_tcp"])

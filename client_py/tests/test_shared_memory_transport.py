@@ -1,7 +1,7 @@
 """Sessions attached to shared memory (attach_shared_memory; vector_env transport=
 "shared_memory", which "auto" tries): step errors, the server's refusals and limits, and the
-stream's rules once attached. The same bits as grpcio, a server that dies while a client waits,
-and a stream reopened after a close: test_native_transport.py, for both native transports."""
+stream's rules once attached. The same bits as parallel envs and as the gRPC C++ stream, and a
+server that dies while a client waits: test_native_transport.py, for both transports."""
 
 import os
 import pickle
@@ -15,27 +15,22 @@ import numpy as np
 import pytest
 
 import multi_lunar_lander as mll
-from multi_lunar_lander import _native
 from multi_lunar_lander._stubs import pb, pb_grpc
 
 from mll_test_helpers import same_bits
 
 
-pytestmark = pytest.mark.skipif(
-    not _native.available(),
-    reason=f"{_native.LIBRARY_NAME} is not built (looked at {', '.join(map(str, _native.library_paths()))})",
-)
 REGION_BYTES = 4096 + 2 * (64 << 20)
 
 
 def test_errors_of_steps_are_the_streams_and_the_session_goes_on(address, raw_stub):
     with mll.vector_env(3, address=address, n_landers=1, transport="shared_memory") as vector:
         vector.reset(seed=1)
-        raw_stub.DeleteEnv(pb.DeleteEnvRequest(name=vector._names[1]))
+        raw_stub.DeleteEnv(pb.DeleteEnvRequest(name=vector.names[1]))
         with pytest.raises(mll.MLLError) as caught:
             vector.step(np.zeros((3, 1), np.int32))
         assert caught.value.code == grpc.StatusCode.NOT_FOUND
-        assert caught.value.message.startswith(f"env 1 ({vector._names[1]}): ")
+        assert caught.value.message.startswith(f"env 1 ({vector.names[1]}): ")
         assert vector.transport == "shared_memory"  # Still attached: an operation's error.
         with pytest.raises(mll.MLLError):
             vector.step(np.zeros((3, 1), np.int32))
@@ -129,7 +124,7 @@ def server_in_another_pid_namespace(tmp_path_factory):
 
 def test_a_region_that_cannot_be_mapped_here_leaves_auto_on_a_new_stream(address, server_in_another_pid_namespace):
     elsewhere = server_in_another_pid_namespace
-    with mll.vector_env(3, address=address, n_landers=2, transport="grpc") as reference, \
+    with mll.vector_env(3, address=address, n_landers=2, transport="shared_memory") as reference, \
             mll.vector_env(3, address=elsewhere, n_landers=2) as vector:
         for env in (vector, reference):
             env.reset(seed=8)
