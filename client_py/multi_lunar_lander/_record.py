@@ -350,13 +350,17 @@ def failover_on(failover: bool | None, addresses: Sequence[str]) -> bool:
     return len(addresses) != 1 if failover is None else bool(failover)
 
 
+def loses_server(error: MLLError) -> bool:
+    """Whether `error` says the server is lost: unreachable (UNAVAILABLE, a draining server's
+    "draining: ..." included) or stalled (it missed the call's deadline, step_timeout_s:
+    DEADLINE_EXCEEDED; gRPC cancelled the call, so a late answer is never taken)."""
+    return error.code in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED)
+
+
 def loses_env(error: MLLError, name: str) -> bool:
-    """Whether `error`, of a call on env `name`, is one failover handles: the server unreachable
-    (UNAVAILABLE, a draining server's "draining: ..." included), or the env gone from a server
-    that answers (NOT_FOUND naming it)."""
-    return error.code == grpc.StatusCode.UNAVAILABLE or (
-        error.code == grpc.StatusCode.NOT_FOUND and name in error.message
-    )
+    """Whether `error`, of a call on env `name`, is one failover handles: the server lost
+    (loses_server), or the env gone from a server that answers (NOT_FOUND naming it)."""
+    return loses_server(error) or (error.code == grpc.StatusCode.NOT_FOUND and name in error.message)
 
 
 def gave_up(tries: int) -> MLLError:

@@ -16,7 +16,7 @@ from gymnasium import spaces
 
 from . import _arrays, _server_info
 from ._actions import check_actions
-from ._channel import Security, open_channel, parse_addresses
+from ._channel import DEFAULT_STEP_TIMEOUT_S, Security, open_channel, parse_addresses
 from ._errors import MLLError, from_rpc_error, invalid_argument
 from ._server import acquire_embedded
 from ._stubs import pb, pb_grpc
@@ -175,16 +175,18 @@ def choose_server(addresses: tuple[str, ...], server_index: int | None) -> int:
     return placed % count
 
 
-def connect_single(address, server_index: int | None, security: Security) -> tuple["Connection", int]:
+def connect_single(
+    address, server_index: int | None, security: Security, step_timeout_s: float | None = DEFAULT_STEP_TIMEOUT_S
+) -> tuple["Connection", int]:
     """The connection of one AEC or parallel environment, pinned to one of the servers of
     `address` for its lifetime (address=None: the embedded server), and that server's index."""
     addresses = parse_addresses(address)
     if not addresses:
         if server_index not in (None, 0):
             raise invalid_argument(f"server_index is {server_index!r} but address is None (one embedded server)")
-        return Connection(None, security), 0
+        return Connection(None, security, step_timeout_s=step_timeout_s), 0
     index = choose_server(addresses, server_index)
-    return Connection(addresses[index], security, addresses), index
+    return Connection(addresses[index], security, addresses, step_timeout_s), index
 
 
 def rebuild(cls, kwargs: dict):
@@ -238,10 +240,20 @@ class Connection:
     """A channel and stub to one server. `address=None` leases the shared embedded server.
 
     `peers` are all the addresses the caller was given (this one among them), named in the
-    message of a server that cannot be reached. Every call carries `security`'s token metadata.
+    message of a server that cannot be reached. Every call carries `security`'s token metadata,
+    and a deadline: its `timeout`, else `step_timeout_s` (None: none); a server that misses it
+    raises DEADLINE_EXCEEDED naming the server and the timeout (gRPC cancels the call, so its late
+    answer is never taken).
     """
 
-    def __init__(self, address: str | None, security: Security = Security(), peers: Sequence[str] = ()):
+    def __init__(
+        self,
+        address: str | None,
+        security: Security = Security(),
+        peers: Sequence[str] = (),
+        step_timeout_s: float | None = DEFAULT_STEP_TIMEOUT_S,
+    ):
+        self.step_timeout_s = step_timeout_s
         self._lease = None
         if address is None:
             self._lease = embedded_lease(security)
@@ -263,7 +275,9 @@ class Connection:
         """A new connection made as this one was: a new channel to the same address (which
         resolves a host name again and keeps none of this channel's reconnection backoff), or for
         the embedded server a new lease, which restarts the server if it died."""
-        return Connection(None if self._lease is not None else self.address, self.security, self._peers)
+        return Connection(
+            None if self._lease is not None else self.address, self.security, self._peers, self.step_timeout_s
+        )
 
     def check_process(self) -> None:
         """A forked child inherits its parent's objects but must not use their connections: the
@@ -285,25 +299,40 @@ class Connection:
         _server_info.check_compatible(self.server_info, self.address, needs, feature)
 
     def call(self, method: str, request, timeout: float | None = None):
-        """Calls a unary method; a failure raises MLLError with the server's code and message."""
+        """Calls a unary method (deadline: `timeout`, else step_timeout_s); a failure raises MLLError
+        with the server's code and message."""
         self.check_process()
+        deadline = self.step_timeout_s if timeout is None else timeout
         try:
-            return getattr(self.stub, method)(request, timeout=timeout, metadata=self._metadata)
+            return getattr(self.stub, method)(request, timeout=deadline, metadata=self._metadata)
         except grpc.RpcError as error:
-            raise from_rpc_error(error, self._what) from None
+            raise self._error(error, method, deadline, timeout is None) from None
 
     def future(self, method: str, request) -> Callable[[], Any]:
-        """Starts a unary call; the returned function waits for it (raising MLLError)."""
+        """Starts a unary call (deadline: step_timeout_s); the returned function waits for it
+        (raising MLLError)."""
         self.check_process()
-        call = getattr(self.stub, method).future(request, metadata=self._metadata)
+        call = getattr(self.stub, method).future(request, timeout=self.step_timeout_s, metadata=self._metadata)
 
         def result():
             try:
                 return call.result()
             except grpc.RpcError as error:
-                raise from_rpc_error(error, self._what) from None
+                raise self._error(error, method, self.step_timeout_s, True) from None
 
         return result
+
+    def _error(self, error: grpc.RpcError, method: str, deadline: float | None, step: bool) -> MLLError:
+        """The MLLError of a failed call of `method`; a missed `deadline` says which server missed
+        what timeout (`step`: step_timeout_s's)."""
+        if deadline is not None and error.code() == grpc.StatusCode.DEADLINE_EXCEEDED:
+            return MLLError(
+                grpc.StatusCode.DEADLINE_EXCEEDED,
+                f"mll_server at {self.address} did not answer {method} within {deadline:g} s"
+                + (" (step_timeout_s)" if step else "")
+                + "; the call is cancelled (a late answer is never taken)",
+            )
+        return from_rpc_error(error, self._what)
 
     @staticmethod
     def _close(channel, lease, pid: int) -> None:

@@ -32,7 +32,7 @@ import numpy as np
 
 from . import _arrays, _native, _record
 from ._actions import _short, check_actions
-from ._channel import Security, parse_addresses
+from ._channel import Security, parse_addresses, step_timeout_value
 from ._errors import MLLError, from_call_status, invalid_argument
 from ._remote import (
     check_process,
@@ -146,6 +146,8 @@ class VectorEnv:
     Errors: when the step of some envs fails on the server (e.g. an env deleted behind this
       object's back: NOT_FOUND), step raises MLLError with the server's code and message for
       the first of them in env order, prefixed "env {i} ({name}): "; the other envs did step.
+    step_timeout_s= how long a request may wait for its answer before its server counts as lost
+      (None: 5 s; 0: no deadline).
     Failover (failover=; None: on with several servers or the embedded one, off with one
       address): envs lost with their server are recreated on another and replayed to the same
       bits; each event counts in `failovers` and is logged as a warning on the
@@ -163,6 +165,7 @@ class VectorEnv:
         transport: str = "auto",
         batch_size: int | None = None,
         failover: bool | None = None,
+        step_timeout_s: float | None = None,
         **options: Any,
     ):
         if transport == "grpc":
@@ -185,6 +188,7 @@ class VectorEnv:
         self.batch_size = int(batch_size)
         config = make_config(None, True, options)
         security = Security.from_options(tls_root_cert, tls_server_name, token)
+        step_timeout = step_timeout_value(step_timeout_s)
         addresses = parse_addresses(address)
         # What a pickle carries (__reduce__): the arguments, never a connection or stream.
         self._init_kwargs = dict(
@@ -194,6 +198,7 @@ class VectorEnv:
             transport=transport,
             batch_size=self.batch_size,
             failover=failover,
+            step_timeout_s=step_timeout_s,
             **security.as_options(),
         )
         lib = self._lib = _native.library("vector_env")
@@ -214,7 +219,7 @@ class VectorEnv:
             self.num_envs,
             self.batch_size,
             int(_record.failover_on(failover, addresses)),
-            -1.0,  # The engine's default step timeout.
+            -1.0 if step_timeout_s is None else step_timeout or 0.0,  # -1: the engine's default.
         )
         # How an UNAVAILABLE error names each server (as the AEC and parallel envs' do).
         self._descriptions = {
