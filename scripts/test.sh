@@ -20,9 +20,11 @@ scripts/build.sh
 echo "== C++ tests (ctest)"
 ctest --test-dir "${BUILD_DIR:-build}" --output-on-failure -j "$(nproc)" --timeout 600
 if ls client_py/tests/*.py examples/dqn/tests/*.py examples/tests/*.py >/dev/null 2>&1; then
+  # On PYTEST_WORKERS processes (default 2; pytest-xdist): most tests wait on servers, and
+  # `pip install .`'s test compiles for minutes beside the others.
   echo "== Python tests (pytest)"
   export MLL_SERVER_BIN="$PWD/${BUILD_DIR:-build}/server/service/mll_server"
-  .venv/bin/python -m pytest -q --durations=15 $(ls -d client_py/tests examples/dqn/tests examples/tests 2>/dev/null)
+  .venv/bin/python -m pytest -q -n "${PYTEST_WORKERS:-2}" --durations=15 $(ls -d client_py/tests examples/dqn/tests examples/tests 2>/dev/null)
 fi
 echo "== the binary wheel (scripts/wheel.sh), installed and run on a clean Debian 12 (scripts/wheel-test.sh)"
 scripts/wheel.sh
