@@ -465,7 +465,7 @@ struct VectorEnv::State {
   std::vector<std::optional<absl::Status>> step_answers;
 
   // Where failover event lines go (SetEventLog); none: stderr.
-  std::function<void(const std::string&)> event_log;
+  EventLog event_log;
   // Create: env 0's mll.v1.Env as its server created it, serialized.
   std::string spec;
 
@@ -1183,7 +1183,7 @@ std::string VectorEnv::transport() {
   return "shared_memory";
 }
 
-void VectorEnv::SetEventLog(std::function<void(const std::string&)> log) {
+void VectorEnv::SetEventLog(EventLog log) {
   state_->event_log = std::move(log);
 }
 

@@ -85,6 +85,9 @@ namespace internal {
 struct VectorEnvBridge;
 }  // namespace internal
 
+// Receives each failover event's line (VectorEnv::SetEventLog).
+using EventLog = std::function<void(const std::string& line)>;
+
 class VectorEnv {
  public:
   // `num_envs` (1..65536) new environments with `config` (auto_reset is
@@ -211,7 +214,7 @@ class VectorEnv {
   // Where each failover event's line goes (one line, no newline): by
   // default stderr, prefixed "mll_client: "; to `log` instead once set (none
   // to stderr then); an empty `log` restores stderr.
-  void SetEventLog(std::function<void(const std::string& line)> log);
+  void SetEventLog(EventLog log);
 
   // Env `env`'s snapshot: bytes that recreate it at this point to the same
   // bits on any server of the same release (RestoreEnv here, restore_env or
