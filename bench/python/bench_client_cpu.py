@@ -130,7 +130,8 @@ def measure(server: Server, engine: Engine, kind: str, transport: str, args) -> 
     except RuntimeError as error:  # E.g. a package whose vector envs have no grpcio transport.
         if kind != "python":
             raise
-        why = str(error).strip().splitlines()[-1]
+        # The exception's last line, its first clause: "MLLError: INVALID_ARGUMENT: transport is 'grpc': ...".
+        why = str(error).strip().splitlines()[-1].split(";")[0].rpartition("._errors.")[2]
         print(f"{engine.name} vector_env on {transport}: {why}", file=sys.stderr)
         return {"refused": why}
     ticks, precise = window["client_window_proc_cpu_s"], window["client_window_cpu_s"]
