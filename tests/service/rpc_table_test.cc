@@ -1,11 +1,12 @@
 // The places an RPC is named besides the proto, checked against the proto's
-// descriptors (docs/design.md, "Adding an RPC"): the metrics' Method enum,
-// the Session operations' table (mll/session_ops.h) that the server's
-// Session dispatch and the C++ client's unary transport expand, and a
-// handler for every method of the service, each counted under its own label.
+// descriptors (docs/design.md, "Adding an RPC"): the RPC table
+// (MLL_RPCS in mll/session_ops.h) that the metrics' Method enum, the server's
+// Session dispatch and the C++ client's unary transport expand, and a handler
+// for every method of the service, each counted under its own label.
 #include <future>
 #include <set>
 #include <string>
+#include <vector>
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
@@ -39,6 +40,22 @@ std::vector<SessionOp> SessionOps() {
   };
 }
 
+struct RpcRow {
+  std::string method;  // The enumerator's name, "kStepEnv".
+  std::string rpc;
+};
+
+std::vector<RpcRow> RpcRows() {
+  return {
+#define MLL_SESSION_ROW(method, request_member, rpc, response_member) \
+  {#method, #rpc},
+#define MLL_OTHER_ROW(method, rpc) {#method, #rpc},
+      MLL_RPCS(MLL_SESSION_ROW, MLL_SESSION_ROW, MLL_OTHER_ROW)
+#undef MLL_SESSION_ROW
+#undef MLL_OTHER_ROW
+  };
+}
+
 // The count of `method`'s calls in the /metrics text.
 double CallCount(const std::string& metrics, absl::string_view method) {
   const std::string prefix =
@@ -56,8 +73,8 @@ TEST(RpcTableTest, MethodEnumIsTheServiceDescriptorsMethods) {
   const google::protobuf::ServiceDescriptor& service = ServiceDescriptor();
   EXPECT_EQ(service.full_name(), "mll.v1.MultiLunarLander");
   ASSERT_EQ(kMethodCount, service.method_count())
-      << "metrics.h's Method enum and kMethodCount list every RPC of the "
-         "proto's service, in its order";
+      << "metrics.h's Method enum and kMethodCount, expanded from MLL_RPCS, "
+         "list every RPC of the proto's service";
   std::set<std::string> labels;
   for (int i = 0; i < kMethodCount; ++i) {
     labels.insert(std::string(MethodName(static_cast<Method>(i))));
@@ -68,6 +85,22 @@ TEST(RpcTableTest, MethodEnumIsTheServiceDescriptorsMethods) {
   EXPECT_EQ(MethodName(Method::kRenderEnv), "RenderEnv");
   EXPECT_EQ(MethodName(Method::kSession), "Session");
   EXPECT_EQ(MethodName(Method::kGetServerInfo), "GetServerInfo");
+}
+
+TEST(RpcTableTest, RpcTableIsTheServiceDescriptorsMethodsInOrder) {
+  const google::protobuf::ServiceDescriptor& service = ServiceDescriptor();
+  std::vector<std::string> in_proto;
+  for (int i = 0; i < service.method_count(); ++i) {
+    in_proto.push_back(service.method(i)->name());
+  }
+  std::vector<std::string> in_table;
+  for (const RpcRow& row : RpcRows()) {
+    in_table.push_back(row.rpc);
+    EXPECT_EQ(row.method, absl::StrCat("k", row.rpc));
+  }
+  EXPECT_EQ(in_table, in_proto)
+      << "mll/session_ops.h's MLL_RPCS has one row per RPC of the proto's "
+         "service, in its order";
 }
 
 TEST(RpcTableTest, SessionOpsTableMatchesTheProto) {

@@ -15,28 +15,24 @@
 #include "absl/status/status.h"
 #include "absl/strings/string_view.h"
 #include "google/protobuf/descriptor.h"
+#include "mll/session_ops.h"
 #include "mll/v1/multi_lunar_lander.pb.h"
 
 namespace mll::service {
 
 // The RPC methods of mll.v1.MultiLunarLander, as metric labels: enumerator i
 // is the service descriptor's method i (same order as the proto), whose name
-// is the label. metrics_test checks the count against the descriptor.
+// is the label. Expanded from MLL_RPCS (mll/session_ops.h, one row per RPC);
+// rpc_table_test checks the rows against the descriptor.
 enum class Method {
-  kCreateEnv,
-  kGetEnv,
-  kListEnvs,
-  kDeleteEnv,
-  kResetEnv,
-  kStepEnv,
-  kStepAgent,
-  kStepBatch,
-  kRenderEnv,
-  kSession,  // Each request of a Session stream counts as one call.
-  kKeepAlive,
-  kGetServerInfo,
+#define MLL_METHOD_ENUMERATOR(method, ...) method,
+  MLL_RPCS(MLL_METHOD_ENUMERATOR, MLL_METHOD_ENUMERATOR, MLL_METHOD_ENUMERATOR)
+#undef MLL_METHOD_ENUMERATOR
 };
-inline constexpr int kMethodCount = 12;
+#define MLL_METHOD_ONE(...) +1
+inline constexpr int kMethodCount =
+    0 MLL_RPCS(MLL_METHOD_ONE, MLL_METHOD_ONE, MLL_METHOD_ONE);
+#undef MLL_METHOD_ONE
 
 // The proto's service (mll.v1.MultiLunarLander), from the generated
 // descriptors.
