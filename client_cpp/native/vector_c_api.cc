@@ -1,5 +1,6 @@
 #include "vector_c_api.h"
 
+#include <algorithm>
 #include <cstring>
 #include <memory>
 #include <optional>
@@ -55,6 +56,22 @@ absl::StatusOr<VectorEnv> CreateVectorEnv(const char* addresses,
   }
   absl::StatusOr<Client> client = Client::Create(servers, options);
   if (!client.ok()) return client.status();
+  // A server this client cannot use (another protocol major, or without
+  // packed batches or auto-reset) is refused before anything is created on
+  // it, as Client::CreateEnv refuses it.
+  static constexpr absl::string_view kNeeds[] = {"packed_step_batch",
+                                                 "auto_reset"};
+  for (int server = 0; server < std::min(client->server_count(), num_envs);
+       ++server) {
+    absl::StatusOr<mll::client::ServerInfo> info =
+        client->GetServerInfo(server);
+    if (!info.ok()) return info.status();
+    if (absl::Status compatible =
+            Client::CheckCompatible(*info, client->address(server), kNeeds);
+        !compatible.ok()) {
+      return compatible;
+    }
+  }
   return VectorEnv::Create(
       *client, num_envs, mll::client::internal::DecodeConfig(proto), batch_size,
       failover < 0 ? std::nullopt : std::optional<bool>(failover == 1));
