@@ -203,6 +203,7 @@ class VectorEnv:
         )
         lib = self._lib = _native.library("vector_env")
         self._columns = columns(lib)
+        self._layouts: dict[int, tuple] = {}  # Row count -> _layout's answer.
         self._transport = "native"  # The last one `transport` saw (what it says once closed).
         self._interrupted = False  # An interrupted step() left its step in flight (_finish_interrupted).
         lease = None if addresses else embedded_lease(security)
@@ -288,21 +289,36 @@ class VectorEnv:
             code = function(handle, _native.READ_SLICE_MS)
         self._check(code)
 
+    def _layout(self, rows: int) -> tuple[int, np.ndarray, tuple]:
+        """Where the results of a `rows`-row call go in the one buffer each call allocates: the
+        size of the buffer, which starts with the table of column pointers mll_vector_env_results
+        reads; each column's offset (16-byte aligned); and each column's (name, shape, dtype as
+        returned, offset). Worked out once per row count (num_envs, batch_size)."""
+        layout = self._layouts.get(rows)
+        if layout is None:
+            offset, offsets, placed = 8 * len(self._columns), [], []
+            for column in self._columns:
+                offset = -(-offset // 16) * 16
+                shape = (rows,) + ((self.n_landers,) if column.per_agent else ())
+                shape += (column.width,) if column.width > 1 else ()
+                offsets.append(offset)
+                placed.append((column.name, shape, np.dtype(bool) if column.name in _FLAGS else column.dtype, offset))
+                offset += int(np.prod(shape)) * column.dtype.itemsize
+            layout = self._layouts[rows] = (offset, np.array(offsets, np.uint64), tuple(placed))
+        return layout
+
     def _results(self, with_env_ids: bool):
-        """step()'s return value from the latest results, in arrays allocated here (the caller's
-        own), filled in place by the engine."""
-        rows = self._lib.mll_vector_env_rows(self._handle)
-        pointers = (ctypes.c_void_p * len(self._columns))()
-        arrays = {}
-        for column in self._columns:
-            if column.name == "env_ids" and not with_env_ids:
-                continue
-            shape = (rows,) + ((self.n_landers,) if column.per_agent else ())
-            shape += (column.width,) if column.width > 1 else ()
-            array = np.empty(shape, column.dtype)
-            pointers[column.index] = array.ctypes.data
-            arrays[column.name] = array.view(bool) if column.name in _FLAGS else array
-        self._lib.mll_vector_env_results(self._handle, pointers)
+        """step()'s return value from the latest results: the engine copies every column into one
+        new buffer, of which each returned array is a view (the caller's own: no later call
+        writes there); flags are bool."""
+        size, offsets, placed = self._layout(self._lib.mll_vector_env_rows(self._handle))
+        buffer = np.empty(size, np.uint8)
+        address = buffer.__array_interface__["data"][0]
+        np.add(offsets, np.uint64(address), out=buffer[: 8 * offsets.size].view(np.uint64))  # The pointers.
+        self._lib.mll_vector_env_results(self._handle, address)
+        arrays = {name: np.ndarray(shape, dtype, buffer, offset) for name, shape, dtype, offset in placed}
+        if not with_env_ids:
+            arrays.pop("env_ids", None)
         infos = {_INFO_KEYS.get(name, name): array for name, array in arrays.items() if name not in _RETURNED}
         return tuple(arrays[name] for name in _RETURNED) + (infos,)
 
