@@ -956,12 +956,14 @@ struct VectorEnv::State {
       }
       for (int env : shard.rows) in_flight[env] = true;
       in_flight_count += static_cast<int>(shard.rows.size());
-      pending.push_back({shard.server, std::move(sequence),
-                         std::move(shard.rows),
-                         std::move(*shard.request.mutable_step_batch()
-                                        ->mutable_packed()
-                                        ->mutable_actions()
-                                        ->mutable_data())});
+      PendingRequest& request = pending.emplace_back();
+      request.server = shard.server;
+      request.sequence = std::move(sequence);
+      request.envs = std::move(shard.rows);
+      request.actions = std::move(*shard.request.mutable_step_batch()
+                                       ->mutable_packed()
+                                       ->mutable_actions()
+                                       ->mutable_data());
     }
     return absl::OkStatus();
   }
@@ -1080,6 +1082,9 @@ absl::StatusOr<VectorEnv> VectorEnv::Create(const Client& client, int num_envs,
     absl::Status status = CallPipelined(transport, requests, &responses);
     if (failure.ok()) failure = status;
     if (server == 0) spec = responses[0].env().SerializeAsString();
+    // Asked now and remembered, so that the first StepAsync, which decides
+    // the stream's batch handles from it, does not wait for it.
+    if (status.ok()) (void)transport.ServerInfo();
     for (size_t k = 0; k < responses.size(); ++k) {
       infos[server + k * servers] = internal::DecodeEnv(responses[k].env());
       infos[server + k * servers].server = static_cast<int>(server);

@@ -7,6 +7,7 @@
 // queue for take_events instead of going to stderr.
 #include "vector_c_api.h"
 
+#include <chrono>
 #include <cstdint>
 #include <cstring>
 #include <functional>
@@ -298,29 +299,31 @@ TEST_F(VectorCApiTest, WaitsThatTimeOutArePendingAndLoseNothing) {
   ASSERT_TRUE(own.ok()) << own.status();
   ServerProcess& server = **own;
   constexpr int kEnvs = 4;
-  Handle env = NewHandle(server.address(), kEnvs, /*batch_size=*/2);
+  // A step timeout far beyond the waits below: a step_async that waited for
+  // the stopped server would take that long.
+  constexpr double kStepTimeoutS = 30;
+  Handle env = NewHandle(server.address(), kEnvs, /*batch_size=*/2, -1,
+                         MLL_NATIVE_TRANSPORT_AUTO,
+                         SmallConfig().SerializeAsString(), kStepTimeoutS);
   ASSERT_EQ(mll_vector_env_create_status(env.get()), kOk)
       << mll_vector_env_message(env.get());
   VectorEnv cpp = NewVectorEnv({server_->address()}, kEnvs, 2);
-  // step_async / step_wait. The first step asks the server's capabilities
-  // (batch handles), which a stopped server would hold up for the step
-  // timeout: it comes before the pause.
+  // step_async / step_wait; step_async returns at once, the server's
+  // capabilities (batch handles) being known since the envs were created.
   ASSERT_EQ(mll_vector_env_reset(env.get(), 1, 21), kOk);
   ASSERT_TRUE(cpp.Reset(uint64_t{21}).ok());
   const std::vector<int32_t> actions = ActionsOf(0, kEnvs);
-  ASSERT_EQ(
-      mll_vector_env_step_async(env.get(), actions.data(), actions.size(), 0),
-      kOk);
-  ASSERT_EQ(mll_vector_env_step_wait(env.get(), -1), kOk);
-  ASSERT_TRUE(cpp.Step(absl::MakeConstSpan(actions)).ok());
   server.Pause();
   ASSERT_EQ(
       mll_vector_env_step_async(env.get(), actions.data(), actions.size(), 0),
       kOk);
+  const auto paused = std::chrono::steady_clock::now();
   for (int k = 0; k < 3; ++k) {
     EXPECT_EQ(mll_vector_env_step_wait(env.get(), 50),
               MLL_NATIVE_STREAM_PENDING);
   }
+  EXPECT_LT(std::chrono::steady_clock::now() - paused,
+            std::chrono::duration<double>(kStepTimeoutS / 2));
   // Still in flight: nothing else may start.
   EXPECT_EQ(mll_vector_env_reset(env.get(), 0, 0), kFailedPrecondition);
   EXPECT_THAT(mll_vector_env_message(env.get()), HasSubstr("step_wait"));
@@ -365,6 +368,32 @@ TEST_F(VectorCApiTest, WaitsThatTimeOutArePendingAndLoseNothing) {
     EXPECT_EQ(ResultsOf(env.get()), ResultsOf(cpp)) << "recv " << k;
   }
   EXPECT_EQ(mll_vector_env_in_flight(env.get()), 0);
+}
+
+// step_timeout_s is the C++ client's step timeout: a stopped server's step
+// fails DEADLINE_EXCEEDED naming it (failover is off with one server).
+TEST(VectorCApiStepTimeoutTest, IsTheClientsStepTimeout) {
+  absl::StatusOr<std::unique_ptr<ServerProcess>> server =
+      ServerProcess::Start(MLL_SERVER_PATH, {"--threads=1"});
+  ASSERT_TRUE(server.ok()) << server.status();
+  Handle env =
+      NewHandle((*server)->address(), 2, 0, -1, MLL_NATIVE_TRANSPORT_AUTO,
+                SmallConfig().SerializeAsString(), 0.5);
+  ASSERT_EQ(mll_vector_env_create_status(env.get()), kOk)
+      << mll_vector_env_message(env.get());
+  ASSERT_EQ(mll_vector_env_reset(env.get(), 1, 0), kOk);
+  (*server)->Pause();
+  const std::vector<int32_t> actions(2 * kLanders, 0);
+  ASSERT_EQ(
+      mll_vector_env_step_async(env.get(), actions.data(), actions.size(), 0),
+      kOk);
+  EXPECT_EQ(WaitInSlices([&](int slice) {
+              return mll_vector_env_step_wait(env.get(), slice);
+            }),
+            static_cast<int>(absl::StatusCode::kDeadlineExceeded));
+  EXPECT_THAT(mll_vector_env_message(env.get()),
+              HasSubstr("step timeout 500ms"));
+  (*server)->Resume();
 }
 
 TEST_F(VectorCApiTest, BadInputGetsItsCodeAndAMessageNamingIt) {
