@@ -1,6 +1,8 @@
 #include "vector_c_api.h"
 
 #include <algorithm>
+#include <chrono>
+#include <cmath>
 #include <cstring>
 #include <memory>
 #include <optional>
@@ -31,13 +33,28 @@ using ::mll::client::internal::kResultColumnCount;
 using ::mll::client::internal::kResultColumns;
 using ::mll::client::internal::VectorEnvBridge;
 
+// The longest step timeout, in seconds (about 31 years).
+constexpr double kMaxStepTimeoutS = 1e9;
+
 // The VectorEnv of `config` (a serialized mll.v1.EnvConfig) on the servers
 // of `addresses` (comma-separated).
 absl::StatusOr<VectorEnv> CreateVectorEnv(const char* addresses,
-                                          const ClientOptions& options,
+                                          ClientOptions options,
                                           const char* config,
                                           size_t config_size, int num_envs,
-                                          int batch_size, int failover) {
+                                          int batch_size, int failover,
+                                          double step_timeout_s) {
+  if (std::isnan(step_timeout_s) || step_timeout_s > kMaxStepTimeoutS) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("step_timeout_s is ", step_timeout_s,
+                     "; allowed: < 0 (the client's default), 0 (none) or up "
+                     "to ",
+                     kMaxStepTimeoutS, " seconds"));
+  }
+  if (step_timeout_s >= 0) {
+    options.step_timeout = std::chrono::milliseconds(
+        static_cast<int64_t>(std::llround(step_timeout_s * 1000)));
+  }
   mll::v1::EnvConfig proto;
   if (config_size > 0 &&
       !proto.ParseFromArray(config, static_cast<int>(config_size))) {
@@ -105,7 +122,12 @@ namespace {
 
 // The envs' actions as the span VectorEnv takes, then `call` of it.
 template <typename Call>
-auto WithActions(const void* actions, size_t count, int continuous, Call call) {
+absl::Status WithActions(const void* actions, size_t count, int continuous,
+                         Call call) {
+  if (actions == nullptr && count > 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("actions is NULL with a count of ", count));
+  }
   if (continuous) {
     return call(absl::MakeConstSpan(static_cast<const float*>(actions), count));
   }
@@ -145,14 +167,11 @@ mll_vector_env* mll_vector_env_new(
     int failover, double step_timeout_s) {
   mll::client::internal::KeepGrpcInitialised();
   auto* handle = new mll_vector_env;
-  ClientOptions options = mll::client::internal::NativeClientOptions(
-      root_cert_pem, root_cert_size, server_name, token, transport);
-  if (step_timeout_s >= 0) {
-    options.step_timeout = std::chrono::milliseconds(
-        static_cast<int64_t>(step_timeout_s * 1000 + 0.5));
-  }
   absl::StatusOr<VectorEnv> envs = CreateVectorEnv(
-      addresses, options, config, config_size, num_envs, batch_size, failover);
+      addresses,
+      mll::client::internal::NativeClientOptions(root_cert_pem, root_cert_size,
+                                                 server_name, token, transport),
+      config, config_size, num_envs, batch_size, failover, step_timeout_s);
   if (!envs.ok()) {
     handle->create_status = envs.status();
     handle->Report(envs.status());

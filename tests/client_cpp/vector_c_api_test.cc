@@ -8,6 +8,7 @@
 #include "vector_c_api.h"
 
 #include <chrono>
+#include <cmath>
 #include <cstdint>
 #include <cstring>
 #include <functional>
@@ -411,6 +412,9 @@ TEST_F(VectorCApiTest, BadInputGetsItsCodeAndAMessageNamingIt) {
             kInvalidArgument);
   EXPECT_THAT(message(), HasSubstr("actions has 7 values; expected num_envs * "
                                    "n_landers = 8"));
+  EXPECT_EQ(mll_vector_env_step_async(env.get(), nullptr, 8, 0),
+            kInvalidArgument);
+  EXPECT_THAT(message(), HasSubstr("actions is NULL"));
   const std::vector<float> continuous(16, 0.0f);
   EXPECT_EQ(mll_vector_env_step_async(env.get(), continuous.data(), 16, 1),
             kInvalidArgument);
@@ -460,6 +464,12 @@ TEST_F(VectorCApiTest, BadInputGetsItsCodeAndAMessageNamingIt) {
   EXPECT_EQ(mll_vector_env_create_status(bad_count.get()), kInvalidArgument);
   EXPECT_THAT(mll_vector_env_message(bad_count.get()),
               HasSubstr("num_envs is 0"));
+  Handle bad_timeout =
+      NewHandle(server_->address(), 2, 0, -1, MLL_NATIVE_TRANSPORT_AUTO,
+                SmallConfig().SerializeAsString(), std::nan(""));
+  EXPECT_EQ(mll_vector_env_create_status(bad_timeout.get()), kInvalidArgument);
+  EXPECT_THAT(mll_vector_env_message(bad_timeout.get()),
+              HasSubstr("step_timeout_s is nan"));
   Handle bad_failover = NewHandle(server_->address(), 2, 0, 7);
   EXPECT_EQ(mll_vector_env_create_status(bad_failover.get()), kInvalidArgument);
   EXPECT_THAT(mll_vector_env_message(bad_failover.get()),
