@@ -44,6 +44,19 @@ def fly_with_package(address, n_landers, steps, seed):
     return trace
 
 
+def fly_vector_with_package(address, n_landers, steps, seed):
+    """The first observations of vector_env(2) (env i seeded seed + i) after `steps` scripted
+    steps, and its transport: the package's native engine, which the trainer image ships."""
+    import multi_lunar_lander as mll
+
+    with mll.vector_env(2, address=address, n_landers=n_landers) as envs:
+        first, _ = envs.reset(seed=seed)
+        for t in range(steps):
+            actions = np.array([[scripted_action(t, i) for i in range(n_landers)]] * 2, np.int32)
+            envs.step(actions)
+        return first[0], envs.transport
+
+
 def generated_stubs(proto_dir):
     from grpc_tools import protoc
 
@@ -134,6 +147,12 @@ def main():
     steps = (len(first) - 1) // 2
     print(f"smoke_client: {how} at {args.address}: 2 envs x {steps} steps, identical bits; "
           f"lander_0 first observation [{', '.join(f'{v:.3f}' for v in first[0][0])}]")
+    if how.startswith("multi_lunar_lander"):
+        vector_first, transport = fly_vector_with_package(args.address, args.n_landers, args.steps, args.seed)
+        if not np.array_equal(vector_first, first[0]):
+            sys.exit("smoke_client: vector_env's env 0 started elsewhere than parallel_env with the same seed")
+        print(f"smoke_client: multi_lunar_lander.vector_env at {args.address} ({transport}): 2 envs x "
+              f"{args.steps} steps; env 0 starts as parallel_env with the same seed")
 
 
 if __name__ == "__main__":
