@@ -26,10 +26,11 @@
 // are done (before the episode is over) are zero, and not active.
 //
 // Results are views of arrays the VectorEnv owns, env-major, valid until the
-// next Reset or Step. Errors: a step that fails for some envs on their server
-// (e.g. an env deleted behind the VectorEnv's back: NOT_FOUND) returns the
-// server's code and message for the first of them in env order, prefixed
-// "env {i} ({name}): "; the other envs did step. One thread at a time.
+// next call that makes results (Reset, Step, StepWait, Recv). Errors: a step
+// that fails for some envs on their server (e.g. an env deleted behind the
+// VectorEnv's back: NOT_FOUND) returns the server's code and message for the
+// first of them in env order, prefixed "env {i} ({name}): "; the other envs did
+// step. One thread at a time.
 //
 // Failover: the VectorEnv keeps each env's record (its options, the seed of
 // its last seeded reset, and every operation since: each step's actions,
