@@ -42,11 +42,12 @@ constexpr char kSessionMethod[] = "/mll.v1.MultiLunarLander/Session";
 // at (did the session end?) and the caller's deadline checked.
 constexpr auto kRegionWaitSlice = std::chrono::milliseconds(20);
 // A StepBatch's answer may take this much longer than step_timeout per
-// lander action it carries: the server steps about 80,000 lander actions a
-// second per core (12 us each, DESIGN.md's floor); 100 us each is that cost
-// eight times over, for a loaded server, so that a slow server with a large
-// batch is not taken for a stopped one.
-constexpr absl::Duration kAnswerTimePerAction = absl::Microseconds(100);
+// lander action it carries, so that a slow server with a large batch is not
+// taken for a stopped one: eight clients' batches of 1024 3-lander envs on a
+// loaded 2-core server took up to 2.5 s each, about 800 us per action of the
+// call's own batch at 22,000 actions/s in all (docs/benchmarks.md, "Step
+// deadline"), so a batch of any size gets more than that: 1 ms per action.
+constexpr absl::Duration kAnswerTimePerAction = absl::Milliseconds(1);
 
 void* TagOf(intptr_t operation) {
   return reinterpret_cast<void*>(operation + 1);

@@ -112,8 +112,8 @@ class BatchHandles {
   absl::flat_hash_map<uint64_t, std::pair<uint32_t, uint64_t>> declaring_;
 };
 
-// How long a server may take to answer `request`: `step_timeout`, plus 100
-// us for each lander action of a StepBatch (a batch of many envs takes the
+// How long a server may take to answer `request`: `step_timeout`, plus 1
+// ms for each lander action of a StepBatch (a batch of many envs takes the
 // server longer); infinite when `step_timeout` is. The deadline of every
 // request of the C++ client (ClientOptions::step_timeout).
 absl::Duration AnswerTimeout(absl::Duration step_timeout,

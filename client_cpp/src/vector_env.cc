@@ -817,8 +817,14 @@ struct VectorEnv::State {
     const absl::Time began = absl::Now();
     std::map<int, int> targets;  // Env -> the server it is replayed on.
     std::vector<int> homeless;   // Envs that need a server still.
+    // Servers that have just missed a deadline: not probed in this event
+    // (a probe would wait out its own deadline) while others can take the
+    // envs.
+    std::map<int, absl::Status> stalled;
     for (const auto& [env, error] : lost) {
       if (ServerLost(error)) down[placement[env]] = true;
+      if (absl::IsDeadlineExceeded(error))
+        stalled.emplace(placement[env], error);
       if (!fresh) {
         if (absl::Status problem = RecordProblem(env); !problem.ok()) {
           return problem;
@@ -846,7 +852,12 @@ struct VectorEnv::State {
     while (!targets.empty() || !homeless.empty()) {
       if (!homeless.empty()) {
         // Those passed over are down, and not probed again in this event.
-        const std::vector<int> usable = UsableServers(refused);
+        std::map<int, absl::Status> skip = refused;
+        skip.insert(stalled.begin(), stalled.end());
+        std::vector<int> usable = UsableServers(skip);
+        if (usable.empty() && !stalled.empty()) {
+          usable = UsableServers(refused);
+        }
         if (usable.empty()) return fail(NoServerLeft(lost, refused));
         for (size_t k = 0; k < homeless.size(); ++k) {
           targets[homeless[k]] = usable[k % usable.size()];

@@ -99,7 +99,7 @@ ABSL_FLAG(int, timeout_ms, 30000,
           "Deadline of each unary call in ms; 0: --step_timeout_s's.");
 ABSL_FLAG(double, step_timeout_s, 5.0,
           "How long a server may take to answer a request of the play and "
-          "bench Session streams (plus 100 us per lander action of a batch) "
+          "bench Session streams (plus 1 ms per lander action of a batch) "
           "before it counts as stalled: DEADLINE_EXCEEDED naming it, or "
           "failover with several servers; 0 for none.");
 ABSL_FLAG(std::string, name, "",
@@ -714,6 +714,10 @@ Result Play(const Client& client, const std::vector<std::string>&) {
 struct BenchCount {
   int64_t env_steps = 0;
   int64_t agent_steps = 0;
+  // How long each counted call (Step, or Recv) took, in seconds: a call
+  // waits for its answer, so its slowest ones say what step_timeout must
+  // allow.
+  std::vector<double> call_seconds;
   std::string transport;
   absl::Status status;
 };
@@ -752,6 +756,7 @@ BenchCount RunBenchClient(const std::vector<std::string>& addresses,
   while (count.status.ok() && std::chrono::steady_clock::now() < until) {
     for (int32_t& action : discrete) action = engine(rng);
     for (float& action : continuous) action = throttle(rng);
+    const auto call_start = std::chrono::steady_clock::now();
     if (async) {
       count.status = envs->Recv();
       if (!count.status.ok()) break;
@@ -765,7 +770,10 @@ BenchCount RunBenchClient(const std::vector<std::string>& addresses,
                          ? envs->Step(absl::MakeConstSpan(continuous))
                          : envs->Step(absl::MakeConstSpan(discrete));
     }
-    if (std::chrono::steady_clock::now() < start) continue;
+    const auto call_end = std::chrono::steady_clock::now();
+    if (call_end < start) continue;
+    count.call_seconds.push_back(
+        std::chrono::duration<double>(call_end - call_start).count());
     count.env_steps += per_call;
     for (uint8_t active : envs->active()) count.agent_steps += active;
   }
@@ -825,6 +833,9 @@ Result Bench(const Client& client, const std::vector<std::string>&) {
   for (std::future<BenchCount>& run : runs) {
     BenchCount count = run.get();
     if (!count.status.ok() && total.status.ok()) total.status = count.status;
+    total.call_seconds.insert(total.call_seconds.end(),
+                              count.call_seconds.begin(),
+                              count.call_seconds.end());
     total.env_steps += count.env_steps;
     total.agent_steps += count.agent_steps;
     transports.push_back(count.transport);
@@ -837,6 +848,14 @@ Result Bench(const Client& client, const std::vector<std::string>&) {
   const bool all_shared = std::all_of(
       transports.begin(), transports.end(),
       [](const std::string& name) { return name == "shared_memory"; });
+  // Each call's time in ms at quantile q (nearest rank), over every client.
+  std::sort(total.call_seconds.begin(), total.call_seconds.end());
+  const auto call_ms = [&](double q) {
+    if (total.call_seconds.empty()) return 0.0;
+    const size_t rank = static_cast<size_t>(
+        std::ceil(q * static_cast<double>(total.call_seconds.size())));
+    return 1000 * total.call_seconds[std::max<size_t>(rank, 1) - 1];
+  };
   std::cout << absl::StrCat(
                    "{\"clients\":", clients, ",\"envs\":", n_envs,
                    ",\"batch_size\":", batch_size > 0 ? batch_size : n_envs,
@@ -847,7 +866,13 @@ Result Bench(const Client& client, const std::vector<std::string>&) {
                    ",\"env_steps_per_second\":",
                    JsonNumber(total.env_steps / elapsed),
                    ",\"agent_steps_per_second\":",
-                   JsonNumber(total.agent_steps / elapsed), ",\"transport\":",
+                   JsonNumber(total.agent_steps / elapsed),
+                   ",\"calls\":", total.call_seconds.size(),
+                   ",\"call_ms_p50\":", JsonNumber(call_ms(0.5)),
+                   ",\"call_ms_p99\":", JsonNumber(call_ms(0.99)),
+                   ",\"call_ms_p999\":", JsonNumber(call_ms(0.999)),
+                   ",\"call_ms_max\":", JsonNumber(call_ms(1.0)),
+                   ",\"transport\":",
                    Quoted(all_shared ? "shared_memory" : "native"), "}")
             << std::endl;
   return std::nullopt;

@@ -200,12 +200,16 @@ class RemoteEnvBase:
             for index, address in enumerate(self._addresses)
         ] or [old_connection]
         unreachable = _record.loses_server(cause)
+        # Servers that missed a deadline in this event: not probed while others can take the env.
+        stalled = {old_index} if cause.code == grpc.StatusCode.DEADLINE_EXCEEDED else set()
         target, adopted = old_index, None
         try:
             for _ in range(len(connections) + 1):
                 if unreachable:
                     self._down.add(target)
-                    usable = _record.usable_servers(connections, self._down)
+                    usable = _record.usable_servers(connections, self._down, stalled) or _record.usable_servers(
+                        connections, self._down
+                    )
                     if not usable:
                         raise MLLError(
                             grpc.StatusCode.UNAVAILABLE,
@@ -223,6 +227,8 @@ class RemoteEnvBase:
                     if not _record.loses_server(error):
                         raise
                     unreachable = True  # It went too (or drains, or stalls): the next one.
+                    if error.code == grpc.StatusCode.DEADLINE_EXCEEDED:
+                        stalled.add(target)
                     continue
                 adopted = connections[target]
                 break

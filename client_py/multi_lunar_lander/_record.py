@@ -368,14 +368,16 @@ def gave_up(tries: int) -> MLLError:
     return MLLError(grpc.StatusCode.UNAVAILABLE, f"failover gave up after {tries} tries")
 
 
-def usable_servers(connections: list[Connection], down: set[int]) -> list[int]:
+def usable_servers(connections: list[Connection], down: set[int], skip: set[int] = frozenset()) -> list[int]:
     """Indices of `connections` a failover may move envs to: those not in `down` (found
     unreachable or draining), and those in `down` whose server answers GetServerInfo again on a
     renewed connection (Connection.renewed: a host name resolved again, the embedded server
     restarted if it died), which then replaces the old one in `connections` and leaves `down`. So
     a server replaced at the same address (a StatefulSet pod in a rolling update) takes envs again
-    at the next failover, rather than only after every other server is lost."""
-    for index in sorted(down):
+    at the next failover, rather than only after every other server is lost. Those in `skip` (in
+    `down` too: servers that just missed a deadline, whose probe would wait out its own) are not
+    probed."""
+    for index in sorted(down - set(skip)):
         fresh = connections[index].renewed()
         try:
             fresh.call("GetServerInfo", pb.GetServerInfoRequest(), timeout=2.0)

@@ -59,7 +59,8 @@ class MultiLunarLanderEnv(RemoteEnvBase, AECEnv):
     "human"), and address (None: an embedded local mll_server), server_index, tls_root_cert,
     tls_server_name, token, failover (on by default with several servers or the embedded one:
     an env lost with its server is recreated on another from its record and the turn retried;
-    `failovers` counts the events).
+    `failovers` counts the events), step_timeout_s (5 s; 0: none: each call's deadline, past which
+    the server counts as lost, or DEADLINE_EXCEEDED names it and the timeout).
 
     ## State
     state() -> float32 (n_landers * 12,), described by state_space: PettingZoo's global state,

@@ -62,7 +62,7 @@ struct ClientOptions {
   // How long a server may take to answer a request before it counts as
   // stalled (stopped, frozen, or cut off with its connection open): every
   // request on a Session stream (session clients, VectorEnv), and every
-  // unary call when call_timeout is zero. A StepBatch gets 100 us more per
+  // unary call when call_timeout is zero. A StepBatch gets 1 ms more per
   // lander action it carries. A server that misses it fails the request with
   // DEADLINE_EXCEEDED naming the server and the timeout, and its Session
   // stream is cancelled (a late answer is never taken); VectorEnv then fails
