@@ -26,6 +26,7 @@ _CLIENT_TYPES = _REPO / "client_cpp" / "include" / "mll" / "client_types.h"
 _LISTS = {
     "environment options": ("MLL_ENV_OPTIONS",),
     "the RPCs": ("MLL_RPCS", "MLL_SESSION_OPS", "MLL_SESSION_SYNC_OPS"),
+    "result columns": ("MLL_RESULT_COLUMNS",),
 }
 # Python config keywords that are the service's or not plain options (design.md, env_spec.h).
 _NOT_LISTED = ("render_mode", "auto_reset")
