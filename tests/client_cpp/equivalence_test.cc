@@ -14,6 +14,7 @@
 #include "mll/core/env.h"
 #include "mll/core/heuristic.h"
 #include "server_process.h"
+#include "suite_server.h"
 
 namespace mll::client {
 namespace {
@@ -54,12 +55,7 @@ void ExpectSameBits(const core::StepResult& core, const StepData& remote,
 
 class EquivalenceTest : public ::testing::TestWithParam<Case> {
  protected:
-  static void SetUpTestSuite() {
-    absl::StatusOr<std::unique_ptr<ServerProcess>> server =
-        ServerProcess::Start(MLL_SERVER_PATH, {"--threads=2"});
-    ASSERT_TRUE(server.ok()) << server.status();
-    server_ = server->release();
-  }
+  static void SetUpTestSuite() { server_ = StartSuiteServer({"--threads=2"}); }
   static void TearDownTestSuite() {
     delete server_;
     server_ = nullptr;

@@ -27,6 +27,7 @@
 #include "mll/v1/multi_lunar_lander.pb.h"
 #include "mll/vector_env.h"
 #include "server_process.h"
+#include "suite_server.h"
 
 namespace mll::client {
 namespace {
@@ -144,12 +145,7 @@ int WaitInSlices(const std::function<int(int)>& wait, int slice_ms = 100,
 
 class VectorCApiTest : public ::testing::Test {
  protected:
-  static void SetUpTestSuite() {
-    absl::StatusOr<std::unique_ptr<ServerProcess>> server =
-        ServerProcess::Start(MLL_SERVER_PATH, {"--threads=2"});
-    ASSERT_TRUE(server.ok()) << server.status();
-    server_ = server->release();
-  }
+  static void SetUpTestSuite() { server_ = StartSuiteServer({"--threads=2"}); }
   static void TearDownTestSuite() {
     delete server_;
     server_ = nullptr;
