@@ -1,7 +1,11 @@
 """Helpers shared by the client's tests (a uniquely named module rather than conftest, since
 pytest runs this suite beside examples/dqn/tests, which has its own conftest)."""
 
+import contextlib
+import os
+import pathlib
 import re
+import signal
 import time
 import urllib.request
 
@@ -168,3 +172,31 @@ def check_against_parallel_envs(vector, seed, steps):
         for env in envs:
             env.close()
     return auto_resets
+
+
+@contextlib.contextmanager
+def stopped(server):
+    """The server stopped (SIGSTOP: its sockets stay open, it answers nothing) once every thread
+    reads as stopped (at most 10 s); continued (SIGCONT) on leaving, whatever happened."""
+    os.kill(server.pid, signal.SIGSTOP)
+    try:
+        tasks = pathlib.Path(f"/proc/{server.pid}/task")
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            states = [(task / "stat").read_text().rsplit(")", 1)[1].split()[0] for task in tasks.iterdir()]
+            if all(state in "Tt" for state in states):
+                break
+            time.sleep(0.001)
+        yield
+    finally:
+        os.kill(server.pid, signal.SIGCONT)
+
+
+def holds_no_env_within(address, seconds):
+    """Whether the server at `address` lists no env within `seconds` (polled)."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        if not listed_names(address):
+            return True
+        time.sleep(0.1)
+    return False

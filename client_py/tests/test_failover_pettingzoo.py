@@ -20,7 +20,7 @@ import pytest
 import multi_lunar_lander as mll
 from multi_lunar_lander import _channel
 from multi_lunar_lander._stubs import pb
-from mll_test_helpers import listed_names
+from mll_test_helpers import holds_no_env_within, stopped
 
 KINDS = {"parallel": mll.parallel_env, "aec": mll.env}
 
@@ -249,34 +249,6 @@ def test_aec_snapshot_restores_clones_and_refuses_the_other_step_api(address):
 PAUSE_BOUND_S = _channel.DEFAULT_STEP_TIMEOUT_S + 10
 
 
-@contextlib.contextmanager
-def _stopped(server):
-    """The server stopped (SIGSTOP: its sockets stay open, it answers nothing) once every thread
-    reads as stopped (at most 10 s); continued (SIGCONT) on leaving, whatever happened."""
-    os.kill(server.pid, signal.SIGSTOP)
-    try:
-        tasks = pathlib.Path(f"/proc/{server.pid}/task")
-        deadline = time.monotonic() + 10
-        while time.monotonic() < deadline:
-            states = [(task / "stat").read_text().rsplit(")", 1)[1].split()[0] for task in tasks.iterdir()]
-            if all(state in "Tt" for state in states):
-                break
-            time.sleep(0.001)
-        yield
-    finally:
-        os.kill(server.pid, signal.SIGCONT)
-
-
-def _holds_no_env_within(address, seconds):
-    """Whether the server at `address` lists no env within `seconds` (polled)."""
-    deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
-        if not listed_names(address):
-            return True
-        time.sleep(0.1)
-    return False
-
-
 @pytest.mark.parametrize("kind", KINDS)
 def test_a_stopped_server_costs_one_pause_and_no_bit(kind, caplog):
     """Default step_timeout_s: the turn that meets the stopped server waits its deadline, then the
@@ -291,12 +263,12 @@ def test_a_stopped_server_costs_one_pause_and_no_bit(kind, caplog):
         reference = KINDS[kind](address=a.address, n_landers=2)
         turns = 120 if kind == "parallel" else 240
         with caplog.at_level(logging.WARNING, logger="multi_lunar_lander"), contextlib.ExitStack() as stack:
-            slowest = _lockstep(kind, env, reference, turns, turns // 2 + 5, lambda: stack.enter_context(_stopped(b)))
+            slowest = _lockstep(kind, env, reference, turns, turns // 2 + 5, lambda: stack.enter_context(stopped(b)))
             assert env.failovers == 1 and env.address in (a.address, c.address)
         assert _channel.DEFAULT_STEP_TIMEOUT_S <= slowest <= PAUSE_BOUND_S
         warnings = _failover_warnings(caplog)
         assert len(warnings) == 1 and "DEADLINE_EXCEEDED" in warnings[0] and b.address in warnings[0], warnings
-        assert _holds_no_env_within(b.address, 30)
+        assert holds_no_env_within(b.address, 30)
         for e in (env, reference):
             e.close()
 
@@ -307,7 +279,7 @@ def test_failover_off_a_stopped_server_raises_deadline_exceeded_within_the_timeo
         env = KINDS[kind](address=server.address, n_landers=2, step_timeout_s=1.5)
         assert not env.failover
         env.reset(seed=1)
-        with _stopped(server), pytest.raises(mll.MLLError) as raised:
+        with stopped(server), pytest.raises(mll.MLLError) as raised:
             began = time.monotonic()
             try:
                 env.step({agent: 0 for agent in env.agents} if kind == "parallel" else 0)
