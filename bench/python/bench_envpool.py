@@ -76,6 +76,7 @@ def main() -> int:
     parser.add_argument("--steps", type=int, default=1000, help="calls per round and side")
     parser.add_argument("--seconds", type=float, default=10.0, help="time bound per round and side")
     parser.add_argument("--cli_seconds", type=float, default=1.0, help="mll_cli bench's run per round and transport")
+    parser.add_argument("--no_halves", action="store_true", help="leave out the vector_env_tcp_halves side")
     args = parser.parse_args()
     if args.envs % 2 or args.envs // 2 != args.async_batch:
         parser.error("--async_batch must be half of --envs (the halves side steps the same batches)")
@@ -107,7 +108,7 @@ def main() -> int:
                 print(f"vector_env over {name} with transport={transport!r}: {error}", file=sys.stderr)
         for env in ours.values():
             env.reset(seed=0)
-        halves = Halves(mll, other.address, args.envs, 1)
+        halves = None if args.no_halves else Halves(mll, other.address, args.envs, 1)
         raw = mll.vector_env(args.envs, address=other.address, n_landers=args.gym_n_landers)
         gym_env = mll.gym_vector_env(args.envs, address=other.address, n_landers=args.gym_n_landers)
         raw.reset(seed=0)
@@ -118,7 +119,8 @@ def main() -> int:
             "envpool_async": (pool_async.step, half_table, args.async_batch, None),
             **{f"vector_env_{name}_{transport}": (env.step, column, args.envs, servers[name].pid)
                for (name, transport), env in ours.items()},
-            "vector_env_tcp_halves": (halves.step, half_table[..., None], args.async_batch, other.pid),
+            **({"vector_env_tcp_halves": (halves.step, half_table[..., None], args.async_batch, other.pid)}
+               if halves else {}),
             "raw_vector_env_x3": (raw.step, gym_table.reshape(256, args.envs, args.gym_n_landers), args.envs, other.pid),
             "gym_vector_env_x3": (gym_env.step, gym_table, args.envs, other.pid),
         }
@@ -142,7 +144,7 @@ def main() -> int:
             for name in sides:
                 rates[name] += one_round[0][name]
                 cpu_us[name] += one_round[1][name]
-        for env in (*ours.values(), halves, raw, gym_env):
+        for env in (*ours.values(), *([halves] if halves else []), raw, gym_env):
             env.close()
     load_after = os.getloadavg()
 
