@@ -379,6 +379,7 @@ std::optional<absl::Status> SessionStream::ReceiveBytes(
         absl::FailedPreconditionError("receive without a request in flight"));
   }
   // The caller's timeout, or the server's deadline if that comes first.
+  if (first_wait_ == absl::InfiniteFuture()) first_wait_ = absl::Now();
   const absl::Time due = AnswerDue();
   const absl::Duration to_due =
       std::max(due - absl::Now(), absl::ZeroDuration());
@@ -395,7 +396,7 @@ std::optional<absl::Status> SessionStream::ReceiveBytes(
 absl::Time SessionStream::AnswerDue() const {
   if (timeouts_.empty()) return absl::InfiniteFuture();
   const auto& [sent, timeout] = timeouts_.front();
-  return std::max(sent, last_answer_) + timeout;
+  return std::max({sent, last_answer_, first_wait_}) + timeout;
 }
 
 std::optional<absl::Status> SessionStream::ReceiveWithin(
@@ -471,6 +472,7 @@ void SessionStream::Answered() {
   ++received_;
   timeouts_.pop_front();
   last_answer_ = absl::Now();
+  first_wait_ = absl::InfiniteFuture();
 }
 
 absl::Duration AnswerTimeout(absl::Duration step_timeout,
@@ -609,6 +611,7 @@ absl::Status SessionStream::EndStream() {
   read_outstanding_ = false;
   DropRegion();
   timeouts_.clear();
+  first_wait_ = absl::InfiniteFuture();
   // Added: requests lost with an earlier stream stay lost (their Receives
   // still owe them an error) when a reopened stream fails too.
   lost_ += sent_ - received_;

@@ -245,6 +245,11 @@ class SessionStream {
   // AnswerTimeout, oldest first; when the latest answer came.
   std::deque<std::pair<absl::Time, absl::Duration>> timeouts_;
   absl::Time last_answer_ = absl::InfinitePast();
+  // When the caller first waited for the oldest request's answer (infinite
+  // future: not yet). The deadline counts from then at the earliest: an
+  // answer that came while the caller computed (a StepAsync, then a learning
+  // step) is read off the connection only when the caller waits.
+  absl::Time first_wait_ = absl::InfiniteFuture();
   // Requests lost with a broken stream, whose Receives report lost_status_.
   uint64_t lost_ = 0;
   absl::Status lost_status_;
