@@ -317,7 +317,9 @@ class VectorEnv:
         np.add(offsets, np.uint64(address), out=buffer[: 8 * offsets.size].view(np.uint64))  # The pointers.
         self._lib.mll_vector_env_results(self._handle, address)
         arrays = {name: np.ndarray(shape, dtype, buffer, offset) for name, shape, dtype, offset in placed}
-        if not with_env_ids:
+        if with_env_ids:  # int64, NumPy's and torch's index type (the engine's column is int32).
+            arrays["env_ids"] = arrays["env_ids"].astype(np.int64)
+        else:
             arrays.pop("env_ids", None)
         infos = {_INFO_KEYS.get(name, name): array for name, array in arrays.items() if name not in _RETURNED}
         return tuple(arrays[name] for name in _RETURNED) + (infos,)
@@ -412,7 +414,7 @@ class VectorEnv:
 
     def recv(self):
         """The results of the first batch_size envs whose steps are done (in the order their
-        answers came), as step() returns them, with infos["env_id"] (int32, (batch_size,))
+        answers came), as step() returns them, with infos["env_id"] (int64, (batch_size,))
         naming the envs of each row. Waits for answers as needed; FAILED_PRECONDITION when fewer
         than batch_size envs have a step in flight."""
         self._wait(self._lib.mll_vector_env_recv)

@@ -46,6 +46,8 @@ def _check(named, rows, n_landers, left_out=()):
         assert array.shape == shape, name
         if name in vector._FLAGS:
             assert dtype == pb.DTYPE_UINT8 and array.dtype == bool, name
+        elif name == "env_ids":  # Widened to NumPy's and torch's index type.
+            assert dtype == pb.DTYPE_INT32 and array.dtype == np.int64, name
         else:
             assert array.dtype == _NUMPY[dtype], name
         owner = array if array.base is None else array.base  # A flag column: a bool view of its uint8 array.
