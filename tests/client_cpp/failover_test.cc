@@ -540,6 +540,24 @@ Trajectory FlyTimed(VectorEnv& envs, int at, const std::function<void()>& fault,
   });
 }
 
+// Flies `envs` 70 steps, pausing `stall` (a server, or a proxy in front of
+// one) midway, and checks what the stall costs: one failover, the bits of
+// `expected`, one pause of at least the deadline and at most kPauseBound, and
+// no env left at `stall`'s address.
+void ExpectOneBoundedPause(VectorEnv& envs, const Trajectory& expected,
+                           ServerProcess& stall) {
+  absl::Duration slowest;
+  const Trajectory got = FlyTimed(
+      envs, 70, [&] { stall.Pause(); }, &slowest);
+  EXPECT_EQ(envs.failovers(), 1);
+  ExpectSameRun(got, expected);
+  EXPECT_GE(slowest, kDefaultStepTimeout);
+  EXPECT_LE(slowest, kPauseBound);
+  for (int env = 0; env < envs.num_envs(); ++env) {
+    EXPECT_NE(envs.address(env), stall.address()) << "env " << env;
+  }
+}
+
 // One of three servers stopped (SIGSTOP: its sockets stay open, it answers
 // nothing) mid-run, default options: one pause of at most the deadline plus
 // the replay, one failover, every bit of an uninterrupted run, on both
@@ -551,19 +569,9 @@ TEST(StallTest, AStoppedServerCostsOnePauseAndNoBit) {
     Trajectory expected;
     absl::StatusOr<VectorEnv> envs = WithReferenceRun(client, kEnvs, &expected);
     ASSERT_TRUE(envs.ok()) << envs.status();
-    const std::string stopped = servers[1]->address();
-    absl::Duration slowest;
-    const Trajectory got = FlyTimed(
-        *envs, 70, [&] { servers[1]->Pause(); }, &slowest);
-    EXPECT_EQ(envs->failovers(), 1);
-    ExpectSameRun(got, expected);
-    EXPECT_GE(slowest, kDefaultStepTimeout);
-    EXPECT_LE(slowest, kPauseBound);
-    for (int env = 0; env < kEnvs; ++env) {
-      EXPECT_NE(envs->address(env), stopped) << "env " << env;
-    }
+    ExpectOneBoundedPause(*envs, expected, *servers[1]);
     servers[1]->Resume();
-    EXPECT_TRUE(HoldsNoEnvWithin(stopped, 30));
+    EXPECT_TRUE(HoldsNoEnvWithin(servers[1]->address(), 30));
   });
 }
 
@@ -599,16 +607,7 @@ TEST(StallTest, AStoppedLinkCostsOnePauseAndNoBit) {
   Trajectory expected;
   absl::StatusOr<VectorEnv> envs = WithReferenceRun(client, kEnvs, &expected);
   ASSERT_TRUE(envs.ok()) << envs.status();
-  absl::Duration slowest;
-  const Trajectory got = FlyTimed(
-      *envs, 70, [&] { proxies[1]->Pause(); }, &slowest);
-  EXPECT_EQ(envs->failovers(), 1);
-  ExpectSameRun(got, expected);
-  EXPECT_GE(slowest, kDefaultStepTimeout);
-  EXPECT_LE(slowest, kPauseBound);
-  for (int env = 0; env < kEnvs; ++env) {
-    EXPECT_NE(envs->address(env), proxies[1]->address()) << "env " << env;
-  }
+  ExpectOneBoundedPause(*envs, expected, *proxies[1]);
   // The link heals: the server ends the cancelled session.
   proxies[1]->Resume();
   EXPECT_TRUE(HoldsNoEnvWithin(servers[1]->address(), 30));
