@@ -139,24 +139,27 @@ def test_failover_off_the_only_server_stopped_raises_deadline_exceeded_within_th
         vector.close()
 
 
-@pytest.mark.parametrize("transport", ["shared_memory", "native"])
-def test_computing_between_step_async_and_step_wait_longer_than_the_deadline_and_a_keepalive_round(
-    transport, address
-):
+def test_computing_between_step_async_and_step_wait_longer_than_the_deadline_and_a_keepalive_round(address):
     """A trainer may compute for long between step_async and step_wait: the deadline counts from
     when it starts waiting (the answer came meanwhile and is read then), and the engine does not
     close the connection over the keepalive ping whose acknowledgement it reads only then (32 s:
-    a ping every 20 s, grpcio's 10 s wait for its ack, and 2 s more)."""
-    options = dict(address=address, n_landers=2, transport=transport, step_timeout_s=1)
-    with mll.vector_env(3, **options) as vector, mll.vector_env(3, **options) as reference:
-        actions = np.zeros((3, 2), np.int32)
-        vector.reset(seed=4)
-        reference.reset(seed=4)
-        vector.step_async(actions)
+    a ping every 20 s, grpcio's 10 s wait for its ack, and 2 s more). Both transports at once."""
+    actions = np.zeros((3, 2), np.int32)
+    with contextlib.ExitStack() as stack:
+        pairs = []
+        for transport in ("shared_memory", "native"):
+            options = dict(address=address, n_landers=2, transport=transport, step_timeout_s=1)
+            vector, reference = (stack.enter_context(mll.vector_env(3, **options)) for _ in range(2))
+            assert vector.transport == transport
+            vector.reset(seed=4)
+            reference.reset(seed=4)
+            vector.step_async(actions)
+            pairs.append((vector, reference))
         time.sleep(32)
-        got = vector.step_wait()
-        expected = reference.step(actions)
-        for x, y in zip(got[:-1], expected[:-1]):
-            assert same_bits(x, y)
-        assert vector.failovers == 0
-        assert same_bits(vector.step(actions)[0], reference.step(actions)[0])
+        for vector, reference in pairs:
+            got = vector.step_wait()
+            expected = reference.step(actions)
+            for x, y in zip(got[:-1], expected[:-1]):
+                assert same_bits(x, y)
+            assert vector.failovers == 0
+            assert same_bits(vector.step(actions)[0], reference.step(actions)[0])
