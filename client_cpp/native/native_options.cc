@@ -1,7 +1,7 @@
 #include "native_options.h"
 
 #include "grpc/grpc.h"
-#include "session_c_api.h"
+#include "vector_c_api.h"
 
 namespace mll::client::internal {
 namespace {

@@ -1,5 +1,5 @@
-// What the C interfaces (session_c_api.cc, vector_c_api.cc) share: gRPC kept
-// initialised, and the client options made from their C arguments.
+// What the C interface (vector_c_api.cc) needs beside the client: gRPC kept
+// initialised, and the client options made from its C arguments.
 #ifndef MLL_CLIENT_NATIVE_NATIVE_OPTIONS_H_
 #define MLL_CLIENT_NATIVE_NATIVE_OPTIONS_H_
 
@@ -15,7 +15,7 @@ namespace mll::client::internal {
 // threads, a few hundred milliseconds) and the next would start it again.
 void KeepGrpcInitialised();
 
-// The options of mll_native_stream_new's arguments: `root_cert_pem`
+// The options of mll_vector_env_new's arguments: `root_cert_pem`
 // (`root_cert_size` bytes; NULL: plaintext) turns TLS on, `server_name` and
 // `token` (NULL or "": none), `transport` (MLL_NATIVE_TRANSPORT_*), and the
 // Python client's largest message.

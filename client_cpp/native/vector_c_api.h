@@ -19,7 +19,18 @@
 #include <stddef.h>
 #include <stdint.h>
 
-#include "session_c_api.h"
+#define MLL_NATIVE_API __attribute__((visibility("default")))
+
+/* Values of `transport` (mll::client::SessionTransport): shared memory with a
+ * server on this host where it grants it, else gRPC's stream; shared memory
+ * or fail saying why not; gRPC's stream. */
+#define MLL_NATIVE_TRANSPORT_AUTO 0
+#define MLL_NATIVE_TRANSPORT_SHARED_MEMORY 1
+#define MLL_NATIVE_TRANSPORT_NATIVE 2
+
+/* Returned by mll_vector_env_step_wait and mll_vector_env_recv when their
+ * timeout passed first. */
+#define MLL_NATIVE_STREAM_PENDING (-1)
 
 #ifdef __cplusplus
 extern "C" {
@@ -50,8 +61,11 @@ MLL_NATIVE_API int mll_vector_env_column_width(int column);
  * host:port or unix:PATH; env i on server i mod S), created on Session
  * streams of the handle's own (they die with it), with the options of
  * `config` (`config_size` bytes of a serialized mll.v1.EnvConfig; auto_reset
- * is forced on). TLS, server name, token and `transport`
- * (MLL_NATIVE_TRANSPORT_*) as mll_native_stream_new. `batch_size`: how many
+ * is forced on). `root_cert_pem` (`root_cert_size` bytes) turns TLS on with
+ * those root certificates; NULL is plaintext. `server_name` (NULL or "": the
+ * address's host) is the name the servers' certificates must carry. `token`
+ * (NULL or "": none) is sent as `authorization: Bearer <token>`. `transport`:
+ * MLL_NATIVE_TRANSPORT_*. `batch_size`: how many
  * envs recv returns (0: num_envs). `failover`: -1 unset (on with several
  * servers, off with one), 0 off, 1 on. `step_timeout_s`: how long a request
  * in flight may wait for its answer before its server counts as down (< 0:

@@ -26,7 +26,7 @@ from ._server import checkout_build_path
 
 LIBRARY_ENV = "MLL_NATIVE_LIBRARY"
 LIBRARY_NAME = "libmll_native_stream.so"
-# MLL_NATIVE_STREAM_PENDING: a wait ran out (session_c_api.h); and how long each wait is, so
+# MLL_NATIVE_STREAM_PENDING: a wait ran out (vector_c_api.h); and how long each wait is, so
 # that Python handles signals (Ctrl-C) between waits.
 PENDING = -1
 READ_SLICE_MS = 100

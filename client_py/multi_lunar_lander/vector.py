@@ -49,7 +49,7 @@ from ._stubs import pb
 
 _LOG = logging.getLogger("multi_lunar_lander")
 
-# transport= values, as MLL_NATIVE_TRANSPORT_* of client_cpp/native/session_c_api.h.
+# transport= values, as MLL_NATIVE_TRANSPORT_* of client_cpp/native/vector_c_api.h.
 TRANSPORTS = {"auto": 0, "shared_memory": 1, "native": 2}
 
 # Where the engine's result columns (mll_vector_env_column_name) go in Python's results: the
@@ -208,6 +208,7 @@ class VectorEnv:
         self._interrupted = False  # An interrupted step() left its step in flight (_finish_interrupted).
         lease = None if addresses else embedded_lease(security)
         root = security.root_certificates
+        config_bytes = config.SerializeToString()
         handle = lib.mll_vector_env_new(
             ",".join(addresses or [lease.address]).encode(),
             root,
@@ -215,8 +216,8 @@ class VectorEnv:
             (security.server_name or "").encode(),
             (security.token or "").encode(),
             TRANSPORTS[transport],
-            config.SerializeToString(),
-            len(config.SerializeToString()),
+            config_bytes,
+            len(config_bytes),
             self.num_envs,
             self.batch_size,
             int(_record.failover_on(failover, addresses)),
