@@ -9,15 +9,15 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.metadata
-from typing import Any, Iterable
+from typing import Any, Iterable, Sequence
 
 import grpc
 
 from ._errors import MLLError
 
-# The wire protocol this client speaks: package mll.v1, up to minor 2 (1: GetServerInfo; 2:
-# PackedSteps.handle).
-PROTOCOL = (1, 2)
+# The wire protocol this client speaks: package mll.v1, up to minor 3 (1: GetServerInfo; 2:
+# PackedSteps.handle; 3: ServerInfo.load).
+PROTOCOL = (1, 3)
 
 
 def client_version() -> str:
@@ -45,6 +45,20 @@ _LIMIT_FIELDS = dataclasses.fields(ServerLimits)
 
 
 @dataclasses.dataclass(frozen=True)
+class ServerLoad:
+    """What a server carried when it answered (proto ServerLoad; capability "server_load"); all 0
+    from a server that does not report it."""
+
+    envs_hosted: int = 0  # Environments hosted, all callers together (bound: limits.max_envs).
+    cpu_cores: float = 0.0  # CPU the server process used over the last 10 s, in cores.
+    cores_available: float = 0.0  # Cores it may use: its CPU affinity, or its cgroup quota when lower.
+    agent_steps_per_s: float = 0.0  # Agent-steps per second over the same 10 s.
+
+
+_LOAD_FIELDS = dataclasses.fields(ServerLoad)
+
+
+@dataclasses.dataclass(frozen=True)
 class ServerInfo:
     """A server's release, wire protocol version, capabilities and limits (GetServerInfo).
 
@@ -55,12 +69,19 @@ class ServerInfo:
     capabilities: the optional features it offers, e.g. "packed_step_batch", "auto_reset",
       "keep_alive", "shared_memory_sessions" (absent when run with --shared_memory_sessions=0).
     limits: ServerLimits.
+    load: ServerLoad at the time of the answer ("server_load"; None gives zeros); not compared by ==, which tells
+      servers apart by what they are, not by what they carry at a moment.
     """
 
     server_version: str
     protocol: tuple[int, int]
     capabilities: frozenset[str]
     limits: ServerLimits
+    load: ServerLoad = dataclasses.field(default=None, compare=False)  # type: ignore[assignment]
+
+    def __post_init__(self):
+        if self.load is None:  # Not reported: zeros.
+            object.__setattr__(self, "load", ServerLoad())
 
     @classmethod
     def from_proto(cls, message) -> "ServerInfo":
@@ -70,6 +91,7 @@ class ServerInfo:
             protocol=(int(message.protocol_major), int(message.protocol_minor)),
             capabilities=frozenset(message.capabilities),
             limits=ServerLimits(**{field.name: getattr(limits, field.name) for field in _LIMIT_FIELDS}),
+            load=ServerLoad(**{field.name: getattr(message.load, field.name) for field in _LOAD_FIELDS}),
         )
 
     @classmethod
@@ -94,7 +116,32 @@ class ServerInfo:
             "protocol": list(self.protocol),
             "capabilities": sorted(self.capabilities),
             "limits": dataclasses.asdict(self.limits),
+            "load": dataclasses.asdict(self.load),
         }
+
+
+def least_loaded(infos: Sequence[ServerInfo | None]) -> int | None:
+    """The index of the server a new environment goes to, by what the servers report (None: one
+    that did not answer): among those with room (envs_hosted below limits.max_envs, or no bound
+    known), the lowest fill once it takes the env, (envs_hosted + 1) / max_envs (a bound of 0,
+    unknown, counts as the largest known one); ties to the lower CPU use, cpu_cores /
+    cores_available; then the lower index. None when no server has room. The one placement rule
+    of both clients (docs/design.md, "Placement"; the C++ engine's PlanPlacement places a batch
+    of envs one by one by it)."""
+    known = [info.limits.max_envs for info in infos if info is not None and info.limits.max_envs > 0]
+    largest = max(known, default=1)
+    best, best_key = None, None
+    for index, info in enumerate(infos):
+        if info is None:
+            continue
+        hosted, bound = info.load.envs_hosted, info.limits.max_envs
+        if bound > 0 and hosted >= bound:
+            continue
+        cores = info.load.cores_available
+        key = ((hosted + 1) / (bound or largest), info.load.cpu_cores / cores if cores > 0 else 0.0, index)
+        if best_key is None or key < best_key:
+            best, best_key = index, key
+    return best
 
 
 def _describe_server(info: ServerInfo, address: str) -> str:
@@ -148,3 +195,18 @@ def fetch(connection, timeout: float | None = 30.0) -> ServerInfo:
             return ServerInfo.predating()
         raise
     return ServerInfo.from_proto(message)
+
+
+def fetch_all(connections: Sequence, timeout: float) -> list[ServerInfo | MLLError]:
+    """GetServerInfo of every connection at once (deadline `timeout`): each one's answer, or its
+    error (UNIMPLEMENTED gives ServerInfo.predating(), as fetch)."""
+    from ._stubs import pb
+
+    waits = [connection.future("GetServerInfo", pb.GetServerInfoRequest(), timeout) for connection in connections]
+    answers: list[ServerInfo | MLLError] = []
+    for wait in waits:
+        try:
+            answers.append(ServerInfo.from_proto(wait()))
+        except MLLError as error:
+            answers.append(ServerInfo.predating() if error.code == grpc.StatusCode.UNIMPLEMENTED else error)
+    return answers

@@ -5,6 +5,8 @@ older release (no GetServerInfo) and of a newer protocol, on loopback."""
 
 import importlib.metadata
 import json
+import os
+import time
 from concurrent import futures
 
 import grpc
@@ -27,9 +29,9 @@ def test_the_real_server_reports_its_release_protocol_and_limits(address):
     info = mll.server_info(address)
     # Client and server are released together: the project's one version.
     assert info.server_version == CLIENT_VERSION
-    assert info.protocol == mll.PROTOCOL == (1, 2)
+    assert info.protocol == mll.PROTOCOL == (1, 3)
     assert {
-        "packed_step_batch", "auto_reset", "keep_alive", "shared_memory_sessions", "packed_batch_handles"
+        "packed_step_batch", "auto_reset", "keep_alive", "shared_memory_sessions", "packed_batch_handles", "server_load"
     } <= info.capabilities
     assert info.limits == mll.ServerLimits(
         max_envs=10000,
@@ -40,7 +42,9 @@ def test_the_real_server_reports_its_release_protocol_and_limits(address):
         threads=2,
         shared_memory_sessions=64,
     )
-    assert json.loads(json.dumps(info.as_dict()))["protocol"] == [1, 2]
+    as_json = json.loads(json.dumps(info.as_dict()))
+    assert as_json["protocol"] == [1, 3]
+    assert set(as_json["load"]) == {"envs_hosted", "cpu_cores", "cores_available", "agent_steps_per_s"}
     with pytest.raises(AttributeError):  # Frozen.
         info.server_version = "x"
 
@@ -69,6 +73,56 @@ def test_every_env_exposes_its_servers_answer_asked_once_per_connection(address,
             vector.reset(seed=0)
             vector.step(np.zeros((2, 1), np.int32))
             assert vector.server_infos == [expected, second]
+
+
+def test_the_load_follows_the_envs_hosted_and_the_work():
+    """ServerInfo.load: envs_hosted counts every env (creates and deletes), cpu_cores rises above 0
+    under a bounded step load and stays within [0, cores_available]; not part of ==."""
+    with mll.ServerProcess(threads=1, max_envs=8) as server:
+        first = mll.server_info(server.address)
+        assert first.load.envs_hosted == 0
+        assert 0 < first.load.cores_available <= (os.cpu_count() or 1)
+        assert 0 <= first.load.cpu_cores <= first.load.cores_available
+        envs = [mll.parallel_env(address=server.address, n_landers=2) for _ in range(3)]
+        assert mll.server_info(server.address).load.envs_hosted == 3
+        envs.pop().close()
+        assert mll.server_info(server.address).load.envs_hosted == 2
+        # At most 1.5 s or 5,000 steps of stepping, whichever ends first.
+        end, steps = time.monotonic() + 1.5, 0
+        for env in envs:
+            env.reset(seed=1)
+        while steps < 5000 and time.monotonic() < end:
+            env = envs[steps % 2]
+            if not env.agents:
+                env.reset()
+            env.step({agent: 2 for agent in env.agents})
+            steps += 1
+        after = mll.server_info(server.address)
+        assert after.load.envs_hosted == 2
+        assert 0 < after.load.cpu_cores <= after.load.cores_available
+        assert after.load.agent_steps_per_s > 0
+        assert after == first  # The same server: its load is no part of what it is.
+        for env in envs:
+            env.close()
+
+
+def test_least_loaded_takes_the_lowest_fill_then_cpu_then_the_first():
+    def server(hosted, max_envs=100, cpu=0.0, cores=2.0):
+        limits = mll.ServerLimits(max_envs=max_envs)
+        return mll.ServerInfo("0.1.0", (1, 3), frozenset(), limits, mll.ServerLoad(hosted, cpu, cores, 0.0))
+
+    least = _server_info.least_loaded
+    assert least([server(50), server(10)]) == 1
+    assert least([server(10, cpu=1.5), server(10, cpu=0.5)]) == 1  # Same fill: the lower CPU.
+    assert least([server(10, cpu=1.0, cores=4.0), server(10, cpu=0.6, cores=2.0)]) == 0  # 0.25 < 0.3.
+    assert least([server(10), server(10)]) == 0  # A full tie: the first.
+    # Fill is against each server's own bound: 30 of 1000 is emptier than 5 of 100.
+    assert least([server(5), server(30, max_envs=1000)]) == 1
+    assert least([server(100), None, server(99)]) == 2  # Full, did not answer, has room.
+    assert least([server(100), None]) is None
+    # A bound of 0 (a server that reports none) counts as the largest known bound.
+    assert least([server(20, max_envs=0), server(30, max_envs=50)]) == 0  # 21/50 < 31/50.
+    assert least([mll.ServerInfo.predating(), server(0)]) == 0  # No load reported: taken as empty.
 
 
 @pytest.mark.parametrize(

@@ -4,6 +4,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <chrono>
 #include <cstdio>
 
 #include "absl/strings/str_cat.h"
@@ -21,6 +22,12 @@ void Family(absl::string_view name, absl::string_view type,
             absl::string_view help, std::string* out) {
   absl::StrAppend(out, "# HELP ", name, " ", help, "\n# TYPE ", name, " ", type,
                   "\n");
+}
+
+int64_t SteadyNowNs() {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(
+             std::chrono::steady_clock::now().time_since_epoch())
+      .count();
 }
 
 std::string MethodLabel(Method method) {
@@ -65,8 +72,29 @@ absl::string_view MethodName(Method method) {
   return ServiceDescriptor().method(static_cast<int>(method))->name();
 }
 
+Metrics::Metrics() : load_(ReadLoad()) {}
+
+LoadMeter::Reading Metrics::ReadLoad() const {
+  LoadMeter::Reading reading;
+  reading.time_ns = SteadyNowNs();
+  reading.cpu_ns = ProcessCpuNs();
+  for (Method method : kStepMethods) {
+    reading.agent_steps +=
+        methods_[static_cast<int>(method)].agent_steps.load(kRelaxed);
+  }
+  return reading;
+}
+
+LoadMeter::Rates Metrics::RecentLoad() {
+  const LoadMeter::Reading now = ReadLoad();
+  const LoadMeter::Rates rates = load_.Over(now);
+  load_.Add(now);
+  return rates;
+}
+
 void Metrics::RecordCall(Method method, absl::StatusCode code,
                          int64_t latency_ns) {
+  if (load_.Due(SteadyNowNs())) load_.Add(ReadLoad());
   PerMethod& m = of(method);
   const int bucket =
       static_cast<int>(std::lower_bound(kBucketBoundsNs.begin(),

@@ -20,7 +20,7 @@ v1::ServerInfo MakeServerInfo(const ServiceOptions& options) {
   info.set_protocol_minor(kProtocolMinor);
   for (absl::string_view capability :
        {kCapabilityPackedStepBatch, kCapabilityAutoReset, kCapabilityKeepAlive,
-        kCapabilityPackedBatchHandles}) {
+        kCapabilityPackedBatchHandles, kCapabilityServerLoad}) {
     info.add_capabilities(std::string(capability));
   }
   if (options.shared_memory_sessions > 0) {

@@ -21,6 +21,7 @@
 #include "grpcpp/support/byte_buffer.h"
 #include "grpcpp/support/slice.h"
 #include "mll/service/convert.h"
+#include "mll/service/load_meter.h"
 #include "mll/service/server_info.h"
 #include "mll/session_ops.h"
 #include "mll/shared_memory_pipe.h"
@@ -1061,6 +1062,17 @@ grpc::ServerUnaryReactor* MultiLunarLanderService::KeepAlive(
       [&](const Dispatch& run) { return run.KeepAlive(*request, response); });
 }
 
+// CPU is clamped to the cores available: the interpolated window can
+// overshoot them by a sample's rounding, never the process its CPUs.
+void MultiLunarLanderService::FillLoad(v1::ServerLoad* load) {
+  const LoadMeter::Rates rates = metrics_.RecentLoad();
+  const double cores = CoresAvailable();
+  load->set_envs_hosted(registry_.size());
+  load->set_cpu_cores(std::min(rates.cpu_cores, cores));
+  load->set_cores_available(cores);
+  load->set_agent_steps_per_s(rates.agent_steps_per_s);
+}
+
 // Admitted like every call (a token when the server has tokens): what the
 // server is and its limits are for its clients only.
 grpc::ServerUnaryReactor* MultiLunarLanderService::GetServerInfo(
@@ -1070,6 +1082,7 @@ grpc::ServerUnaryReactor* MultiLunarLanderService::GetServerInfo(
                   &operations_, &metrics_, Method::kGetServerInfo,
                   [&](const Dispatch&) {
                     *response = server_info_;
+                    FillLoad(response->mutable_load());
                     return absl::OkStatus();
                   });
 }

@@ -15,6 +15,7 @@
 #include "absl/status/status.h"
 #include "absl/strings/string_view.h"
 #include "google/protobuf/descriptor.h"
+#include "mll/service/load_meter.h"
 #include "mll/session_ops.h"
 #include "mll/v1/multi_lunar_lander.pb.h"
 
@@ -51,12 +52,12 @@ class Metrics {
       1'000'000,  2'500'000,   5'000'000,   10'000'000,  25'000'000,
       50'000'000, 100'000'000, 250'000'000, 500'000'000, 1'000'000'000};
 
-  Metrics() = default;
+  Metrics();
   Metrics(const Metrics&) = delete;
   Metrics& operator=(const Metrics&) = delete;
 
   // One finished call (or Session request): its latency and, unless OK, its
-  // code.
+  // code. Takes a load sample when one is due (LoadMeter).
   void RecordCall(Method method, absl::StatusCode code, int64_t latency_ns);
   // A successful parallel step's result: one env step and an agent-step per
   // agent that acted, or, for an auto-reset instead of a step, an episode.
@@ -72,6 +73,10 @@ class Metrics {
   // A successful packed StepBatch (any method), by how it gave its envs:
   // their names, or a declared handle alone (PackedSteps.handle).
   void RecordPackedBatch(bool by_handle);
+
+  // CPU in cores and agent-steps per second over the last 10 s
+  // (ServerInfo.load), taking a sample now.
+  LoadMeter::Rates RecentLoad();
 
   // The exposition text, with `live_envs` as the environments gauge,
   // `live_by_tenant` (owner, envs; auth.h's owners, never a token) as the
@@ -98,10 +103,13 @@ class Metrics {
   };
 
   PerMethod& of(Method method) { return methods_[static_cast<int>(method)]; }
+  // The counters LoadMeter samples, now.
+  LoadMeter::Reading ReadLoad() const;
 
   std::array<PerMethod, kMethodCount> methods_;
   std::atomic<uint64_t> episodes_{0};
   std::atomic<uint64_t> packed_batches_[2] = {};  // [by_handle].
+  LoadMeter load_;  // After methods_: its first reading sums their counters.
 };
 
 }  // namespace mll::service

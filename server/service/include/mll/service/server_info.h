@@ -10,11 +10,11 @@
 
 namespace mll::service {
 
-// The wire protocol this server speaks: mll.v1, minor 2. The minor goes up
+// The wire protocol this server speaks: mll.v1, minor 3. The minor goes up
 // with every field, RPC or capability added within v1 (1: GetServerInfo; 2:
-// PackedSteps.handle).
+// PackedSteps.handle; 3: ServerInfo.load).
 inline constexpr int kProtocolMajor = 1;
-inline constexpr int kProtocolMinor = 2;
+inline constexpr int kProtocolMinor = 3;
 
 // Capability names (ServerInfo.capabilities); never reused for another
 // meaning.
@@ -26,11 +26,13 @@ inline constexpr absl::string_view kCapabilitySharedMemorySessions =
     "shared_memory_sessions";
 inline constexpr absl::string_view kCapabilityPackedBatchHandles =
     "packed_batch_handles";
+inline constexpr absl::string_view kCapabilityServerLoad = "server_load";
 
 // The project's version (CMake's PROJECT_VERSION), e.g. "0.1.0".
 absl::string_view ServerVersion();
 
-// The ServerInfo of a service run with `options`.
+// The ServerInfo of a service run with `options`, less its load (filled at
+// each answer).
 v1::ServerInfo MakeServerInfo(const ServiceOptions& options);
 
 }  // namespace mll::service

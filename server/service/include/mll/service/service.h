@@ -171,6 +171,9 @@ class MultiLunarLanderService final
   // SessionMessages in service.cc).
   grpc::ServerBidiReactor<grpc::ByteBuffer, grpc::ByteBuffer>* OpenSession(
       grpc::CallbackServerContext* context);
+  // GetServerInfo's load: envs hosted, CPU and agent-steps over the last
+  // 10 s, cores available, now.
+  void FillLoad(v1::ServerLoad* load);
 
   // Puts each StepBatch call's request and response on one protobuf arena:
   // a `steps` batch of 64 envs is ~2,000 sub-messages and strings, which
@@ -196,7 +199,8 @@ class MultiLunarLanderService final
   Operations operations_;
   WorkerPool pool_;
   SharedMemorySessions shared_memory_sessions_;
-  // GetServerInfo's answer, fixed at construction (server_info.h).
+  // GetServerInfo's answer but its load, fixed at construction
+  // (server_info.h).
   const v1::ServerInfo server_info_;
 };
 
