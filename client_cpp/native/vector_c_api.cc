@@ -4,6 +4,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstring>
+#include <map>
 #include <memory>
 #include <optional>
 #include <string>
@@ -94,6 +95,28 @@ absl::StatusOr<VectorEnv> CreateVectorEnv(const char* addresses,
       failover < 0 ? std::nullopt : std::optional<bool>(failover == 1));
 }
 
+// Copies the latest results' columns into `buffers` (one per column, in the
+// table's order; NULL skips its column).
+void CopyResults(const VectorEnv& envs, void* const* buffers) {
+  int column = 0;
+  // Each column's accessor of the same name, in the table's order.
+#define MLL_COPY_COLUMN(name, type, per_agent, width)                          \
+  {                                                                            \
+    const auto values = envs.name();                                           \
+    static_assert(                                                             \
+        std::is_same_v<                                                        \
+            std::remove_const_t<typename decltype(values)::value_type>, type>, \
+        "VectorEnv::" #name "() has the column's element type");               \
+    if (buffers[column] != nullptr) {                                          \
+      std::memcpy(buffers[column], values.data(),                              \
+                  values.size() * sizeof(type));                               \
+    }                                                                          \
+    ++column;                                                                  \
+  }
+  MLL_RESULT_COLUMNS(MLL_COPY_COLUMN)
+#undef MLL_COPY_COLUMN
+}
+
 }  // namespace
 
 struct mll_vector_env {
@@ -116,6 +139,20 @@ struct mll_vector_env {
   int Report(const std::optional<absl::Status>& status) {
     return status.has_value() ? Report(*status) : MLL_NATIVE_STREAM_PENDING;
   }
+  // As Report, for a call that makes results: once it succeeded, they go
+  // into the buffers bound for their row count, if any.
+  template <typename Status>
+  int Deliver(const Status& status) {
+    const int code = Report(status);
+    if (code == 0) {
+      const auto found = bound.find(static_cast<int>(envs->env_ids().size()));
+      if (found != bound.end()) CopyResults(*envs, found->second.data());
+    }
+    return code;
+  }
+
+  // The caller's buffers (mll_vector_env_bind_results), by row count.
+  std::map<int, std::vector<void*>> bound;
 };
 
 namespace {
@@ -289,8 +326,8 @@ const char* mll_vector_env_take_events(mll_vector_env* env) {
 
 int mll_vector_env_reset(mll_vector_env* env, int has_seed, uint64_t seed) {
   if (!env->envs) return CodeOf(env->create_status);
-  return env->Report(env->envs->Reset(has_seed ? std::optional<uint64_t>(seed)
-                                               : std::nullopt));
+  return env->Deliver(env->envs->Reset(has_seed ? std::optional<uint64_t>(seed)
+                                                : std::nullopt));
 }
 
 int mll_vector_env_step_async(mll_vector_env* env, const void* actions,
@@ -301,10 +338,16 @@ int mll_vector_env_step_async(mll_vector_env* env, const void* actions,
   }));
 }
 
+int mll_vector_env_step(mll_vector_env* env, const void* actions, size_t count,
+                        int continuous, int timeout_ms) {
+  const int code = mll_vector_env_step_async(env, actions, count, continuous);
+  return code != 0 ? code : mll_vector_env_step_wait(env, timeout_ms);
+}
+
 int mll_vector_env_step_wait(mll_vector_env* env, int timeout_ms) {
   if (!env->envs) return CodeOf(env->create_status);
-  if (timeout_ms < 0) return env->Report(env->envs->StepWait());
-  return env->Report(
+  if (timeout_ms < 0) return env->Deliver(env->envs->StepWait());
+  return env->Deliver(
       env->envs->StepWait(std::chrono::milliseconds(timeout_ms)));
 }
 
@@ -327,8 +370,8 @@ int mll_vector_env_send(mll_vector_env* env, const void* actions, size_t count,
 
 int mll_vector_env_recv(mll_vector_env* env, int timeout_ms) {
   if (!env->envs) return CodeOf(env->create_status);
-  if (timeout_ms < 0) return env->Report(env->envs->Recv());
-  return env->Report(env->envs->Recv(std::chrono::milliseconds(timeout_ms)));
+  if (timeout_ms < 0) return env->Deliver(env->envs->Recv());
+  return env->Deliver(env->envs->Recv(std::chrono::milliseconds(timeout_ms)));
 }
 
 int mll_vector_env_in_flight(const mll_vector_env* env) {
@@ -340,25 +383,23 @@ int mll_vector_env_rows(const mll_vector_env* env) {
 }
 
 void mll_vector_env_results(const mll_vector_env* env, void* const* buffers) {
-  if (!env->envs) return;
-  const VectorEnv& envs = *env->envs;
-  int column = 0;
-  // Each column's accessor of the same name, in the table's order.
-#define MLL_COPY_COLUMN(name, type, per_agent, width)                          \
-  {                                                                            \
-    const auto values = envs.name();                                           \
-    static_assert(                                                             \
-        std::is_same_v<                                                        \
-            std::remove_const_t<typename decltype(values)::value_type>, type>, \
-        "VectorEnv::" #name "() has the column's element type");               \
-    if (buffers[column] != nullptr) {                                          \
-      std::memcpy(buffers[column], values.data(),                              \
-                  values.size() * sizeof(type));                               \
-    }                                                                          \
-    ++column;                                                                  \
+  if (env->envs) CopyResults(*env->envs, buffers);
+}
+
+int mll_vector_env_bind_results(mll_vector_env* env, int rows,
+                                void* const* buffers) {
+  if (!env->envs) return CodeOf(env->create_status);
+  if (rows != env->envs->num_envs() && rows != env->envs->batch_size()) {
+    return env->Report(absl::InvalidArgumentError(absl::StrCat(
+        "rows is ", rows, "; allowed: num_envs = ", env->envs->num_envs(),
+        " or batch_size = ", env->envs->batch_size())));
   }
-  MLL_RESULT_COLUMNS(MLL_COPY_COLUMN)
-#undef MLL_COPY_COLUMN
+  if (buffers == nullptr) {
+    env->bound.erase(rows);
+  } else {
+    env->bound[rows].assign(buffers, buffers + kResultColumnCount);
+  }
+  return 0;
 }
 
 int mll_vector_env_snapshot(mll_vector_env* env, int index, const char** data,

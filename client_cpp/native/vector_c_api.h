@@ -8,11 +8,13 @@
  * codes (0 is OK); after a failure, mll_vector_env_message says why (the
  * server's message, or the client's naming the argument and what is allowed).
  *
- * Results: every call that produces results (reset, step_wait, recv) keeps
- * them in the handle until the next such call; mll_vector_env_results copies
- * them into buffers the caller owns, one per result column. The columns, their
- * element types and shapes are described by mll_vector_env_column_*: the
- * caller derives its arrays from that table instead of declaring them again. */
+ * Results: every call that produces results (reset, step, step_wait, recv)
+ * keeps them in the handle until the next such call, and writes them in place
+ * into the caller's buffers bound for its row count
+ * (mll_vector_env_bind_results) before it returns; mll_vector_env_results
+ * copies them on demand. The columns, their element types and shapes are
+ * described by mll_vector_env_column_*: the caller derives its arrays from
+ * that table instead of declaring them again. */
 #ifndef MLL_CLIENT_NATIVE_VECTOR_C_API_H_
 #define MLL_CLIENT_NATIVE_VECTOR_C_API_H_
 
@@ -135,6 +137,11 @@ MLL_NATIVE_API int mll_vector_env_reset(mll_vector_env* env, int has_seed,
 MLL_NATIVE_API int mll_vector_env_step_async(mll_vector_env* env,
                                              const void* actions, size_t count,
                                              int continuous);
+/* step_async then step_wait in one call: a step of every env and its
+ * results. A PENDING return leaves the step in flight, for step_wait. */
+MLL_NATIVE_API int mll_vector_env_step(mll_vector_env* env, const void* actions,
+                                       size_t count, int continuous,
+                                       int timeout_ms);
 MLL_NATIVE_API int mll_vector_env_step_wait(mll_vector_env* env,
                                             int timeout_ms);
 /* EnvPool's async API (VectorEnv::AsyncReset, Send, Recv). */
@@ -155,6 +162,15 @@ MLL_NATIVE_API int mll_vector_env_in_flight(const mll_vector_env* env);
 MLL_NATIVE_API int mll_vector_env_rows(const mll_vector_env* env);
 MLL_NATIVE_API void mll_vector_env_results(const mll_vector_env* env,
                                            void* const* buffers);
+/* Binds `buffers` (as mll_vector_env_results takes them; the handle copies
+ * the pointers, the memory stays the caller's and must outlive the binding)
+ * to results of `rows` rows: from now on every call that completes with
+ * results of that many rows (reset, step, step_wait: num_envs; recv:
+ * batch_size) writes them there before it returns, so that the caller reads
+ * them in place with no further call. NULL unbinds. A failed call writes
+ * nothing. INVALID_ARGUMENT for rows other than num_envs and batch_size. */
+MLL_NATIVE_API int mll_vector_env_bind_results(mll_vector_env* env, int rows,
+                                               void* const* buffers);
 
 /* ---------------------------------------------------------------- snapshots
  * Env `index`'s snapshot (VectorEnv::EnvSnapshot), valid until the next call

@@ -80,10 +80,12 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     for name in ("reset", "async_reset"):
         declare(name, integer, handle, integer, ctypes.c_uint64)
     declare("step_async", integer, handle, ctypes.c_void_p, size, integer)
+    declare("step", integer, handle, ctypes.c_void_p, size, integer, integer)
     declare("send", integer, handle, ctypes.c_void_p, size, integer, ctypes.c_void_p, size)
     for name in ("step_wait", "recv"):
         declare(name, integer, handle, integer)
     declare("results", None, handle, ctypes.c_void_p)
+    declare("bind_results", integer, handle, integer, ctypes.c_void_p)
     declare("snapshot", integer, handle, integer, *data[1:])
     declare("restore", integer, handle, integer, ctypes.c_char_p, size, ctypes.c_void_p)
     return lib

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import ctypes
 import logging
+import operator
 import os
 import weakref
 from typing import Any, NamedTuple, Sequence
@@ -95,6 +96,54 @@ def columns(lib: ctypes.CDLL) -> tuple[_Column, ...]:
     return table
 
 
+class _Results:
+    """The arrays the engine writes the results of `rows`-row calls into, in place: one buffer
+    the adapter owns, laid out as a NumPy structured record of one field per result column
+    (shape and element type from the column table; flags as bool), bound to the handle once
+    (mll_vector_env_bind_results), so that a call that makes results fills it before it returns
+    and Python only hands the arrays out."""
+
+    def __init__(self, lib: ctypes.CDLL, handle: int, table: tuple[_Column, ...], rows: int, n_landers: int):
+        names, formats, offsets, offset = [], [], [], 0
+        for column in table:
+            offset = -(-offset // 16) * 16
+            shape = (rows,) + ((n_landers,) if column.per_agent else ()) + ((column.width,) if column.width > 1 else ())
+            element = np.dtype(bool) if column.name in _FLAGS else column.dtype
+            names.append(column.name)
+            formats.append((element, shape))
+            offsets.append(offset)
+            offset += int(np.prod(shape)) * element.itemsize
+        self.dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": offset})
+        self.raw = np.zeros(offset, np.uint8)  # The engine writes here.
+        self.record = np.ndarray((), self.dtype, self.raw)
+        address = self.raw.ctypes.data
+        self._pointers = np.array([address + offset for offset in offsets], np.uint64)  # Read by the library.
+        code = lib.mll_vector_env_bind_results(handle, rows, self._pointers.ctypes.data)
+        if code:
+            raise from_call_status(code, lib.mll_vector_env_message(handle).decode(errors="replace"))
+        infos = [name for name in names if name not in _RETURNED and name != "env_ids"]
+        self._returned = operator.itemgetter(*_RETURNED)
+        self._info_keys = [_INFO_KEYS.get(name, name) for name in infos]
+        self._infos = operator.itemgetter(*infos)
+        self._env_ids = operator.itemgetter("env_ids")
+        # The record's own arrays, handed out by every call with copy=False.
+        self._own = (self._returned(self.record), self._infos(self.record), self._env_ids(self.record))
+
+    def arrays(self, copy: bool, with_env_ids: bool) -> tuple:
+        """step()'s return value from the record: views of a copy of it (copy: the caller's own
+        arrays), or the record's own arrays (overwritten by the next call that makes results of as
+        many rows); the infos dict is new either way."""
+        if copy:
+            record = np.ndarray((), self.dtype, self.raw.copy())
+            returned, infos, env_ids = self._returned(record), self._infos(record), self._env_ids(record)
+        else:
+            returned, infos, env_ids = self._own
+        infos = dict(zip(self._info_keys, infos))
+        if with_env_ids:  # int64, NumPy's and torch's index type (the engine's column is int32).
+            infos["env_id"] = env_ids.astype(np.int64)
+        return returned + (infos,)
+
+
 def _free(lib: ctypes.CDLL, handle: int, lease, pid: int) -> None:
     """Frees a handle (deleting its envs) and then releases the embedded server it used."""
     if os.getpid() != pid:  # A forked child's copy: the handle and the lease are the parent's.
@@ -142,7 +191,15 @@ class VectorEnv:
     infos: "auto_reset" bool (num_envs,), "episode_over" bool (num_envs,), "outcome" uint8
       (num_envs, n_landers) with codes indexing OUTCOMES, "episode_return" float32 and
       "episode_length" int32 (num_envs, n_landers) (so far in the episode, final once done).
-      Every array is the caller's own (writable, not reused by the next step).
+    copy= (default True) how results are handed out: the engine writes each call's results in
+      place into arrays the adapter owns (one set for num_envs rows, one for batch_size rows).
+      True: every call returns copies, the caller's own (writable, not touched by later calls),
+      as Gymnasium's vector envs (copy=True), SB3's VecEnvs and EnvPool do, so that a trainer may
+      keep them (e.g. append observations to a list). False: every call returns the adapter's
+      arrays themselves, overwritten by the next call that makes results of as many rows (reset,
+      step, step_wait: num_envs; recv: batch_size), as Gymnasium's copy=False: for a trainer that
+      copies what it keeps into its own buffers; it saves a copy (about 1-2 us per call of 64
+      envs). infos is a new dict each call either way; infos["env_id"] is a new array.
     Errors: when the step of some envs fails on the server (e.g. an env deleted behind this
       object's back: NOT_FOUND), step raises MLLError with the server's code and message for
       the first of them in env order, prefixed "env {i} ({name}): "; the other envs did step.
@@ -166,6 +223,7 @@ class VectorEnv:
         batch_size: int | None = None,
         failover: bool | None = None,
         step_timeout_s: float | None = None,
+        copy: bool = True,
         **options: Any,
     ):
         if transport == "grpc":
@@ -199,11 +257,14 @@ class VectorEnv:
             batch_size=self.batch_size,
             failover=failover,
             step_timeout_s=step_timeout_s,
+            copy=copy,
             **security.as_options(),
         )
+        if not isinstance(copy, (bool, np.bool_)):
+            raise invalid_argument(f"copy is {copy!r}; expected True or False")
+        self._copy = bool(copy)
         lib = self._lib = _native.library("vector_env")
         self._columns = columns(lib)
-        self._layouts: dict[int, tuple] = {}  # Row count -> _layout's answer.
         self._transport = "native"  # The last one `transport` saw (what it says once closed).
         self._interrupted = False  # An interrupted step() left its step in flight (_finish_interrupted).
         lease = None if addresses else embedded_lease(security)
@@ -243,6 +304,12 @@ class VectorEnv:
         self.single_observation_space = space_from_proto(spec.observation_space)
         self.single_action_space = space_from_proto(spec.action_space)
         self._observation_width = next(column.width for column in self._columns if column.name == "observations")
+        # Where results are written in place: num_envs rows (reset, step), batch_size rows (recv).
+        self._results_of = {rows: _Results(lib, handle, self._columns, rows, self.n_landers)
+                            for rows in {self.num_envs, self.batch_size}}
+        self._action_blocks: dict[int, tuple] = {}  # Row count -> (buffer for actions, its address, size).
+        self._action_dtype = np.dtype(np.float32 if self.continuous else np.int32)
+        self._action_shape = (self.n_landers, 2) if self.continuous else (self.n_landers,)
 
     # ----------------------------------------------------------------- calls into the engine
 
@@ -290,45 +357,20 @@ class VectorEnv:
             code = function(handle, _native.READ_SLICE_MS)
         self._check(code)
 
-    def _layout(self, rows: int) -> tuple[int, np.ndarray, tuple]:
-        """Where the results of a `rows`-row call go in the one buffer each call allocates: the
-        size of the buffer, which starts with the table of column pointers mll_vector_env_results
-        reads; each column's offset (16-byte aligned); and each column's (name, shape, dtype as
-        returned, offset). Worked out once per row count (num_envs, batch_size)."""
-        layout = self._layouts.get(rows)
-        if layout is None:
-            offset, offsets, placed = 8 * len(self._columns), [], []
-            for column in self._columns:
-                offset = -(-offset // 16) * 16
-                shape = (rows,) + ((self.n_landers,) if column.per_agent else ())
-                shape += (column.width,) if column.width > 1 else ()
-                offsets.append(offset)
-                placed.append((column.name, shape, np.dtype(bool) if column.name in _FLAGS else column.dtype, offset))
-                offset += int(np.prod(shape)) * column.dtype.itemsize
-            layout = self._layouts[rows] = (offset, np.array(offsets, np.uint64), tuple(placed))
-        return layout
-
-    def _results(self, with_env_ids: bool):
-        """step()'s return value from the latest results: the engine copies every column into one
-        new buffer, of which each returned array is a view (the caller's own: no later call
-        writes there); flags are bool."""
-        size, offsets, placed = self._layout(self._lib.mll_vector_env_rows(self._handle))
-        buffer = np.empty(size, np.uint8)
-        address = buffer.__array_interface__["data"][0]
-        np.add(offsets, np.uint64(address), out=buffer[: 8 * offsets.size].view(np.uint64))  # The pointers.
-        self._lib.mll_vector_env_results(self._handle, address)
-        arrays = {name: np.ndarray(shape, dtype, buffer, offset) for name, shape, dtype, offset in placed}
-        if with_env_ids:  # int64, NumPy's and torch's index type (the engine's column is int32).
-            arrays["env_ids"] = arrays["env_ids"].astype(np.int64)
-        else:
-            arrays.pop("env_ids", None)
-        infos = {_INFO_KEYS.get(name, name): array for name, array in arrays.items() if name not in _RETURNED}
-        return tuple(arrays[name] for name in _RETURNED) + (infos,)
-
-    def _actions(self, actions, rows: int) -> np.ndarray:
-        """`actions` checked (a block of `rows` envs' actions) as the wire's contiguous int32 or
-        float32."""
-        return np.ascontiguousarray(check_actions(actions, self.continuous, (rows, self.n_landers), "actions"))
+    def _put_actions(self, actions, rows: int) -> tuple[int, int]:
+        """`actions` (a block of `rows` envs' actions) put into the adapter's buffer for `rows`
+        rows, as the wire's contiguous int32 or float32: that buffer's address and item count. An
+        array of that shape and element type is copied as it is (256 bytes for 64 envs: cheaper
+        than reading its address); anything else goes through check_actions first."""
+        entry = self._action_blocks.get(rows)
+        if entry is None:
+            block = np.empty((rows,) + self._action_shape, self._action_dtype)
+            entry = self._action_blocks[rows] = (block, block.ctypes.data, block.size)
+        block = entry[0]
+        if not (type(actions) is np.ndarray and actions.dtype is self._action_dtype and actions.shape == block.shape):
+            actions = check_actions(actions, self.continuous, (rows, self.n_landers), "actions")
+        block[...] = actions
+        return entry[1:]
 
     # ----------------------------------------------------------------- the synchronous API
 
@@ -336,22 +378,29 @@ class VectorEnv:
         self._finish_interrupted()
         seed = seed_value(seed)
         self._check(self._lib.mll_vector_env_reset(self._live(), seed is not None, seed or 0))
-        observations, *_, infos = self._results(False)
+        observations, *_, infos = self._results_of[self.num_envs].arrays(self._copy, False)
         return observations, infos
 
     def step(self, actions, env_id=None):
         """step(actions) steps every env (batch_size == num_envs: the synchronous API). With the
         async API, step(actions, env_id) is send(actions, env_id) then recv(); env_id None means
         every env."""
-        self._finish_interrupted()
-        if env_id is None and self.batch_size == self.num_envs and not self._lib.mll_vector_env_in_flight(self._live()):
-            self.step_async(actions)
-            try:
-                return self.step_wait()
-            except BaseException as error:
-                # E.g. Ctrl-C while a server is slow: this step's results are the caller's no more.
-                self._interrupted = not isinstance(error, MLLError)
-                raise
+        if self._interrupted:
+            self._finish_interrupted()
+        if env_id is None and self.batch_size == self.num_envs:
+            # One call into the library: the step sent, waited for and its results written in place.
+            address, count = self._put_actions(actions, self.num_envs)
+            code = self._lib.mll_vector_env_step(self._live(), address, count, self.continuous, _native.READ_SLICE_MS)
+            if code == _native.PENDING:  # A slow server: wait on in slices, as step_wait.
+                try:
+                    self._wait(self._lib.mll_vector_env_step_wait)
+                except BaseException as error:
+                    # E.g. Ctrl-C while a server is slow: this step's results are the caller's no more.
+                    self._interrupted = not isinstance(error, MLLError)
+                    raise
+            else:
+                self._check(code)
+            return self._results_of[self.num_envs].arrays(self._copy, False)
         self.send(actions, np.arange(self.num_envs) if env_id is None else env_id)
         return self.recv()
 
@@ -370,13 +419,13 @@ class VectorEnv:
         two the caller is free to compute (e.g. a learning step) while the servers step."""
         self._finish_interrupted()
         handle = self._live()
-        block = self._actions(actions, self.num_envs)
-        self._check(self._lib.mll_vector_env_step_async(handle, block.ctypes.data, block.size, self.continuous))
+        address, count = self._put_actions(actions, self.num_envs)
+        self._check(self._lib.mll_vector_env_step_async(handle, address, count, self.continuous))
 
     def step_wait(self):
         """The results of the step sent by step_async, as step() returns them."""
         self._wait(self._lib.mll_vector_env_step_wait)
-        return self._results(False)
+        return self._results_of[self.num_envs].arrays(self._copy, False)
 
     # ----------------------------------------------------------------- EnvPool's async API
 
@@ -406,12 +455,8 @@ class VectorEnv:
             values, counts = np.unique(ids, return_counts=True)
             raise invalid_argument(f"env_id holds {int(values[counts > 1][0])} more than once; each env at most once")
         ids = ids.astype(np.int32)  # In range: exact.
-        block = self._actions(actions, ids.size)
-        self._check(
-            self._lib.mll_vector_env_send(
-                handle, block.ctypes.data, block.size, self.continuous, ids.ctypes.data, ids.size
-            )
-        )
+        address, count = self._put_actions(actions, ids.size)
+        self._check(self._lib.mll_vector_env_send(handle, address, count, self.continuous, ids.ctypes.data, ids.size))
 
     def recv(self):
         """The results of the first batch_size envs whose steps are done (in the order their
@@ -419,7 +464,7 @@ class VectorEnv:
         naming the envs of each row. Waits for answers as needed; FAILED_PRECONDITION when fewer
         than batch_size envs have a step in flight."""
         self._wait(self._lib.mll_vector_env_recv)
-        return self._results(True)
+        return self._results_of[self.batch_size].arrays(self._copy, True)
 
     # ----------------------------------------------------------------- env snapshot
 

@@ -1,0 +1,120 @@
+"""How vector_env hands out results and takes actions: the engine writes each call's results in
+place into buffers the adapter owns (mll_vector_env_bind_results); with copy=True (the default)
+every call returns arrays of the caller's own, with copy=False the adapter's arrays, overwritten
+by the next call of the same shape. Actions of the wire's type are taken as they are, any other
+form is converted; the same bits either way."""
+
+import pickle
+
+import grpc
+import numpy as np
+import pytest
+
+import multi_lunar_lander as mll
+from mll_test_helpers import random_actions, same_bits
+
+
+def _arrays(result) -> list[np.ndarray]:
+    """A call's result (arrays, then the infos dict) as copies of its arrays, infos by key."""
+    *arrays, infos = result
+    return [array.copy() for array in arrays] + [infos[key].copy() for key in sorted(infos)]
+
+
+def _same(got: list, expected: list) -> bool:
+    """Lists of results (each as _arrays gives it) equal bit for bit."""
+    return len(got) == len(expected) and all(
+        len(a) == len(b) and all(same_bits(x, y) for x, y in zip(a, b)) for a, b in zip(got, expected)
+    )
+
+
+def _rollout(vector, actions):
+    """reset's and each step's results, for comparison."""
+    return [_arrays(vector.reset(seed=5))] + [_arrays(vector.step(block)) for block in actions]
+
+
+def test_copy_false_reuses_its_arrays_with_the_same_bits_as_copy_true(address, continuous):
+    options = dict(n_landers=2, continuous=continuous, max_cycles=15)  # Auto-resets within the run.
+    rng = np.random.default_rng(3)
+    actions = [random_actions(rng, (4, 2), continuous) for _ in range(40)]
+    with mll.vector_env(4, address=address, **options) as fresh, mll.vector_env(
+        4, address=address, copy=False, **options
+    ) as reused:
+        assert _same(_rollout(fresh, actions), _rollout(reused, actions))
+        first = reused.step(actions[0])
+        second = reused.step(actions[1])
+        # The same arrays, now holding the second step's results; the infos dict is new each call.
+        assert all(a is b for a, b in zip(first[:5], second[:5]))
+        assert all(first[5][key] is second[5][key] for key in first[5]) and first[5] is not second[5]
+        kept = fresh.step(actions[0])
+        again = fresh.step(actions[1])
+        assert not any(np.shares_memory(a, b) for a, b in zip(kept[:5], again[:5]))
+        assert not any(np.shares_memory(kept[5][key], again[5][key]) for key in kept[5])
+
+
+def test_copy_false_recv_reuses_its_batch_arrays(address):
+    with mll.vector_env(4, address=address, n_landers=1, batch_size=2, copy=False) as vector:
+        vector.async_reset(seed=2)
+        first = vector.recv()
+        ids = first[5]["env_id"].copy()
+        assert ids.dtype == np.int64
+        vector.send(np.zeros((2, 1), np.int32), ids)
+        second = vector.recv()
+        assert first[0] is second[0] and sorted(np.concatenate([ids, second[5]["env_id"]])) == [0, 1, 2, 3]
+
+
+def test_actions_in_any_accepted_form_give_the_same_bits(address, continuous):
+    """An array of the wire's type and shape is taken as it is; lists, other integer or float
+    types and non-contiguous views are converted; the caller's array is neither changed nor kept
+    (changing it between step_async and step_wait changes nothing)."""
+    rng = np.random.default_rng(8)
+    blocks = [random_actions(rng, (3, 2), continuous).astype(np.float32 if continuous else np.int32)
+              for _ in range(12)]
+    forms = [
+        lambda block: block,
+        lambda block: block.tolist(),
+        lambda block: block.astype(np.float64 if continuous else np.int64),
+        lambda block: np.asfortranarray(block),
+        lambda block: np.repeat(block, 2, axis=0)[::2],  # A strided view.
+    ]
+    results = []
+    for form in forms:
+        with mll.vector_env(3, address=address, n_landers=2, continuous=continuous) as vector:
+            vector.reset(seed=9)
+            out = []
+            for block in blocks:
+                given = form(block)
+                before = np.array(given, copy=True)
+                out.append(_arrays(vector.step(given)))
+                assert np.array_equal(np.asarray(given), before)  # Not written to.
+            results.append(out)
+    for other in results[1:]:
+        assert _same(results[0], other)
+    with mll.vector_env(3, address=address, n_landers=2, continuous=continuous) as vector:
+        vector.reset(seed=9)
+        block = blocks[0].copy()
+        vector.step_async(block)
+        block[...] = blocks[1]  # Too late to change the step in flight.
+        assert _same([_arrays(vector.step_wait())], results[0][:1])
+
+
+def test_bad_arguments_get_clear_errors(address):
+    with pytest.raises(mll.MLLError) as error:
+        mll.vector_env(2, address=address, copy="no")
+    assert error.value.code == grpc.StatusCode.INVALID_ARGUMENT and "copy is 'no'" in error.value.message
+    with mll.vector_env(2, address=address, n_landers=1, copy=False) as vector:
+        vector.reset(seed=0)
+        with pytest.raises(mll.MLLError) as error:
+            vector.step(np.zeros((2, 1), np.float32))  # Discrete envs: floats refused, nothing sent.
+        assert error.value.code == grpc.StatusCode.INVALID_ARGUMENT
+        # The library refuses a binding for a row count the handle never returns.
+        lib = vector._lib
+        assert lib.mll_vector_env_bind_results(vector._handle, 3, None) == grpc.StatusCode.INVALID_ARGUMENT.value[0]
+        assert "rows is 3; allowed: num_envs = 2 or batch_size = 2" in lib.mll_vector_env_message(
+            vector._handle
+        ).decode()
+        copy = pickle.loads(pickle.dumps(vector))  # Unpickles with copy=False too.
+        try:
+            copy.reset(seed=0)
+            assert copy.step(np.zeros((2, 1), np.int32))[0] is copy.step(np.zeros((2, 1), np.int32))[0]
+        finally:
+            copy.close()
