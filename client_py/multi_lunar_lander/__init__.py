@@ -19,9 +19,10 @@ stopped when the last of them is closed or garbage-collected, and at interpreter
 
 Several servers (scale-out): address= also takes a sequence of "host:port" strings or one
 comma-separated string. An environment lives on exactly one server for its whole life (its
-state is there). `env`/`parallel_env` take server_index= (0-based into the list); without it
-they go round robin per process: the k-th env/parallel_env this process creates with the same
-address list lands on server k mod S. `vector_env(n, address=[...])` puts env i on server
+state is there). An entry whose host is a name (a Kubernetes headless Service's) stands for every
+address the name resolves to. `env`/`parallel_env` take server_index= (0-based into the servers
+the list stands for); without it they go to the least-loaded server (envs hosted against its
+--max_envs, then CPU), asked with GetServerInfo. `vector_env(n, address=[...])` puts env i on server
 i mod S and steps with one StepBatch per server (each on a Session stream kept open to that
 server), all in flight at once; results are in env order and are the same bits as on one server
 (each env's physics is its own).
@@ -50,7 +51,7 @@ from ._channel import TOKEN_ENV
 from ._errors import MLLError
 from ._remote import CONFIG_OPTIONS, OUTCOMES
 from ._server import ServerProcess, embedded_server, find_server_binary
-from ._server_info import PROTOCOL, ServerInfo, ServerLimits
+from ._server_info import PROTOCOL, ServerInfo, ServerLimits, ServerLoad
 from .aec import MultiLunarLanderEnv
 from .gym_vector import GymVectorEnv
 from .heuristic import heuristic
@@ -69,6 +70,7 @@ __all__ = [
     "TOKEN_ENV",
     "ServerInfo",
     "ServerLimits",
+    "ServerLoad",
     "ServerProcess",
     "VectorEnv",
     "embedded_server",

@@ -15,8 +15,10 @@ import numpy as np
 
 from . import _arrays, _lease, _record
 from ._errors import MLLError
-from ._channel import Security, parse_addresses, step_timeout_value
-from ._remote import Connection, choose_server, config_dict, connect_single, make_config, rebuild, space_from_proto
+from ._channel import Security, is_name, parse_addresses, resolve_endpoints, step_timeout_value
+from ._remote import (
+    Connection, config_dict, connect_endpoint, connect_single, make_config, place, rebuild, space_from_proto,
+)
 from ._server_info import ServerInfo
 from ._stubs import pb
 from ._viewer import Viewer
@@ -58,21 +60,19 @@ class RemoteEnvBase:
     ):
         """Creates the environment on one server of `address` (see the package docstring for
         address lists, server_index, TLS and token); `options` are the EnvConfig options.
-        failover: None is on with several servers or the embedded one (docs/python.md).
+        failover: None is on with several servers, a host name or the embedded one (docs/python.md).
         step_timeout_s: the deadline of each call (None: 5 s; 0: none); a server that misses it
         counts as lost (failover) or raises DEADLINE_EXCEEDED."""
         super().__init__()  # pettingzoo.AECEnv / ParallelEnv, next in the subclass's MRO.
         security = Security.from_options(tls_root_cert, tls_server_name, token)
         step_timeout = step_timeout_value(step_timeout_s)
         config = make_config(render_mode, False, options)
-        connection, server_index = connect_single(address, server_index, security, step_timeout)
+        addresses = parse_addresses(address)
+        connection = connect_single(addresses or None, server_index, security, step_timeout)
         # What a pickle carries (__reduce__): the arguments that make the same environment on the
         # same server again (the one it lives on now), never the connection.
-        addresses = parse_addresses(address)
         self._init_kwargs = dict(
             options,
-            address=list(addresses) or None,
-            server_index=server_index if addresses else None,
             render_mode=render_mode,
             failover=failover,
             step_timeout_s=step_timeout_s,
@@ -81,8 +81,10 @@ class RemoteEnvBase:
         self.failover = _record.failover_on(failover, addresses)
         self.failovers = 0  # Failover events so far.
         self._security, self._addresses, self._step_timeout = security, addresses, step_timeout
-        self._server_index = server_index  # Into addresses (0 for the embedded server).
-        self._down: set[int] = set()  # Servers found unreachable or draining (probed again at each failover).
+        # Addresses of servers found unreachable or draining (probed again at each failover).
+        self._down: set[str] = set()
+        self._servers_seen = max(len(addresses), 1)  # Servers `address` stood for at the last resolution.
+        self._pin_pickles_to(connection.address)
         try:
             connection.check_server()  # GetServerInfo, once per connection.
             env = connection.call("CreateEnv", pb.CreateEnvRequest(config=config))
@@ -130,6 +132,18 @@ class RemoteEnvBase:
         concat_vec_envs_v1, Ray) each have their own."""
         return rebuild, (type(self), self._init_kwargs)
 
+    def _pin_pickles_to(self, server: str) -> None:
+        """Makes pickles (and clones) go to `server`, where the env lives now, with the same
+        servers to fail over to: `address=` as given and `server`'s index when the entries are no
+        names, else `server` first, then the entries (server_index counts the servers the
+        entries stand for, which a name's resolution may reorder)."""
+        if not self._addresses:
+            self._init_kwargs.update(address=None, server_index=None)
+        elif server in self._addresses and not any(map(is_name, self._addresses)):
+            self._init_kwargs.update(address=list(self._addresses), server_index=self._addresses.index(server))
+        else:
+            self._init_kwargs.update(address=[server, *self._addresses], server_index=0)
+
     def _init_state(self) -> None:
         """The subclass's own attributes, set once the server-side env exists."""
         raise NotImplementedError
@@ -145,7 +159,7 @@ class RemoteEnvBase:
         """Calls `method` with `request` on this env (its `name` set here). With failover on, when
         the server is unreachable or has lost the env, the env is recreated on a reachable
         server from its record and the call is made again there."""
-        tries = len(self._addresses) + 2
+        tries = self._servers_seen + 2
         for _ in range(tries):
             request.name = self._name
             try:
@@ -186,19 +200,30 @@ class RemoteEnvBase:
 
     def _fail_over(self, cause: MLLError) -> None:
         """Recreates this env, lost to `cause`, from its record: on its own server when that
-        answers (NOT_FOUND), else on a reachable server of `address`, round robin (the embedded
-        server restarted); one that turns out unreachable or draining is passed over. One
-        failover event, logged; UNAVAILABLE when no server is left. (A draining server serves
-        the envs it holds until its drain ends: this env moves when the server refuses it.)"""
+        answers (NOT_FOUND), else on the least-loaded reachable server of `address`, resolved
+        again (a name finds the servers that joined it and drops those gone; the embedded server
+        is restarted); one that turns out unreachable or draining is passed over. One failover
+        event, logged; UNAVAILABLE when no server is left. (A draining server serves the envs it
+        holds until its drain ends: this env moves when the server refuses it.)"""
         began = time.monotonic()
         record = self._env_record()
-        old_connection, old_name, old_index = self._connection, self._name, self._server_index
-        # One connection per server, to pick from; the env's own among them.
+        old_connection, old_name = self._connection, self._name
+        # One connection per server, to pick from; the env's own among them (first when its
+        # server is no longer among those `address` stands for).
+        endpoints = resolve_endpoints(self._addresses) if self._addresses else []
+        self._servers_seen = max(len(endpoints), 1)
         connections = [
-            old_connection if index == old_index
-            else Connection(address, self._security, self._addresses, self._step_timeout)
-            for index, address in enumerate(self._addresses)
-        ] or [old_connection]
+            old_connection if endpoint.address == old_connection.address
+            else connect_endpoint(endpoint, self._security, self._addresses, self._step_timeout)
+            for endpoint in endpoints
+        ]
+        if old_connection not in connections:
+            connections.insert(0, old_connection)
+        old_index = connections.index(old_connection)
+        listed = {endpoint.address for endpoint in endpoints} or {old_connection.address}
+        # Servers gone from the name: envs do not move there (nor are they probed).
+        gone = {i for i, c in enumerate(connections) if c.address not in listed}
+        down = gone | {i for i, c in enumerate(connections) if c.address in self._down}
         unreachable = _record.loses_server(cause)
         # Servers that missed a deadline in this event: not probed while others can take the env.
         stalled = {old_index} if cause.code == grpc.StatusCode.DEADLINE_EXCEEDED else set()
@@ -206,17 +231,22 @@ class RemoteEnvBase:
         try:
             for _ in range(len(connections) + 1):
                 if unreachable:
-                    self._down.add(target)
-                    usable = _record.usable_servers(connections, self._down, stalled) or _record.usable_servers(
-                        connections, self._down
+                    down.add(target)
+                    usable = _record.usable_servers(connections, down, stalled | gone) or _record.usable_servers(
+                        connections, down, gone
                     )
-                    if not usable:
+                    choice, answers = place([connections[i] for i in usable]) if usable else (None, [])
+                    for i, answer in zip(usable, answers):
+                        if isinstance(answer, MLLError):
+                            down.add(i)
+                    if choice is None:
                         raise MLLError(
                             grpc.StatusCode.UNAVAILABLE,
-                            f"failover of {old_name} found no reachable server of {', '.join(self._addresses)}: "
-                            f"{cause.message}",
+                            f"failover of {old_name} found no reachable server of {', '.join(self._addresses)}"
+                            + (f" ({', '.join(endpoint.address for endpoint in endpoints)})" if endpoints else "")
+                            + f": {cause.message}",
                         )
-                    target = usable[choose_server(tuple(connections[index].address for index in usable), None)]
+                    target = usable[choice]
                 try:
                     connections[target].check_server()
                     (env,), _ = _record.replay(
@@ -235,6 +265,7 @@ class RemoteEnvBase:
             else:
                 raise _record.gave_up(len(connections) + 1)
         finally:
+            self._down = {connections[i].address for i in down if connections[i].address in listed}
             for connection in connections:
                 if connection is not adopted and connection is not old_connection:
                     connection.close()
@@ -243,9 +274,7 @@ class RemoteEnvBase:
         if adopted is not old_connection:
             old_connection.close()
         self._adopt(adopted, env)
-        self._server_index = target
-        if self._addresses:
-            self._init_kwargs["server_index"] = target  # Pickles go where the env lives now.
+        self._pin_pickles_to(adopted.address)
         self.failovers += 1
         _record.log_failover(type(self).__name__, 1, cause, [adopted.address], record.kinds.size, began)
 

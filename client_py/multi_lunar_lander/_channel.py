@@ -1,7 +1,9 @@
 """Where a client connects and how: the `address=` forms, TLS and the bearer token, and the one
 function that opens a gRPC channel from them (used by every connection and health check).
 
-address= accepts "host:port", a comma-separated string of them, or a sequence of them.
+address= accepts "host:port", a comma-separated string of them, or a sequence of them. An entry
+whose host is a name stands for every address the name resolves to (resolve_endpoints): a
+Kubernetes headless Service's name is its ready pods.
 tls_root_cert= (a PEM file's path, or its bytes) turns TLS on: grpc.secure_channel with those
 root certificates; tls_server_name= overrides the name the server's certificate must carry
 (for a certificate issued to a name other than the dialled host, e.g. an IP address).
@@ -12,15 +14,18 @@ token="" sends no token even when $MLL_TOKEN is set.
 
 from __future__ import annotations
 
+import dataclasses
+import ipaddress
 import math
 import numbers
 import os
+import socket
 from dataclasses import dataclass, field
 from typing import Sequence
 
 import grpc
 
-from ._errors import invalid_argument
+from ._errors import MLLError, invalid_argument
 
 TOKEN_ENV = "MLL_TOKEN"
 
@@ -92,6 +97,73 @@ def parse_addresses(address: str | Sequence[str] | None) -> tuple[str, ...]:
     if not addresses:
         raise invalid_argument(f"address is {address!r}; expected at least one 'host:port'")
     return addresses
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    """One server an `address=` list stands for: `address` is what the client dials ("ip:port"
+    for an address a name resolved to, else the entry as given); `name` the host name it was
+    resolved from (None for an IP literal or a gRPC target), which TLS checks the server's
+    certificate against."""
+
+    address: str
+    name: str | None = None
+
+
+def _host_and_port(entry: str) -> tuple[str, str] | None:
+    """(host, port) of a "host:port" or "[v6]:port" entry whose host is a name to resolve; None
+    for an IP literal or a gRPC target with a scheme ("unix:PATH", "dns:...", "ipv4:...")."""
+    host, colon, port = entry.rpartition(":")
+    if not colon or not port.isdigit():
+        return None
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    elif ":" in host:
+        return None  # A scheme ("dns:host:50051") or a bare IPv6 address: gRPC's to read.
+    try:
+        ipaddress.ip_address(host)
+        return None
+    except ValueError:
+        return host, port
+
+
+def is_name(entry: str) -> bool:
+    """Whether the `address=` entry's host is a name (resolve_endpoints expands it)."""
+    return _host_and_port(entry) is not None
+
+
+def resolve_endpoints(addresses: Sequence[str]) -> list[Endpoint]:
+    """The servers `addresses` (parse_addresses' entries) stand for, in entry order: an IP literal
+    or a gRPC target is itself; a name is every address it resolves to now (getaddrinfo, TCP, IPv4
+    and IPv6), sorted. Each address once: the first entry that yields it keeps it. A name that
+    resolves to nothing is left out; UNAVAILABLE naming the entries when nothing is left. The C++
+    client resolves the same way (client_cpp/src/discovery.h)."""
+    endpoints: list[Endpoint] = []
+    seen: set[str] = set()
+    failures = []
+    for entry in addresses:
+        parsed = _host_and_port(entry)
+        if parsed is None:
+            found = [Endpoint(entry)]
+        else:
+            host, port = parsed
+            try:
+                infos = socket.getaddrinfo(host, int(port), type=socket.SOCK_STREAM)
+            except (OSError, UnicodeError) as error:
+                failures.append(f"{entry!r} resolves to no address ({error})")
+                continue
+            ips = sorted({info[4][0] for info in infos if info[0] in (socket.AF_INET, socket.AF_INET6)})
+            found = [Endpoint(f"[{ip}]:{port}" if ":" in ip else f"{ip}:{port}", host) for ip in ips]
+        for endpoint in found:
+            if endpoint.address not in seen:
+                seen.add(endpoint.address)
+                endpoints.append(endpoint)
+    if not endpoints:
+        raise MLLError(
+            grpc.StatusCode.UNAVAILABLE,
+            f"address {', '.join(addresses)} stands for no server now: {'; '.join(failures)}",
+        )
+    return endpoints
 
 
 def _read_root_cert(value) -> bytes:
@@ -180,6 +252,13 @@ class Security:
         """The per-call metadata: the bearer token, if any. Sent on plaintext and TLS channels
         alike, so one code path covers both (gRPC's call credentials refuse plaintext)."""
         return (("authorization", f"Bearer {self.token}"),) if self.token else None
+
+    def for_endpoint(self, endpoint: Endpoint) -> "Security":
+        """These settings for a server dialled at an address its name resolved to: with TLS, the
+        certificate is checked against that name (unless tls_server_name says otherwise)."""
+        if self.tls and endpoint.name and not self.server_name:
+            return dataclasses.replace(self, server_name=endpoint.name)
+        return self
 
     def describe(self) -> str:
         """How the client connects, for error messages (never the token itself)."""

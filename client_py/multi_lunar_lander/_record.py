@@ -47,6 +47,7 @@ import grpc
 import numpy as np
 
 from . import _arrays
+from ._channel import is_name
 from ._errors import MLLError, invalid_argument
 from ._remote import Connection, encode_agent_action
 from ._stubs import pb
@@ -345,9 +346,12 @@ def delete_quietly(connection, name: str) -> None:
 
 
 def failover_on(failover: bool | None, addresses: Sequence[str]) -> bool:
-    """The `failover=` argument resolved: None is on with several servers or the embedded one
-    (no address), off with one address."""
-    return len(addresses) != 1 if failover is None else bool(failover)
+    """The `failover=` argument resolved: None is on with several servers, a host name (which
+    stands for every address it resolves to, now and later) or the embedded one (no address),
+    off with one IP address."""
+    if failover is not None:
+        return bool(failover)
+    return len(addresses) != 1 or is_name(addresses[0])
 
 
 def loses_server(error: MLLError) -> bool:

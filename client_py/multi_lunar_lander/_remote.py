@@ -16,7 +16,7 @@ from gymnasium import spaces
 
 from . import _arrays, _server_info
 from ._actions import check_actions
-from ._channel import DEFAULT_STEP_TIMEOUT_S, Security, open_channel, parse_addresses
+from ._channel import DEFAULT_STEP_TIMEOUT_S, Endpoint, Security, open_channel, parse_addresses, resolve_endpoints
 from ._errors import MLLError, from_rpc_error, invalid_argument
 from ._server import acquire_embedded
 from ._stubs import pb, pb_grpc
@@ -148,45 +148,86 @@ def encode_agent_action(action, continuous: bool, agent: str, out: "pb.AgentActi
         out.discrete = int(values)
 
 
-_ROUND_ROBIN_LOCK = threading.Lock()
-# Address list -> how many single environments this process has placed on it so far.
-_ROUND_ROBIN: dict[tuple[str, ...], int] = {}
+# How long placement waits for the servers' GetServerInfo answers; one that has not answered by
+# then takes no new environment this time.
+PLACEMENT_TIMEOUT_S = 2.0
 
 
-def choose_server(addresses: tuple[str, ...], server_index: int | None) -> int:
-    """The index into `addresses` of a single environment's server: `server_index` when given,
-    else round robin per process (the k-th environment this process creates with the same
-    address list goes to server k mod len(addresses))."""
-    count = len(addresses)
-    if server_index is not None:
-        if (
-            isinstance(server_index, (bool, np.bool_))
-            or not isinstance(server_index, numbers.Integral)
-            or not 0 <= server_index < count
-        ):
-            raise invalid_argument(
-                f"server_index is {server_index!r}; expected None or an integer in [0, {count}) "
-                f"(address lists {count} server(s))"
-            )
-        return int(server_index)
-    with _ROUND_ROBIN_LOCK:
-        placed = _ROUND_ROBIN.get(addresses, 0)
-        _ROUND_ROBIN[addresses] = placed + 1
-    return placed % count
+def check_server_index(server_index, count: int) -> int | None:
+    """`server_index` checked against the `count` servers an address list stands for."""
+    if server_index is None:
+        return None
+    if (
+        isinstance(server_index, (bool, np.bool_))
+        or not isinstance(server_index, numbers.Integral)
+        or not 0 <= server_index < count
+    ):
+        raise invalid_argument(
+            f"server_index is {server_index!r}; expected None or an integer in [0, {count}) "
+            f"(address stands for {count} server(s))"
+        )
+    return int(server_index)
+
+
+def connect_endpoint(
+    endpoint: Endpoint, security: Security, peers: Sequence[str], step_timeout_s: float | None
+) -> "Connection":
+    """A connection to `endpoint` (TLS checking the name it was resolved from)."""
+    return Connection(endpoint.address, security.for_endpoint(endpoint), peers, step_timeout_s)
+
+
+def place(connections: Sequence["Connection"], timeout: float = PLACEMENT_TIMEOUT_S) -> tuple[int | None, list]:
+    """Where a new environment goes among `connections`: the least-loaded server by their
+    GetServerInfo answers, asked at once (_server_info.least_loaded), and every answer (an
+    MLLError for a server that did not answer). A connection's answer is kept as its
+    server_info."""
+    answers = _server_info.fetch_all(connections, timeout)
+    for connection, answer in zip(connections, answers):
+        if isinstance(answer, _server_info.ServerInfo):
+            connection.keep_server_info(answer)
+    infos = [answer if isinstance(answer, _server_info.ServerInfo) else None for answer in answers]
+    return _server_info.least_loaded(infos), answers
 
 
 def connect_single(
     address, server_index: int | None, security: Security, step_timeout_s: float | None = DEFAULT_STEP_TIMEOUT_S
-) -> tuple["Connection", int]:
-    """The connection of one AEC or parallel environment, pinned to one of the servers of
-    `address` for its lifetime (address=None: the embedded server), and that server's index."""
+) -> "Connection":
+    """The connection of one AEC or parallel environment, to one of the servers `address` stands
+    for (address=None: the embedded server): `server_index`'s, else the least-loaded one."""
     addresses = parse_addresses(address)
     if not addresses:
         if server_index not in (None, 0):
             raise invalid_argument(f"server_index is {server_index!r} but address is None (one embedded server)")
-        return Connection(None, security, step_timeout_s=step_timeout_s), 0
-    index = choose_server(addresses, server_index)
-    return Connection(addresses[index], security, addresses, step_timeout_s), index
+        return Connection(None, security, step_timeout_s=step_timeout_s)
+    endpoints = resolve_endpoints(addresses)
+    index = check_server_index(server_index, len(endpoints))
+    if index is None and len(endpoints) == 1:
+        index = 0
+    if index is not None:
+        return connect_endpoint(endpoints[index], security, addresses, step_timeout_s)
+    connections = [connect_endpoint(endpoint, security, addresses, step_timeout_s) for endpoint in endpoints]
+    try:
+        index, answers = place(connections)
+        if index is None:
+            raise no_server_takes(addresses, connections, answers)
+    finally:
+        for i, connection in enumerate(connections):
+            if i != index:
+                connection.close()
+    return connections[index]
+
+
+def no_server_takes(addresses: Sequence[str], connections: Sequence["Connection"], answers: Sequence) -> MLLError:
+    """UNAVAILABLE naming each server of `addresses` and why it takes no new environment."""
+    reasons = [
+        f"{connection.address}: {answer.message}" if isinstance(answer, MLLError)
+        else f"{connection.address}: full ({answer.load.envs_hosted} of --max_envs={answer.limits.max_envs})"
+        for connection, answer in zip(connections, answers)
+    ]
+    return MLLError(
+        grpc.StatusCode.UNAVAILABLE,
+        f"no server of address {', '.join(addresses)} takes a new environment: {'; '.join(reasons)}",
+    )
 
 
 def rebuild(cls, kwargs: dict):
@@ -293,6 +334,12 @@ class Connection:
                 self._server_info = _server_info.fetch(self)
             return self._server_info
 
+    def keep_server_info(self, info: _server_info.ServerInfo) -> None:
+        """Keeps `info`, an answer of this connection's server asked elsewhere (placement), as its
+        server_info."""
+        with self._server_info_lock:
+            self._server_info = info
+
     def check_server(self, needs: Sequence[str] = (), feature: str = "") -> None:
         """Raises FAILED_PRECONDITION (naming both versions and what to upgrade) unless this client
         speaks the server's protocol and the server offers `needs`, which `feature` needs."""
@@ -308,17 +355,18 @@ class Connection:
         except grpc.RpcError as error:
             raise self._error(error, method, deadline, timeout is None) from None
 
-    def future(self, method: str, request) -> Callable[[], Any]:
-        """Starts a unary call (deadline: step_timeout_s); the returned function waits for it
-        (raising MLLError)."""
+    def future(self, method: str, request, timeout: float | None = None) -> Callable[[], Any]:
+        """Starts a unary call (deadline: `timeout`, else step_timeout_s); the returned function
+        waits for it (raising MLLError)."""
         self.check_process()
-        call = getattr(self.stub, method).future(request, timeout=self.step_timeout_s, metadata=self._metadata)
+        deadline = self.step_timeout_s if timeout is None else timeout
+        call = getattr(self.stub, method).future(request, timeout=deadline, metadata=self._metadata)
 
         def result():
             try:
                 return call.result()
             except grpc.RpcError as error:
-                raise self._error(error, method, self.step_timeout_s, True) from None
+                raise self._error(error, method, deadline, timeout is None) from None
 
         return result
 

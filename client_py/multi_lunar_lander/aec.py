@@ -57,7 +57,7 @@ class MultiLunarLanderEnv(RemoteEnvBase, AECEnv):
     remove_on_damage, terminate_on_damage, shared_reward (True), damage_reward (-100),
     successful_reward (+100), terminate_reward (-100), render_mode (None, "rgb_array",
     "human"), and address (None: an embedded local mll_server), server_index, tls_root_cert,
-    tls_server_name, token, failover (on by default with several servers or the embedded one:
+    tls_server_name, token, failover (on by default with several servers, a host name or the embedded one:
     an env lost with its server is recreated on another from its record and the turn retried;
     `failovers` counts the events), step_timeout_s (5 s; 0: none: each call's deadline, past which
     the server counts as lost, or DEADLINE_EXCEEDED names it and the timeout).

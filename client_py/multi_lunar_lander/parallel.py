@@ -42,7 +42,7 @@ class MultiLunarLanderParallelEnv(RemoteEnvBase, ParallelEnv):
 
     snapshot() -> bytes, restore(snapshot), clone(): the env at this point, as bytes that recreate
     it to the same bits on any server of the same release (see _record and docs/python.md).
-    failover (on by default with several servers or the embedded one): an env lost with its
+    failover (on by default with several servers, a host name or the embedded one): an env lost with its
     server is recreated on another from that record and the step retried; `failovers` counts.
     step_timeout_s (default 5, 0: none): the deadline of each call; a server that misses it counts
     as lost (failover), or the call raises DEADLINE_EXCEEDED naming the server and the timeout.

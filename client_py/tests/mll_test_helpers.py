@@ -5,7 +5,10 @@ import contextlib
 import os
 import pathlib
 import re
+import shutil
 import signal
+import socket
+import subprocess
 import time
 import urllib.request
 
@@ -200,3 +203,73 @@ def holds_no_env_within(address, seconds):
             return True
         time.sleep(0.1)
     return False
+
+
+def free_port_on(*hosts):
+    """A TCP port free on every one of `hosts` (loopback addresses such as 127.0.0.2), for
+    servers that share a port behind one name."""
+    for _ in range(50):
+        with socket.socket() as probe:
+            probe.bind((hosts[0], 0))
+            port = probe.getsockname()[1]
+        try:
+            for host in hosts:
+                with socket.socket() as other:
+                    other.bind((host, port))
+        except OSError:
+            continue
+        return port
+    raise RuntimeError(f"no port free on all of {hosts}")
+
+
+@contextlib.contextmanager
+def server_at(host, port, extra_args=(), startup_timeout_s=30, tls=None):
+    """An mll_server listening on `host`:`port` (e.g. 127.0.0.2, for several servers behind one
+    name), up and SERVING (`tls`: (root certificate path, server name) for a server with TLS
+    flags); stopped (SIGTERM, then SIGKILL) at the end. Yields the Popen."""
+    from multi_lunar_lander._channel import Security
+    from multi_lunar_lander._server import wait_until_serving
+
+    security = Security.from_options(*tls) if tls else Security()
+
+    process = subprocess.Popen(
+        [mll.find_server_binary(), f"--address={host}:{port}", "--threads=1", *extra_args],
+        stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )
+    try:
+        wait_until_serving(f"{host}:{port}", startup_timeout_s, security)
+        yield process
+    finally:
+        if process.poll() is None:
+            process.terminate()
+            try:
+                process.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+
+
+def write_hosts(path, names):
+    """Writes a hosts file mapping each name of `names` ({name: [ip, ...]}) to its addresses, in
+    place (the same inode), so a namespace that bind-mounted it as /etc/hosts sees the change at
+    once."""
+    text = "127.0.0.1 localhost\n" + "".join(f"{ip} {name}\n" for name, ips in names.items() for ip in ips)
+    with open(path, "w") as file:
+        file.write(text)
+
+
+def run_with_hosts(hosts_file, argv, timeout_s=120):
+    """Runs `argv` in a private mount namespace (unshare -m) whose /etc/hosts is `hosts_file`
+    bind-mounted: names the test resolves, without touching the machine's /etc/hosts. Skips the
+    test, saying why, where unshare -m is not permitted. Returns the CompletedProcess, its
+    stdout and stderr together in `stdout`."""
+    if shutil.which("unshare") is None:
+        pytest.skip("unshare (util-linux) is not installed: no private mount namespace for a hosts file")
+    probe = subprocess.run(["unshare", "-m", "true"], capture_output=True, text=True)
+    if probe.returncode != 0:
+        pytest.skip(f"unshare -m is not permitted here ({probe.stderr.strip()}): no private hosts file")
+    script = 'mount --bind "$0" /etc/hosts && exec "$@"'
+    return subprocess.run(
+        ["unshare", "-m", "sh", "-c", script, str(hosts_file), *map(str, argv)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=timeout_s,
+    )

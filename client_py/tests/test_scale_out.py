@@ -114,7 +114,7 @@ def test_an_item_error_names_the_env_in_env_order(two_servers):
     vector.close()
 
 
-def test_single_envs_are_pinned_by_server_index_or_round_robin(two_servers):
+def test_single_envs_are_pinned_by_server_index_or_least_loaded(two_servers):
     first, second = two_servers
     pinned = mll.parallel_env(address=[first, second], server_index=1)
     assert pinned.address == second and pinned.name in listed_names(second)
@@ -122,11 +122,12 @@ def test_single_envs_are_pinned_by_server_index_or_round_robin(two_servers):
     pinned.step({agent: 0 for agent in pinned.agents})  # Every call goes to its server.
     aec = mll.env(address=f"{first},{second}", server_index=0)
     assert aec.address == first and aec.name in listed_names(first)
-    # Round robin per process over the same list: consecutive envs alternate.
-    spread = [mll.parallel_env(address=(first, second)) for _ in range(4)]
-    placed = [env.address for env in spread]
-    assert set(placed) == {first, second}
-    assert all(placed[i] != placed[i + 1] for i in range(3))
+    # Without server_index: the least-loaded server (same --max_envs: the one hosting fewer).
+    spread = []
+    for _ in range(4):
+        hosted = {server: len(listed_names(server)) for server in (first, second)}
+        spread.append(mll.parallel_env(address=(first, second)))
+        assert hosted[spread[-1].address] == min(hosted.values()), (hosted, spread[-1].address)
     for env in [pinned, aec, *spread]:
         env.close()
 
