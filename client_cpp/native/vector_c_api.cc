@@ -39,12 +39,22 @@ constexpr double kMaxStepTimeoutS = 1e9;
 
 // The VectorEnv of `config` (a serialized mll.v1.EnvConfig) on the servers
 // of `addresses` (comma-separated).
-absl::StatusOr<VectorEnv> CreateVectorEnv(const char* addresses,
-                                          ClientOptions options,
-                                          const char* config,
-                                          size_t config_size, int num_envs,
-                                          int batch_size, int failover,
-                                          double step_timeout_s) {
+absl::StatusOr<VectorEnv> CreateVectorEnv(
+    const char* addresses, ClientOptions options, const char* config,
+    size_t config_size, int num_envs, int batch_size, int failover,
+    double step_timeout_s, double rediscover_interval_s) {
+  if (std::isnan(rediscover_interval_s) ||
+      rediscover_interval_s > kMaxStepTimeoutS) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("rediscover_interval_s is ", rediscover_interval_s,
+                     "; allowed: < 0 (the client's default), 0 (never) or up "
+                     "to ",
+                     kMaxStepTimeoutS, " seconds"));
+  }
+  if (rediscover_interval_s >= 0) {
+    options.rediscover_interval = std::chrono::milliseconds(
+        static_cast<int64_t>(std::llround(rediscover_interval_s * 1000)));
+  }
   if (std::isnan(step_timeout_s) || step_timeout_s > kMaxStepTimeoutS) {
     return absl::InvalidArgumentError(
         absl::StrCat("step_timeout_s is ", step_timeout_s,
@@ -79,10 +89,14 @@ absl::StatusOr<VectorEnv> CreateVectorEnv(const char* addresses,
   // it, as Client::CreateEnv refuses it.
   static constexpr absl::string_view kNeeds[] = {"packed_step_batch",
                                                  "auto_reset"};
-  for (int server = 0; server < std::min(client->server_count(), num_envs);
-       ++server) {
+  for (int server = 0; server < client->server_count(); ++server) {
     absl::StatusOr<mll::client::ServerInfo> info =
         client->GetServerInfo(server);
+    // One of several that does not answer takes no env (VectorEnv::Create).
+    if (!info.ok() && client->server_count() > 1 &&
+        absl::IsUnavailable(info.status())) {
+      continue;
+    }
     if (!info.ok()) return info.status();
     if (absl::Status compatible =
             Client::CheckCompatible(*info, client->address(server), kNeeds);
@@ -201,14 +215,15 @@ mll_vector_env* mll_vector_env_new(
     const char* addresses, const char* root_cert_pem, size_t root_cert_size,
     const char* server_name, const char* token, int transport,
     const char* config, size_t config_size, int num_envs, int batch_size,
-    int failover, double step_timeout_s) {
+    int failover, double step_timeout_s, double rediscover_interval_s) {
   mll::client::internal::KeepGrpcInitialised();
   auto* handle = new mll_vector_env;
   absl::StatusOr<VectorEnv> envs = CreateVectorEnv(
       addresses,
       mll::client::internal::NativeClientOptions(root_cert_pem, root_cert_size,
                                                  server_name, token, transport),
-      config, config_size, num_envs, batch_size, failover, step_timeout_s);
+      config, config_size, num_envs, batch_size, failover, step_timeout_s,
+      rediscover_interval_s);
   if (!envs.ok()) {
     handle->create_status = envs.status();
     handle->Report(envs.status());
@@ -250,6 +265,10 @@ int mll_vector_env_batch_size(const mll_vector_env* env) {
 
 int mll_vector_env_failover(const mll_vector_env* env) {
   return env->envs && env->envs->failover() ? 1 : 0;
+}
+
+int mll_vector_env_rebalances(const mll_vector_env* env) {
+  return env->envs ? env->envs->rebalances() : 0;
 }
 
 int mll_vector_env_failovers(const mll_vector_env* env) {

@@ -60,7 +60,8 @@ MLL_NATIVE_API int mll_vector_env_column_width(int column);
 
 /* --------------------------------------------------------- life of a handle
  * `num_envs` new environments on the servers of `addresses` (comma-separated
- * host:port or unix:PATH; env i on server i mod S), created on Session
+ * host:port or unix:PATH; a host name stands for every address it resolves
+ * to; placed by the servers' load, VectorEnv::Create), created on Session
  * streams of the handle's own (they die with it), with the options of
  * `config` (`config_size` bytes of a serialized mll.v1.EnvConfig; auto_reset
  * is forced on). `root_cert_pem` (`root_cert_size` bytes) turns TLS on with
@@ -69,9 +70,13 @@ MLL_NATIVE_API int mll_vector_env_column_width(int column);
  * (NULL or "": none) is sent as `authorization: Bearer <token>`. `transport`:
  * MLL_NATIVE_TRANSPORT_*. `batch_size`: how many
  * envs recv returns (0: num_envs). `failover`: -1 unset (on with several
- * servers, off with one), 0 off, 1 on. `step_timeout_s`: how long a request
- * in flight may wait for its answer before its server counts as down (< 0:
- * the C++ client's default; 0: no deadline).
+ * servers or a host name, off with one address), 0 off, 1 on.
+ * `step_timeout_s`: how long a request in flight may wait for its answer
+ * before its server counts as down (< 0: the C++ client's default; 0: no
+ * deadline). `rediscover_interval_s`: how
+ * often the host names in `addresses` are resolved again to find servers
+ * that joined or left them (< 0: the C++ client's default, 10 s; 0: never;
+ * ClientOptions::rediscover_interval).
  *
  * Never NULL: mll_vector_env_create_status says whether the envs were
  * created (0) or why not (the handle then holds nothing but the message, and
@@ -80,7 +85,7 @@ MLL_NATIVE_API mll_vector_env* mll_vector_env_new(
     const char* addresses, const char* root_cert_pem, size_t root_cert_size,
     const char* server_name, const char* token, int transport,
     const char* config, size_t config_size, int num_envs, int batch_size,
-    int failover, double step_timeout_s);
+    int failover, double step_timeout_s, double rediscover_interval_s);
 MLL_NATIVE_API int mll_vector_env_create_status(const mll_vector_env* env);
 /* The message of the last failed call (or of the failed creation). */
 MLL_NATIVE_API const char* mll_vector_env_message(const mll_vector_env* env);
@@ -94,6 +99,9 @@ MLL_NATIVE_API int mll_vector_env_continuous(const mll_vector_env* env);
 MLL_NATIVE_API int mll_vector_env_batch_size(const mll_vector_env* env);
 MLL_NATIVE_API int mll_vector_env_failover(const mll_vector_env* env);
 MLL_NATIVE_API int mll_vector_env_failovers(const mll_vector_env* env);
+/* Rebalancing events so far (VectorEnv::rebalances: envs moved onto a server
+ * that joined). */
+MLL_NATIVE_API int mll_vector_env_rebalances(const mll_vector_env* env);
 /* The serialized mll.v1.Env of env 0 as its server created it (the config
  * with the server's defaults filled in, the spaces, possible_agents,
  * idle_timeout_s); valid while the handle lives. */

@@ -33,6 +33,8 @@ absl::Status CheckToken(const std::string& token) {
   return absl::OkStatus();
 }
 
+}  // namespace
+
 // A host:port target needs a port in 1..65535 (gRPC would wrap 99999 around
 // to another port) and brackets around an IPv6 host. Targets with a gRPC
 // scheme ("dns:", "unix:", "ipv4:", ...) are gRPC's to check.
@@ -63,8 +65,6 @@ absl::Status CheckAddress(absl::string_view address) {
   }
   return absl::OkStatus();
 }
-
-}  // namespace
 
 absl::StatusOr<std::shared_ptr<grpc::Channel>> OpenChannel(
     absl::string_view address, const ClientOptions& options) {

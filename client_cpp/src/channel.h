@@ -16,6 +16,11 @@
 namespace mll::client {
 namespace internal {
 
+// OK for "host:port" with a port in 1..65535 (an IPv6 host in brackets) or a
+// gRPC target with a scheme ("unix:PATH", ...); else INVALID_ARGUMENT saying
+// what is expected.
+absl::Status CheckAddress(absl::string_view address);
+
 // A channel to `address` (host:port, or a gRPC target such as unix:PATH) with
 // `options`' TLS settings and largest received message; INVALID_ARGUMENT for
 // a malformed address, token or option.

@@ -6,6 +6,7 @@
 
 #include "absl/container/flat_hash_set.h"
 #include "absl/strings/str_cat.h"
+#include "discovery.h"
 #include "transport.h"
 #include "wire.h"
 
@@ -263,8 +264,19 @@ absl::StatusOr<Client> Client::Create(const std::vector<std::string>& addresses,
     return absl::InvalidArgumentError(
         "addresses is empty; expected at least one host:port");
   }
+  if (options.rediscover_interval.count() < 0) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "rediscover_interval is ", options.rediscover_interval.count(),
+        " ms; allowed: 0 (never) or more"));
+  }
+  // A message about addresses[i] says which entry when there are several.
+  const auto about = [&](size_t i, const absl::Status& status) {
+    if (addresses.size() == 1) return status;
+    return absl::Status(status.code(),
+                        absl::StrCat("addresses[", i, "]: ", status.message()));
+  };
   absl::flat_hash_set<std::string> seen;
-  std::vector<std::shared_ptr<Transport>> transports;
+  std::vector<internal::AddressEntry> entries;
   for (size_t i = 0; i < addresses.size(); ++i) {
     // Two entries for one server would make names ambiguous and double its
     // share of the placement.
@@ -273,17 +285,30 @@ absl::StatusOr<Client> Client::Create(const std::vector<std::string>& addresses,
           absl::StrCat("addresses[", i, "] is \"", addresses[i],
                        "\", which appears earlier; each server once"));
     }
+    absl::StatusOr<internal::AddressEntry> entry =
+        internal::ParseAddressEntry(addresses[i]);
+    if (!entry.ok()) return about(i, entry.status());
+    entries.push_back(*std::move(entry));
+  }
+  std::vector<absl::Status> failures;
+  absl::StatusOr<std::vector<internal::Endpoint>> endpoints =
+      internal::ResolveEntries(entries, &failures);
+  for (size_t i = 0; i < failures.size(); ++i) {
+    if (!failures[i].ok()) return about(i, failures[i]);
+  }
+  std::vector<std::shared_ptr<Transport>> transports;
+  for (const internal::Endpoint& endpoint : *endpoints) {
     absl::StatusOr<std::shared_ptr<Transport>> transport =
-        internal::MakeUnaryTransport(addresses[i], options);
-    if (!transport.ok()) {
-      if (addresses.size() == 1) return transport.status();
-      return absl::Status(
-          transport.status().code(),
-          absl::StrCat("addresses[", i, "]: ", transport.status().message()));
-    }
+        internal::MakeUnaryTransport(
+            endpoint.address,
+            internal::EndpointOptions(entries[endpoint.entry], options));
+    if (!transport.ok()) return about(endpoint.entry, transport.status());
     transports.push_back(*std::move(transport));
   }
-  return Client(std::move(transports));
+  Client client(std::move(transports));
+  client.entries_ = addresses;
+  client.options_ = options;
+  return client;
 }
 
 absl::StatusOr<Client> Client::OpenSession() const {
@@ -294,7 +319,10 @@ absl::StatusOr<Client> Client::OpenSession() const {
     if (!session.ok()) return session.status();
     sessions.push_back(*std::move(session));
   }
-  return Client(std::move(sessions));
+  Client client(std::move(sessions));
+  client.entries_ = entries_;
+  client.options_ = options_;
+  return client;
 }
 
 bool Client::is_session() const { return transports_.front()->is_session(); }

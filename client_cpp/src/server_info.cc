@@ -19,10 +19,10 @@
 namespace mll::client {
 namespace internal {
 
-absl::StatusOr<v1::ServerInfo> Transport::ServerInfo() {
+absl::StatusOr<v1::ServerInfo> Transport::ServerInfo(bool fresh) {
   // Held across the call: threads asking at once make one call.
   absl::MutexLock lock(&server_info_mu_);
-  if (server_info_.has_value()) return *server_info_;
+  if (server_info_.has_value() && !fresh) return *server_info_;
   grpc::ClientContext context;
   const absl::Duration timeout = Prepare(&context, /*unary=*/true);
   v1::ServerInfo info;
@@ -37,6 +37,31 @@ absl::StatusOr<v1::ServerInfo> Transport::ServerInfo() {
     return FromCall(status, timeout);
   }
   server_info_ = info;
+  return info;
+}
+
+ServerInfo DecodeServerInfo(const v1::ServerInfo& proto) {
+  ServerInfo info;
+  info.server_version = proto.server_version();
+  info.protocol_major = proto.protocol_major();
+  info.protocol_minor = proto.protocol_minor();
+  info.capabilities.assign(proto.capabilities().begin(),
+                           proto.capabilities().end());
+  const v1::ServerLimits& limits = proto.limits();
+  info.max_envs = limits.max_envs();
+  info.max_envs_per_token = limits.max_envs_per_token();
+  info.max_message_bytes = limits.max_message_bytes();
+  info.idle_timeout_s = limits.idle_timeout_s();
+  info.max_landers = limits.max_landers();
+  info.threads = limits.threads();
+  info.shared_memory_sessions = limits.shared_memory_sessions();
+  // A server without load figures (before protocol 1.3) leaves them zero.
+  const v1::ServerLoad& load = proto.load();
+  info.load.envs_hosted = load.envs_hosted();
+  info.load.cpu_cores = load.cpu_cores();
+  info.load.cores_available = load.cores_available();
+  info.load.agent_steps_per_s = load.agent_steps_per_s();
+  info.json = JsonOf(proto);
   return info;
 }
 
@@ -84,22 +109,7 @@ absl::StatusOr<ServerInfo> Client::GetServerInfo(int server) const {
   }
   absl::StatusOr<v1::ServerInfo> proto = transports_[server]->ServerInfo();
   if (!proto.ok()) return proto.status();
-  ServerInfo info;
-  info.server_version = proto->server_version();
-  info.protocol_major = proto->protocol_major();
-  info.protocol_minor = proto->protocol_minor();
-  info.capabilities.assign(proto->capabilities().begin(),
-                           proto->capabilities().end());
-  const v1::ServerLimits& limits = proto->limits();
-  info.max_envs = limits.max_envs();
-  info.max_envs_per_token = limits.max_envs_per_token();
-  info.max_message_bytes = limits.max_message_bytes();
-  info.idle_timeout_s = limits.idle_timeout_s();
-  info.max_landers = limits.max_landers();
-  info.threads = limits.threads();
-  info.shared_memory_sessions = limits.shared_memory_sessions();
-  info.json = internal::JsonOf(*proto);
-  return info;
+  return internal::DecodeServerInfo(*proto);
 }
 
 absl::Status Client::CheckCompatible(

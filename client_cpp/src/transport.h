@@ -80,8 +80,9 @@ class Transport {
 
   // GetServerInfo (server_info.cc): asked by the first call, remembered for
   // the transport's life; a server without the RPC (UNIMPLEMENTED) is
-  // remembered as protocol 1.0. Failures are not remembered.
-  absl::StatusOr<v1::ServerInfo> ServerInfo();
+  // remembered as protocol 1.0. Failures are not remembered. `fresh` asks
+  // again (the load figures change) and remembers the new answer.
+  absl::StatusOr<v1::ServerInfo> ServerInfo(bool fresh = false);
 
  protected:
   // Adds the token and, for unary calls, the deadline: call_timeout, or

@@ -6,6 +6,7 @@
 #include <cstring>
 #include <deque>
 #include <functional>
+#include <future>
 #include <map>
 #include <optional>
 #include <set>
@@ -20,8 +21,10 @@
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
 #include "channel.h"
+#include "discovery.h"
 #include "env_record.h"
 #include "grpcpp/client_context.h"
+#include "placement.h"
 #include "result_columns.h"
 #include "transport.h"
 #include "vector_env_bridge.h"
@@ -29,7 +32,9 @@
 
 namespace mll::client {
 
+using internal::AddressEntry;
 using internal::EnvRecord;
+using internal::ServerCapacity;
 using internal::StreamTransport;
 
 namespace {
@@ -70,7 +75,8 @@ absl::Duration Remaining(Deadline deadline) {
 // others still received.
 absl::Status CallPipelined(StreamTransport& transport,
                            std::vector<v1::SessionRequest>& requests,
-                           std::vector<v1::SessionResponse>* responses) {
+                           std::vector<v1::SessionResponse>* responses,
+                           std::vector<absl::Status>* statuses = nullptr) {
   responses->assign(requests.size(), v1::SessionResponse());
   std::vector<absl::StatusOr<uint64_t>> sequences;
   sequences.reserve(requests.size());
@@ -88,6 +94,7 @@ absl::Status CallPipelined(StreamTransport& transport,
     absl::Status status = sequences[k].status();
     if (status.ok())
       status = transport.Receive(*sequences[k], &(*responses)[k]);
+    if (statuses != nullptr) statuses->push_back(status);
     if (first.ok()) first = status;
   }
   return first;
@@ -407,6 +414,80 @@ absl::StatusOr<std::vector<EnvInfo>> Replay(
   return infos;
 }
 
+// What a VectorEnv needs of a server to place envs on it.
+constexpr absl::string_view kVectorNeeds[] = {"packed_step_batch",
+                                              "auto_reset"};
+
+// A server's load as placement reads it.
+ServerCapacity CapacityOf(const v1::ServerInfo& proto) {
+  const ServerInfo info = internal::DecodeServerInfo(proto);
+  ServerCapacity capacity;
+  capacity.envs_hosted = info.load.envs_hosted;
+  capacity.max_envs = info.max_envs;
+  capacity.cpu_cores = info.load.cpu_cores;
+  capacity.cores_available = info.load.cores_available;
+  return capacity;
+}
+
+// A resolution of a VectorEnv's address list (made off its thread, taken
+// in at one of its calls): each entry's addresses or why none, every
+// server they name, and the servers to take in (new ones, or ones found
+// down), each probed: it answered GetServerInfo with a protocol this client
+// speaks and its health check SERVING within kProbeDeadline, on a channel
+// of its own.
+struct Discovery {
+  std::vector<std::vector<std::string>> resolved;
+  std::vector<absl::Status> failures;
+  std::set<std::string> current;
+  struct Joiner {
+    std::string address;
+    ClientOptions options;
+    std::shared_ptr<grpc::Channel> channel;
+  };
+  std::vector<Joiner> joiners;
+};
+
+// Resolves `entries` and probes the servers of them not in `known`, and
+// those in `probe` (known, found down).
+Discovery Discover(const std::vector<AddressEntry>& entries,
+                   const ClientOptions& options,
+                   const std::set<std::string>& known,
+                   const std::set<std::string>& probe) {
+  Discovery found;
+  for (size_t i = 0; i < entries.size(); ++i) {
+    absl::StatusOr<std::vector<std::string>> addresses =
+        internal::ResolveEntry(entries[i]);
+    found.failures.push_back(addresses.status());
+    found.resolved.push_back(addresses.ok() ? *addresses
+                                            : std::vector<std::string>());
+    if (!addresses.ok()) continue;
+    const ClientOptions endpoint =
+        internal::EndpointOptions(entries[i], options);
+    for (const std::string& address : *addresses) {
+      if (!found.current.insert(address).second) continue;
+      if (known.count(address) != 0 && probe.count(address) == 0) continue;
+      ClientOptions probing = endpoint;
+      probing.call_timeout = absl::ToChronoMilliseconds(kProbeDeadline);
+      absl::StatusOr<std::shared_ptr<internal::Transport>> transport =
+          internal::MakeUnaryTransport(address, probing);
+      if (!transport.ok()) continue;
+      absl::StatusOr<v1::ServerInfo> info = (*transport)->ServerInfo();
+      if (!info.ok() ||
+          !Client::CheckCompatible(internal::DecodeServerInfo(*info), address,
+                                   kVectorNeeds)
+               .ok() ||
+          !(*transport)->CheckHealth("").ok()) {
+        continue;
+      }
+      absl::StatusOr<std::shared_ptr<grpc::Channel>> channel =
+          internal::OpenChannel(address, endpoint);
+      if (!channel.ok()) continue;
+      found.joiners.push_back({address, endpoint, *std::move(channel)});
+    }
+  }
+  return found;
+}
+
 }  // namespace
 
 struct VectorEnv::State {
@@ -420,8 +501,8 @@ struct VectorEnv::State {
   }
 
   Client session;
-  // Env i is on server placement[i] (i mod S until failover moves it);
-  // shards: one per server holding envs.
+  // Env i is on server placement[i] (as Create placed it by load, until
+  // failover or rebalancing moves it); shards: one per server holding envs.
   std::vector<int> placement;
   std::vector<Shard> shards;
   std::vector<std::string> names;
@@ -463,6 +544,21 @@ struct VectorEnv::State {
   std::string step_actions;
   std::vector<absl::StatusOr<uint64_t>> step_sequences;
   std::vector<std::optional<absl::Status>> step_answers;
+
+  // Discovery and rebalancing (vector_env.h): the address list parsed, the
+  // servers gone from their names (they take no new env; theirs stay while
+  // they answer), each entry's latest resolution or why it has none, when
+  // to resolve next (none: never), a resolution under way off this thread,
+  // whether a server joined since the envs were last evened out, and the
+  // rebalancing events so far.
+  std::vector<AddressEntry> entries;
+  std::vector<bool> departed;
+  std::vector<std::vector<std::string>> resolved;
+  std::vector<absl::Status> resolve_failures;
+  std::optional<absl::Time> next_discovery;
+  std::future<Discovery> discovery;
+  bool rebalance_pending = false;
+  int rebalances = 0;
 
   // Where failover event lines go (SetEventLog); none: stderr.
   EventLog event_log;
@@ -755,14 +851,16 @@ struct VectorEnv::State {
         absl::StrCat("failover gave up after ", tries, " tries"));
   }
 
-  // Servers not found unreachable, and those found unreachable (but not in
-  // `skip`) that answer a probe again (Rejoin): so a server replaced at its
-  // address (a StatefulSet pod in a rolling update) takes envs again at the
-  // next failover, not only once every other server is lost.
+  // Servers in their names and not found unreachable, and those found
+  // unreachable (but not in `skip`) that answer a probe again (Rejoin): so a
+  // server replaced at its address (a StatefulSet pod in a rolling update)
+  // takes envs again at the next failover, not only once every other server
+  // is lost. None of `skip` is returned.
   std::vector<int> UsableServers(const std::map<int, absl::Status>& skip) {
     std::vector<int> usable;
     for (int server = 0; server < server_count(); ++server) {
-      if (down[server] && skip.count(server) == 0) Rejoin(server);
+      if (departed[server] || skip.count(server) != 0) continue;
+      if (down[server]) Rejoin(server);
       if (!down[server]) usable.push_back(server);
     }
     return usable;
@@ -793,18 +891,7 @@ struct VectorEnv::State {
         answer.error_code() != grpc::StatusCode::UNIMPLEMENTED) {
       return;
     }
-    auto fresh =
-        std::make_shared<StreamTransport>(old.address(), *channel, options);
-    if (options.session_transport == SessionTransport::kSharedMemory &&
-        !fresh->Open().ok()) {
-      return;
-    }
-    // Requests still in flight on the old stream are read off it first.
-    SettleRequestsOf(server,
-                     absl::UnavailableError(absl::StrCat(
-                         old.address(), ": stream replaced by a new one")));
-    session.transports_[server] = std::move(fresh);
-    down[server] = false;
+    (void)Adopt(server, old.address(), *std::move(channel), options);
   }
 
   // Recreates the `lost` envs on reachable servers (round robin; an env
@@ -831,6 +918,8 @@ struct VectorEnv::State {
         }
       }
     }
+    // Servers that joined take envs now; those gone from their names none.
+    DiscoverNow();
     for (const auto& [env, error] : lost) {
       if (down[placement[env]]) {
         homeless.push_back(env);
@@ -859,8 +948,9 @@ struct VectorEnv::State {
           usable = UsableServers(refused);
         }
         if (usable.empty()) return fail(NoServerLeft(lost, refused));
+        const std::vector<int> places = Place(usable, homeless.size());
         for (size_t k = 0; k < homeless.size(); ++k) {
-          targets[homeless[k]] = usable[k % usable.size()];
+          targets[homeless[k]] = places[k];
         }
         homeless.clear();
       }
@@ -876,12 +966,17 @@ struct VectorEnv::State {
         absl::StatusOr<std::vector<EnvInfo>> created =
             Replay(TransportOf(target), jobs);
         if (!created.ok()) {
-          if (!ServerLost(created.status())) {
+          // A server without room (its max_envs, or the token's quota)
+          // is passed over as an unreachable one is, and stays up.
+          const bool full = absl::IsResourceExhausted(created.status());
+          if (!ServerLost(created.status()) && !full) {
             return fail(created.status());
           }
           refused.emplace(target, created.status());
-          down[target] = true;
-          SettleRequestsOf(target, created.status());
+          if (!full) {
+            down[target] = true;
+            SettleRequestsOf(target, created.status());
+          }
           homeless.insert(homeless.end(), envs.begin(), envs.end());
           continue;
         }
@@ -904,6 +999,243 @@ struct VectorEnv::State {
         "); recreated on ", absl::StrJoin(where, ", "), " and replayed (",
         replayed, " steps) in ", seconds, " s", Refusals(refused)));
     return absl::OkStatus();
+  }
+
+  // ----------------------------------------------- discovery and rebalancing
+
+  bool HasNames() const {
+    for (const AddressEntry& entry : entries) {
+      if (entry.is_name) return true;
+    }
+    return false;
+  }
+
+  // The addresses of the servers known, and of those found down.
+  std::set<std::string> Addresses(bool down_only) const {
+    std::set<std::string> out;
+    for (int server = 0; server < server_count(); ++server) {
+      if (!down_only || down[server]) out.insert(session.address(server));
+    }
+    return out;
+  }
+
+  // At the start of a call with nothing in flight for the envs it moves:
+  // starts a resolution when one is due, takes in one that is done, and
+  // evens the envs out when a server joined (`seeded_reset`: the call is a
+  // seeded Reset, which starts the moved envs afresh).
+  void Maintain(bool seeded_reset) {
+    if (next_discovery.has_value() && !discovery.valid() &&
+        absl::Now() >= *next_discovery) {
+      discovery =
+          std::async(std::launch::async, Discover, entries, session.options_,
+                     Addresses(false), Addresses(true));
+    }
+    if (discovery.valid() && discovery.wait_for(std::chrono::seconds(0)) ==
+                                 std::future_status::ready) {
+      TakeIn(discovery.get());
+      next_discovery =
+          absl::Now() + absl::FromChrono(session.options_.rediscover_interval);
+    }
+    if (rebalance_pending) Rebalance(seeded_reset);
+  }
+
+  // Resolves the names now (at a failover): servers that joined take envs
+  // in this failover, those gone from their names none.
+  void DiscoverNow() {
+    if (!HasNames()) return;
+    if (discovery.valid()) TakeIn(discovery.get());
+    // Servers found down are probed by UsableServers, which knows which
+    // ones just stalled.
+    TakeIn(Discover(entries, session.options_, Addresses(false), {}));
+  }
+
+  // Takes in a resolution: servers gone from their names are marked so,
+  // servers that came back to them are not, and the servers that joined
+  // (new ones, or ones found down that answer again) get streams.
+  void TakeIn(Discovery found) {
+    resolved = std::move(found.resolved);
+    resolve_failures = std::move(found.failures);
+    for (int server = 0; server < server_count(); ++server) {
+      const bool gone = found.current.count(session.address(server)) == 0;
+      if (departed[server] && !gone && !down[server]) rebalance_pending = true;
+      departed[server] = gone;
+    }
+    const std::set<std::string> known = Addresses(false);
+    for (Discovery::Joiner& joiner : found.joiners) {
+      int server = -1;
+      if (known.count(joiner.address) != 0) {
+        for (int s = 0; s < server_count(); ++s) {
+          if (session.address(s) == joiner.address) server = s;
+        }
+        // Answered the probe but found down since (a failover meanwhile)
+        // or up all along: nothing to take in.
+        if (!down[server]) continue;
+      }
+      if (Adopt(server, joiner.address, joiner.channel, joiner.options)) {
+        rebalance_pending = true;
+      }
+    }
+  }
+
+  // A session stream on `channel` for server `server` (-1: a new server at
+  // `address`), which is then not down: false when shared memory was asked
+  // for by name and the stream cannot have it. A known server's requests
+  // still in flight on its old stream are read off it first; the envs bound
+  // to that stream go with it (an env still placed there meets NOT_FOUND
+  // and is recreated).
+  bool Adopt(int server, const std::string& address,
+             std::shared_ptr<grpc::Channel> channel,
+             const ClientOptions& options) {
+    auto fresh =
+        std::make_shared<StreamTransport>(address, std::move(channel), options);
+    if (options.session_transport == SessionTransport::kSharedMemory &&
+        !fresh->Open().ok()) {
+      return false;
+    }
+    if (server < 0) {
+      session.transports_.push_back(std::move(fresh));
+      down.push_back(false);
+      departed.push_back(false);
+      return true;
+    }
+    SettleRequestsOf(server, absl::UnavailableError(absl::StrCat(
+                                 address, ": stream replaced by a new one")));
+    session.transports_[server] = std::move(fresh);
+    down[server] = false;
+    return true;
+  }
+
+  // Server `server`'s load as it reports it now (as last reported when it
+  // cannot be asked; nothing known: zero).
+  ServerCapacity LoadOf(int server) {
+    absl::StatusOr<v1::ServerInfo> info =
+        TransportOf(server).ServerInfo(/*fresh=*/true);
+    if (!info.ok()) info = TransportOf(server).ServerInfo();
+    return info.ok() ? CapacityOf(*info) : ServerCapacity();
+  }
+
+  // A server of `usable` for each of `count` new envs: the least loaded
+  // first (PlanPlacement); past the servers' room, round robin (their
+  // creates then answer RESOURCE_EXHAUSTED).
+  std::vector<int> Place(const std::vector<int>& usable, size_t count) {
+    std::vector<ServerCapacity> capacity(server_count());
+    for (ServerCapacity& server : capacity) server.usable = false;
+    for (int server : usable) capacity[server] = LoadOf(server);
+    const std::vector<int> plan =
+        internal::PlanPlacement(capacity, static_cast<int>(count));
+    std::vector<int> targets;
+    for (int server = 0; server < server_count(); ++server) {
+      targets.insert(targets.end(), plan[server], server);
+    }
+    for (size_t k = 0; targets.size() < count; ++k) {
+      targets.push_back(usable[k % usable.size()]);
+    }
+    return targets;
+  }
+
+  // Moves envs onto the servers that joined until the VectorEnv's own envs
+  // are even within one over the servers up and in their names (PlanEven):
+  // from each server holding more than its share, its highest-numbered envs
+  // with nothing in flight. `fresh`: a seeded Reset follows, so the moved
+  // envs are created afresh; else each is recreated and its record replayed
+  // (checked to the bits), and an env whose record cannot (never reset, or
+  // too long) waits for a seeded Reset. Each target's move is one event.
+  void Rebalance(bool fresh) {
+    rebalance_pending = false;
+    if (!created) return;
+    const int servers = server_count();
+    std::vector<bool> eligible(servers);
+    std::vector<int> own(servers, 0);
+    for (int server = 0; server < servers; ++server) {
+      eligible[server] = !down[server] && !departed[server];
+    }
+    for (int server : placement) ++own[server];
+    const std::vector<int> target = internal::PlanEven(own, eligible);
+    std::vector<int> movers;
+    for (int server = 0; server < servers; ++server) {
+      int surplus = own[server] - target[server];
+      for (int env = num_envs() - 1; env >= 0 && surplus > 0; --env) {
+        if (placement[env] != server) continue;
+        if (in_flight[env] || (!fresh && !RecordProblem(env).ok())) {
+          rebalance_pending = true;  // Tried again at the next call.
+          continue;
+        }
+        movers.push_back(env);
+        --surplus;
+      }
+    }
+    size_t next = 0;
+    for (int server = 0; server < servers && next < movers.size(); ++server) {
+      std::vector<int> envs;
+      for (int k = own[server]; k < target[server] && next < movers.size();
+           ++k) {
+        envs.push_back(movers[next++]);
+      }
+      if (!envs.empty()) MoveEnvs(envs, server, fresh);
+    }
+    shards = ShardsOf(AllEnvs(), {});
+  }
+
+  // Recreates `envs` on server `target` (replaying their records unless
+  // `fresh`), then deletes them where they were: one rebalancing event,
+  // logged. On failure they stay where they are (and a target found
+  // unreachable is down).
+  void MoveEnvs(const std::vector<int>& envs, int target, bool fresh) {
+    const absl::Time began = absl::Now();
+    std::vector<ReplayJob> jobs;
+    for (int env : envs) {
+      jobs.push_back({&configs[env], fresh ? nullptr : &records[env],
+                      LastObservations(env), Label(env)});
+    }
+    absl::StatusOr<std::vector<EnvInfo>> created_envs =
+        Replay(TransportOf(target), jobs);
+    if (!created_envs.ok()) {
+      if (ServerLost(created_envs.status())) {
+        down[target] = true;
+        SettleRequestsOf(target, created_envs.status());
+      }
+      LogEvent(absl::StrCat(
+          "VectorEnv rebalance: moving ", envs.size(), " env(s) onto ",
+          session.address(target), " failed (",
+          absl::StatusCodeToString(created_envs.status().code()), ": ",
+          created_envs.status().message(), "); they stay where they are"));
+      return;
+    }
+    std::map<int, std::vector<EnvInfo>> old;  // Server -> envs moved off it.
+    size_t replayed = 0;
+    for (size_t k = 0; k < envs.size(); ++k) {
+      EnvInfo& moved = old[placement[envs[k]]].emplace_back();
+      moved.name = names[envs[k]];
+      Replace(envs[k], target, (*created_envs)[k]);
+      if (!fresh) replayed += records[envs[k]].operations.size();
+    }
+    std::vector<std::string> sources;
+    for (const auto& [server, infos] : old) {
+      DeleteEnvs(TransportOf(server), infos);
+      sources.push_back(
+          absl::StrCat(session.address(server), " (", infos.size(), ")"));
+    }
+    ++rebalances;
+    char seconds[32];
+    std::snprintf(seconds, sizeof(seconds), "%.3f",
+                  absl::ToDoubleSeconds(absl::Now() - began));
+    LogEvent(absl::StrCat(
+        "VectorEnv rebalance: ", envs.size(), " env(s) moved onto ",
+        session.address(target), " from ", absl::StrJoin(sources, ", "),
+        fresh ? ", created afresh for a seeded reset"
+              : absl::StrCat(", replayed (", replayed, " steps)"),
+        " in ", seconds, " s"));
+  }
+
+  // "; NAME:PORT resolves to ..." for each name in the address list.
+  std::string Resolutions() const {
+    std::string out;
+    for (size_t i = 0; i < entries.size() && i < resolved.size(); ++i) {
+      const std::string text = internal::DescribeResolution(
+          entries[i], resolved[i], resolve_failures[i]);
+      if (!text.empty()) absl::StrAppend(&out, "; ", text);
+    }
+    return out;
   }
 
   // One event line to the event log (SetEventLog), else to stderr.
@@ -937,7 +1269,7 @@ struct VectorEnv::State {
     return absl::UnavailableError(absl::StrCat(
         "failover of ", lost.size(), " envs found no reachable server of ",
         absl::StrJoin(addresses, ", "), ": ", lost.begin()->second.message(),
-        Refusals(refused)));
+        Refusals(refused), Resolutions()));
   }
 
   // Env `env` is now `info`, on server `server`: the lease moves with it.
@@ -1074,42 +1406,118 @@ absl::StatusOr<VectorEnv> VectorEnv::Create(const Client& client, int num_envs,
   absl::StatusOr<Client> session = client.OpenSession();
   if (!session.ok()) return session.status();
   config.auto_reset = true;
-  const size_t servers =
-      std::min<size_t>(session->transports_.size(), num_envs);
-  std::vector<EnvInfo> infos(num_envs);
-  std::string spec;
-  absl::Status failure = absl::OkStatus();
-  for (size_t server = 0; server < servers; ++server) {
+  // Each server's load as it reports it now; one that does not answer takes
+  // no env (failover may bring it back), unless none answers.
+  const int servers = session->server_count();
+  std::vector<ServerCapacity> capacity(servers);
+  std::vector<bool> down(servers, false);
+  absl::Status unanswered = absl::OkStatus();
+  for (int server = 0; server < servers; ++server) {
     auto& transport =
         static_cast<StreamTransport&>(*session->transports_[server]);
-    std::vector<v1::SessionRequest> requests;
-    for (int env = static_cast<int>(server); env < num_envs;
-         env += static_cast<int>(servers)) {
-      internal::EncodeConfig(
-          config,
-          requests.emplace_back().mutable_create_env()->mutable_config());
-    }
-    std::vector<v1::SessionResponse> responses;
-    absl::Status status = CallPipelined(transport, requests, &responses);
-    if (failure.ok()) failure = status;
-    if (server == 0) spec = responses[0].env().SerializeAsString();
     // Asked now and remembered, so that the first StepAsync, which decides
     // the stream's batch handles from it, does not wait for it.
-    if (status.ok()) (void)transport.ServerInfo();
-    for (size_t k = 0; k < responses.size(); ++k) {
-      infos[server + k * servers] = internal::DecodeEnv(responses[k].env());
-      infos[server + k * servers].server = static_cast<int>(server);
+    absl::StatusOr<v1::ServerInfo> info = transport.ServerInfo(/*fresh=*/true);
+    if (!info.ok()) {
+      if (!ServerLost(info.status()) || servers == 1) return info.status();
+      if (unanswered.ok()) unanswered = info.status();
+      down[server] = true;
+      capacity[server].usable = false;
+      continue;
     }
+    capacity[server] = CapacityOf(*info);
   }
-  // A failure leaves what was made to the session's end.
-  if (!failure.ok()) return failure;
-  const bool several_servers = session->server_count() > 1;
+  if (std::find(down.begin(), down.end(), false) == down.end()) {
+    return unanswered;
+  }
+  // The envs still to create, placed by load (PlanPlacement), each server's
+  // share a run of consecutive envs; a server that answers RESOURCE_EXHAUSTED
+  // (its max_envs, or the token's quota) takes no more, and its share goes
+  // to the others, as long as they have room.
+  std::vector<int> remaining(num_envs);
+  for (int env = 0; env < num_envs; ++env) remaining[env] = env;
+  std::vector<EnvInfo> infos(num_envs);
+  std::string spec;
+  absl::Status full = absl::OkStatus();
+  for (int round = 0; round <= servers && !remaining.empty(); ++round) {
+    const std::vector<int> plan =
+        internal::PlanPlacement(capacity, static_cast<int>(remaining.size()));
+    int planned = 0;
+    for (int count : plan) planned += count;
+    if (planned < static_cast<int>(remaining.size())) {
+      std::vector<std::string> room;
+      for (int server = 0; server < servers; ++server) {
+        room.push_back(absl::StrCat(
+            session->address(server), " ",
+            down[server]
+                ? "unreachable"
+                : absl::StrCat("hosting ", capacity[server].envs_hosted,
+                               " of max_envs ", capacity[server].max_envs)));
+      }
+      return absl::ResourceExhaustedError(absl::StrCat(
+          "no room for ", remaining.size() - planned, " of ", num_envs,
+          " envs on the servers (", absl::StrJoin(room, "; "), ")",
+          full.ok() ? "" : absl::StrCat(": ", full.message())));
+    }
+    std::vector<int> retry;
+    size_t next = 0;
+    for (int server = 0; server < servers; ++server) {
+      if (plan[server] == 0) continue;
+      std::vector<int> envs(remaining.begin() + next,
+                            remaining.begin() + next + plan[server]);
+      next += plan[server];
+      auto& transport =
+          static_cast<StreamTransport&>(*session->transports_[server]);
+      std::vector<v1::SessionRequest> requests(envs.size());
+      for (v1::SessionRequest& request : requests) {
+        internal::EncodeConfig(config,
+                               request.mutable_create_env()->mutable_config());
+      }
+      std::vector<v1::SessionResponse> responses;
+      std::vector<absl::Status> statuses;
+      (void)CallPipelined(transport, requests, &responses, &statuses);
+      for (size_t k = 0; k < envs.size(); ++k) {
+        if (absl::IsResourceExhausted(statuses[k])) {
+          capacity[server].usable = false;
+          full = absl::Status(statuses[k].code(),
+                              absl::StrCat(session->address(server), ": ",
+                                           statuses[k].message()));
+          retry.push_back(envs[k]);
+          continue;
+        }
+        // A failure leaves what was made to the session's end.
+        if (!statuses[k].ok()) return statuses[k];
+        if (envs[k] == 0) spec = responses[k].env().SerializeAsString();
+        infos[envs[k]] = internal::DecodeEnv(responses[k].env());
+        infos[envs[k]].server = server;
+      }
+    }
+    remaining = std::move(retry);
+  }
+  if (!remaining.empty()) return full;
+  bool names = false;
+  std::vector<AddressEntry> entries;
+  for (const std::string& text : session->entries_) {
+    absl::StatusOr<AddressEntry> entry = internal::ParseAddressEntry(text);
+    if (!entry.ok()) return entry.status();
+    names = names || entry->is_name;
+    entries.push_back(*std::move(entry));
+  }
+  const std::chrono::milliseconds interval =
+      session->options_.rediscover_interval;
   absl::StatusOr<VectorEnv> envs =
       Assemble(*std::move(session), std::move(infos), batch_size);
   if (envs.ok()) {
-    envs->state_->created = true;
-    envs->state_->spec = std::move(spec);
-    envs->state_->failover = failover.value_or(several_servers);
+    State& state = *envs->state_;
+    state.created = true;
+    state.spec = std::move(spec);
+    // A name may bring more servers: failover is on by default then too.
+    state.failover = failover.value_or(servers > 1 || names);
+    state.down = std::move(down);
+    state.entries = std::move(entries);
+    if (names && interval.count() > 0) {
+      state.next_discovery = absl::Now() + absl::FromChrono(interval);
+    }
   }
   return envs;
 }
@@ -1172,6 +1580,7 @@ absl::StatusOr<VectorEnv> VectorEnv::Assemble(Client session,
   }
   built.shards = built.ShardsOf(built.AllEnvs(), {});
   built.down.assign(built.server_count(), false);
+  built.departed.assign(built.server_count(), false);
   built.records.resize(infos.size());
   built.last_observations.assign(
       infos.size() * built.n_landers * kRemoteObservationSize, 0.0f);
@@ -1205,6 +1614,7 @@ void VectorEnv::SetEventLog(EventLog log) {
 
 bool VectorEnv::failover() const { return state_->failover; }
 int VectorEnv::failovers() const { return state_->failovers; }
+int VectorEnv::rebalances() const { return state_->rebalances; }
 
 absl::Status VectorEnv::Reset(std::optional<uint64_t> seed) {
   if (!seed.has_value()) return Reset(absl::Span<const uint64_t>());
@@ -1235,6 +1645,7 @@ absl::Status VectorEnv::Reset(absl::Span<const uint64_t> seeds) {
         absl::StrCat("seeds has ", seeds.size(),
                      " entries; expected num_envs = ", state.names.size()));
   }
+  state.Maintain(/*seeded_reset=*/!seeds.empty());
   Columns& out = state.results;
   out.Resize(state.names.size(), state.n_landers);
   // A seeded reset starts its envs afresh: failover has nothing to replay.
@@ -1302,6 +1713,7 @@ absl::Status VectorEnv::StepAsyncWith(absl::string_view action_bytes,
       !status.ok()) {
     return status;
   }
+  state.Maintain(/*seeded_reset=*/false);
   const size_t env_bytes = state.row_bytes();
   for (Shard& shard : state.shards) {
     std::string* data = shard.request.mutable_step_batch()
@@ -1443,6 +1855,7 @@ absl::Status VectorEnv::SendWith(absl::string_view action_bytes, size_t count,
       !status.ok()) {
     return status;
   }
+  state.Maintain(/*seeded_reset=*/false);
   const size_t env_bytes = state.row_bytes();
   const std::vector<int> envs(env_ids.begin(), env_ids.end());
   std::vector<absl::string_view> rows;
@@ -1715,7 +2128,7 @@ const std::string& VectorEnvBridge::Spec(const VectorEnv& envs) {
 }
 
 int VectorEnvBridge::ServerCount(const VectorEnv& envs) {
-  return std::min(envs.state_->server_count(), envs.num_envs());
+  return envs.state_->server_count();
 }
 
 const std::string& VectorEnvBridge::ServerAddress(const VectorEnv& envs,

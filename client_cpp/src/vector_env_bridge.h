@@ -16,7 +16,8 @@ struct VectorEnvBridge {
   // Env 0's mll.v1.Env as its server created it (VectorEnv::Create; empty
   // for attached envs).
   static const std::string& Spec(const VectorEnv& envs);
-  // The servers that hold envs from the start: min(servers, num_envs).
+  // The servers the VectorEnv knows (those of its address list, and those
+  // that joined its names since), whether they hold envs or not.
   static int ServerCount(const VectorEnv& envs);
   // Server `server`'s address (0 <= server < ServerCount).
   static const std::string& ServerAddress(const VectorEnv& envs, int server);

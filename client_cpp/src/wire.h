@@ -25,6 +25,8 @@ void EncodeConfig(const RemoteEnvConfig& config, v1::EnvConfig* proto);
 RemoteEnvConfig DecodeConfig(const v1::EnvConfig& proto);
 
 EnvInfo DecodeEnv(const v1::Env& proto);
+// GetServerInfo's answer as the client's ServerInfo (server_info.cc).
+ServerInfo DecodeServerInfo(const v1::ServerInfo& proto);
 
 // A message in protobuf's JSON mapping with the proto's field names and
 // every field printed, for EnvInfo::json and ServerInfo::json.

@@ -63,7 +63,9 @@
 #include "trained_pilot.h"
 
 ABSL_FLAG(std::string, address, "127.0.0.1:50051",
-          "Server address host:port, or a comma-separated list of servers.");
+          "Server address host:port, or a comma-separated list of servers; "
+          "a host name stands for every address it resolves to (e.g. a "
+          "Kubernetes headless Service), each one server.");
 ABSL_FLAG(std::string, token, "",
           "Bearer token sent with every call (beats --token_file's and "
           "MLL_TOKEN's).");
@@ -102,6 +104,10 @@ ABSL_FLAG(double, step_timeout_s, 5.0,
           "bench Session streams (plus 1 ms per lander action of a batch) "
           "before it counts as stalled: DEADLINE_EXCEEDED naming it, or "
           "failover with several servers; 0 for none.");
+ABSL_FLAG(double, rediscover_interval_s, 10.0,
+          "play and bench: how often the host names of --address are "
+          "resolved again, so that envs move onto servers that joined them "
+          "(and none go to servers gone from them); 0: never.");
 ABSL_FLAG(std::string, name, "",
           "Environment name envs/ID (or give it as the argument after the "
           "command). For play: fly this env instead of creating one.");
@@ -265,6 +271,14 @@ absl::StatusOr<ClientOptions> OptionsFromFlags() {
   // At least 1 ms when set: 0 would mean none.
   options.step_timeout = std::chrono::milliseconds(std::max<int64_t>(
       step_timeout_s > 0, std::llround(step_timeout_s * 1000)));
+  const double rediscover_s = absl::GetFlag(FLAGS_rediscover_interval_s);
+  if (!(rediscover_s >= 0 && rediscover_s <= 86400)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "rediscover_interval_s is ", rediscover_s, "; must be in [0, 86400]"));
+  }
+  // At least 1 ms when set: 0 would mean never.
+  options.rediscover_interval = std::chrono::milliseconds(
+      std::max<int64_t>(rediscover_s > 0, std::llround(rediscover_s * 1000)));
   absl::StatusOr<std::string> token = Token();
   if (!token.ok()) return token.status();
   options.token = *std::move(token);

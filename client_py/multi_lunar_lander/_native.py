@@ -62,10 +62,10 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     declare("column_name", text, integer)
     declare(
         "new", handle, text, text, size, text, text, integer, ctypes.c_char_p, size, integer, integer, integer,
-        ctypes.c_double,
+        ctypes.c_double, ctypes.c_double,
     )
     for name in (
-        "create_status", "num_envs", "n_landers", "continuous", "batch_size", "failover", "failovers",
+        "create_status", "num_envs", "n_landers", "continuous", "batch_size", "failover", "failovers", "rebalances",
         "server_count", "in_flight", "rows",
     ):
         declare(name, integer, handle)

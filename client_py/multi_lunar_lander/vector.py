@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import ctypes
 import logging
+import math
+import numbers
 import operator
 import os
 import weakref
@@ -144,6 +146,24 @@ class _Results:
         return returned + (infos,)
 
 
+def rediscover_interval_value(rediscover_interval_s) -> float:
+    """The engine's argument of a `rediscover_interval_s=` argument: -1 (its default, 10 s) for
+    None, else a finite number of seconds >= 0 (0: never); INVALID_ARGUMENT for anything else."""
+    if rediscover_interval_s is None:
+        return -1.0
+    if (
+        isinstance(rediscover_interval_s, bool)
+        or not isinstance(rediscover_interval_s, numbers.Real)
+        or not math.isfinite(rediscover_interval_s)
+        or rediscover_interval_s < 0
+    ):
+        raise invalid_argument(
+            f"rediscover_interval_s is {rediscover_interval_s!r}; expected None (the default, 10 s), 0 (never) "
+            "or a finite number of seconds > 0"
+        )
+    return float(rediscover_interval_s)
+
+
 def _free(lib: ctypes.CDLL, handle: int, lease, pid: int) -> None:
     """Frees a handle (deleting its envs) and then releases the embedded server it used."""
     if os.getpid() != pid:  # A forked child's copy: the handle and the lease are the parent's.
@@ -205,6 +225,11 @@ class VectorEnv:
       the first of them in env order, prefixed "env {i} ({name}): "; the other envs did step.
     step_timeout_s= how long a request may wait for its answer before its server counts as lost
       (None: 5 s; 0: no deadline).
+    address= entries may be host names: a name stands for every address it resolves to (a
+      Kubernetes headless Service's pods), each one server; envs go to the least-loaded servers.
+      rediscover_interval_s= how often the names are resolved again (None: 10 s; 0: never; also
+      at every failover): envs move onto servers that join (`rebalances` counts the events);
+      servers gone from a name keep their envs while they answer, and get no new ones.
     Failover (failover=; None: on with several servers or the embedded one, off with one
       address): envs lost with their server are recreated on another and replayed to the same
       bits; each event counts in `failovers` and is logged as a warning on the
@@ -223,6 +248,7 @@ class VectorEnv:
         batch_size: int | None = None,
         failover: bool | None = None,
         step_timeout_s: float | None = None,
+        rediscover_interval_s: float | None = None,
         copy: bool = True,
         **options: Any,
     ):
@@ -257,6 +283,7 @@ class VectorEnv:
             batch_size=self.batch_size,
             failover=failover,
             step_timeout_s=step_timeout_s,
+            rediscover_interval_s=rediscover_interval_s,
             copy=copy,
             **security.as_options(),
         )
@@ -281,8 +308,10 @@ class VectorEnv:
             len(config_bytes),
             self.num_envs,
             self.batch_size,
-            int(_record.failover_on(failover, addresses)),
+            # -1: the engine decides one address (on for a host name, off for an IP address).
+            -1 if failover is None and len(addresses) == 1 else int(_record.failover_on(failover, addresses)),
             -1.0 if step_timeout_s is None else step_timeout or 0.0,  # -1: the engine's default.
+            rediscover_interval_value(rediscover_interval_s),
         )
         # How an UNAVAILABLE error names each server (as the AEC and parallel envs' do).
         self._descriptions = {
@@ -509,6 +538,12 @@ class VectorEnv:
     def failovers(self) -> int:
         """Failover events so far."""
         return int(self._lib.mll_vector_env_failovers(self._live()))
+
+    @property
+    def rebalances(self) -> int:
+        """Rebalancing events so far: envs moved onto a server that joined a host name of
+        `address` (docs/python.md, "Elastic fleets")."""
+        return int(self._lib.mll_vector_env_rebalances(self._live()))
 
     @property
     def transport(self) -> str:

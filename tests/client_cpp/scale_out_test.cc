@@ -300,10 +300,11 @@ TEST_P(ScaleOutBatchTest, BatchAcrossServersIsBitIdenticalToOneServer) {
 
 TEST_P(ScaleOutBatchTest, BatchRejectsHandlesOfOtherServers) {
   const Client both = Maybe(ConnectBoth(), GetParam());
-  // The same server under another name is another address to the client.
+  // The same server as a gRPC target is another address to the client (a
+  // name would resolve to the same address: the same server).
   const std::string port =
       std::string(absl::StripPrefix(TwoServers::addresses()[0], "127.0.0.1:"));
-  const Client other = Connect({"localhost:" + port});
+  const Client other = Connect({"ipv4:127.0.0.1:" + port});
   absl::StatusOr<RemoteEnv> foreign = other.CreateEnv(Landers(1));
   ASSERT_TRUE(foreign.ok()) << foreign.status();
   const std::vector<int32_t> action = {0};
@@ -313,7 +314,7 @@ TEST_P(ScaleOutBatchTest, BatchRejectsHandlesOfOtherServers) {
   EXPECT_EQ(results.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(results.status().message(),
               HasSubstr(absl::StrCat("steps[0].env (", foreign->name(),
-                                     ") lives on localhost:", port)));
+                                     ") lives on ipv4:127.0.0.1:", port)));
 }
 
 INSTANTIATE_TEST_SUITE_P(Transports, ScaleOutBatchTest, ::testing::Bool(),

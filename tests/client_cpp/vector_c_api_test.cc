@@ -65,10 +65,12 @@ RemoteEnvConfig SmallRemoteConfig() {
 Handle NewHandle(const std::string& addresses, int num_envs, int batch_size = 0,
                  int failover = -1, int transport = MLL_NATIVE_TRANSPORT_AUTO,
                  const std::string& config = SmallConfig().SerializeAsString(),
-                 double step_timeout_s = -1) {
+                 double step_timeout_s = -1,
+                 double rediscover_interval_s = -1) {
   return Handle(mll_vector_env_new(
       addresses.c_str(), nullptr, 0, nullptr, nullptr, transport, config.data(),
-      config.size(), num_envs, batch_size, failover, step_timeout_s));
+      config.size(), num_envs, batch_size, failover, step_timeout_s,
+      rediscover_interval_s));
 }
 
 VectorEnv NewVectorEnv(const std::vector<std::string>& addresses, int num_envs,
@@ -466,6 +468,13 @@ TEST_F(VectorCApiTest, BadInputGetsItsCodeAndAMessageNamingIt) {
   EXPECT_EQ(mll_vector_env_create_status(bad_timeout.get()), kInvalidArgument);
   EXPECT_THAT(mll_vector_env_message(bad_timeout.get()),
               HasSubstr("step_timeout_s is nan"));
+  Handle bad_rediscover =
+      NewHandle(server_->address(), 2, 0, -1, MLL_NATIVE_TRANSPORT_AUTO,
+                SmallConfig().SerializeAsString(), -1, std::nan(""));
+  EXPECT_EQ(mll_vector_env_create_status(bad_rediscover.get()),
+            kInvalidArgument);
+  EXPECT_THAT(mll_vector_env_message(bad_rediscover.get()),
+              HasSubstr("rediscover_interval_s is nan"));
   Handle bad_failover = NewHandle(server_->address(), 2, 0, 7);
   EXPECT_EQ(mll_vector_env_create_status(bad_failover.get()), kInvalidArgument);
   EXPECT_THAT(mll_vector_env_message(bad_failover.get()),

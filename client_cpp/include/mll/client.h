@@ -7,13 +7,14 @@
 // `Session` stream instead (the lowest latency), with the same methods.
 //
 // Several servers (scale-out): `Client::Create(addresses)` makes one client
-// over a list of servers. Each environment lives on one server for its life:
-// CreateEnv places them round-robin (CreateEnvOn picks the server), and the
-// handle's calls go to that server only. StepBatch splits a batch by server,
-// sends one StepBatch per server, all in flight at once, and returns results
-// in the caller's order. ListEnvs concatenates every server's list; GetEnv,
-// Attach and DeleteEnv look a name up on each server in turn. A session
-// client over several servers holds one stream per server.
+// over a list of servers; a host name in it stands for every address it
+// resolves to (discovery, below at Create). Each environment lives on one
+// server for its life: CreateEnv places them round-robin (CreateEnvOn picks the
+// server), and the handle's calls go to that server only. StepBatch splits a
+// batch by server, sends one StepBatch per server, all in flight at once, and
+// returns results in the caller's order. ListEnvs concatenates every server's
+// list; GetEnv, Attach and DeleteEnv look a name up on each server in turn. A
+// session client over several servers holds one stream per server.
 //
 // Security: `ClientOptions` selects TLS (root certificates, target name
 // override) and a bearer token, which is sent on every call: unary calls,
@@ -131,13 +132,24 @@ struct BatchStep {
 class Client {
  public:
   // A client for the server at `address` ("host:port", or any gRPC target).
+  // A host that is a name stands for every address it resolves to (below).
   // Connects lazily: an unreachable server shows as UNAVAILABLE on the first
   // call. INVALID_ARGUMENT for an empty address or bad options.
   static absl::StatusOr<Client> Create(absl::string_view address,
                                        const ClientOptions& options = {});
   // A client over several servers (see the top of this file), all with the
-  // same options; server i is addresses[i]. INVALID_ARGUMENT when the list is
-  // empty, an address is empty or appears twice.
+  // same options. Each entry is "host:port" (an IPv6 host in brackets) or a
+  // gRPC target with a scheme ("unix:PATH"). An IP literal or a target is
+  // one server; a host name is every address it resolves to now
+  // (getaddrinfo, IPv4 and IPv6; a Kubernetes headless Service's name is
+  // its ready pods), each one server with its own channel, in entry order
+  // and within an entry in address order; an address two entries yield is
+  // one server. With TLS, their certificates are checked against the name
+  // (unless tls_target_name_override). INVALID_ARGUMENT when the list is
+  // empty, an entry is malformed or appears twice; UNAVAILABLE naming the
+  // entry when a name resolves to no address. A plain Client keeps the
+  // servers it found; a VectorEnv resolves the names again
+  // (ClientOptions::rediscover_interval).
   static absl::StatusOr<Client> Create(
       const std::vector<std::string>& addresses,
       const ClientOptions& options = {});
@@ -194,9 +206,9 @@ class Client {
       absl::Span<const BatchStep> steps) const;
 
   // Server information and compatibility (server_info.cc). The wire
-  // protocol this client speaks: mll.v1 up to minor 2.
+  // protocol this client speaks: mll.v1 up to minor 3.
   static constexpr int kProtocolMajor = 1;
-  static constexpr int kProtocolMinor = 2;
+  static constexpr int kProtocolMinor = 3;
   // This library's release (the project's version), e.g. "0.1.0".
   static absl::string_view Version();
   // GetServerInfo of server `server` (INVALID_ARGUMENT when it is not in
@@ -228,6 +240,10 @@ class Client {
                                   absl::string_view what) const;
 
   std::vector<std::shared_ptr<internal::Transport>> transports_;
+  // The address list as given (names unresolved) and the options: what a
+  // VectorEnv resolves again to find servers that joined a name.
+  std::vector<std::string> entries_;
+  ClientOptions options_;
   // Round-robin placement counter; on the heap because atomics cannot move.
   std::shared_ptr<std::atomic<uint64_t>> next_server_;
 };

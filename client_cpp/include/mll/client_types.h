@@ -75,6 +75,11 @@ struct ClientOptions {
   int max_receive_message_bytes = 256 << 20;
   // How session clients carry their messages (unary calls are unaffected).
   SessionTransport session_transport = SessionTransport::kAuto;
+  // How often a VectorEnv resolves the names in its address list again
+  // (mll/vector_env.h, "Discovery"), to find servers that joined a name and
+  // those gone from it; zero: never (names are still resolved again at each
+  // failover). Negative: Create fails INVALID_ARGUMENT.
+  std::chrono::milliseconds rediscover_interval{10000};
 };
 
 // How a lander's episode ended (wire codes of StepData.outcomes).
@@ -280,6 +285,17 @@ struct ServerInfo {
   int max_landers = 0;
   int threads = 0;
   int shared_memory_sessions = 0;
+  // The server's load (protocol 1.3, capability "server_load"; all zero from
+  // an older server): envs hosted now by all tenants, CPU used over the last
+  // 10 s in cores, the cores it may use, and agent-steps per second. Placement
+  // (mll/vector_env.h) puts new envs on the least-loaded servers by these.
+  struct Load {
+    int envs_hosted = 0;
+    double cpu_cores = 0;
+    double cores_available = 0;
+    double agent_steps_per_s = 0;
+  };
+  Load load;
   // The answer in protobuf's JSON mapping (field names as in the proto),
   // for logs and tools such as `mll_cli info`.
   std::string json;

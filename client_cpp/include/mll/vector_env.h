@@ -11,12 +11,44 @@
 //   std::vector<int32_t> actions(envs->num_envs() * envs->n_landers());
 //   envs->Step(actions);  // envs->observations(), rewards(), active(), ...
 //
-// Env i lives on server i mod S of the client's S servers (until failover
-// moves it, below). Each step sends one packed StepBatch to every server at
-// once (pipelined on each server's Session stream: shared memory for a server
-// on this host, as ClientOptions::session_transport chooses) and puts the
-// results back in env order. The envs are created on those streams with the
-// server's auto_reset, so they die with the VectorEnv (or its process).
+// Placement: Create puts the envs on the client's servers by the load each
+// reports (GetServerInfo: envs hosted by every tenant against its max_envs,
+// CPU used against its cores as the tie-break), water-filling: each env to
+// the server that is least full after taking it, so the fleet ends as even as
+// it can (a server half full of another tenant's envs gets fewer). A server
+// that answers RESOURCE_EXHAUSTED (its max_envs, or the token's quota) takes
+// no more and its share goes to the others with room; RESOURCE_EXHAUSTED
+// when none has. Each server's envs are a run of consecutive env indices;
+// address(i) says where env i is. Each step sends one packed StepBatch to
+// every server at once (pipelined on each server's Session stream: shared
+// memory for a server on this host, as ClientOptions::session_transport
+// chooses) and puts the results back in env order. The envs are created on
+// those streams with the server's auto_reset, so they die with the VectorEnv
+// (or its process).
+//
+// Discovery: a host name in the client's address list (e.g. a Kubernetes
+// headless Service, "mll.default.svc.cluster.local:50051") stands for every
+// address it resolves to (Client::Create). The VectorEnv resolves it again
+// every ClientOptions::rediscover_interval (10 s by default; off its thread,
+// taken in at its next Reset, StepAsync/Step or Send) and at every failover.
+// A server that joins the name, answers GetServerInfo with this client's
+// protocol major and its health check SERVING, is used: new envs may go
+// there, and the envs are rebalanced onto it (below). A server gone from the
+// name takes no new env; its envs stay while it answers (scale-down is a
+// drain: the server's SIGTERM makes failover move them). Every server of a
+// name gone and down: the failover's UNAVAILABLE names the name and what it
+// resolved to.
+//
+// Rebalancing: when a server joins (or one found down answers again), the
+// VectorEnv moves its own envs onto it until they are even within one env
+// per server (over the servers up and in their names), at its next call,
+// envs with nothing in flight only. At a seeded Reset the moved envs are
+// created afresh on their new servers (nothing to replay); else each is
+// recreated there, its record replayed and checked to the bits, and the old
+// env deleted. Either way every env gives the same bits as an undisturbed
+// run. An env whose record cannot be replayed (never reset, or past its
+// bound) moves at the next seeded Reset. Each move onto a server counts in
+// rebalances() and is logged once, as failover events are.
 //
 // Episode ends (auto-reset): when an env's episode is over (no lander
 // active), its next step ignores the actions and starts a new episode,
@@ -39,9 +71,10 @@
 // misses its deadline, ClientOptions::step_timeout: DEADLINE_EXCEEDED; its
 // stream is cancelled, so nothing it answers late is taken) or loses an env
 // (NOT_FOUND naming it) during Reset, Step or Recv, the VectorEnv recreates
-// each lost env on a reachable server (round robin over the servers not found
-// down and those found down that answer again on a new channel, asked at each
-// failover), replays
+// each lost env on a reachable server (placed by load as Create places,
+// over the servers in their names not found down, those that joined, and
+// those found down that answer again on a new channel, asked at each
+// failover; a server without room is passed over), replays
 // its record, checks that the replayed observations equal the last ones seen
 // (else DATA_LOSS naming the env), and retries the operation: the caller
 // sees the same observations, rewards and episode boundaries as without the
@@ -92,13 +125,13 @@ using EventLog = std::function<void(const std::string& line)>;
 class VectorEnv {
  public:
   // `num_envs` (1..65536) new environments with `config` (auto_reset is
-  // forced on) on the servers of `client` (env i on server i mod S), over a
+  // forced on) on the servers of `client` (placed by load, above), over a
   // session of its own (Client::OpenSession with the client's options).
   // batch_size: how many envs Recv returns (EnvPool's async API, below);
   // 0 means num_envs. failover (above): unset turns it on with several
-  // servers and off with one; false turns it off (errors reach the caller
-  // as they are), true turns it on with one server too (the VectorEnv then
-  // retries that server once it answers again).
+  // servers or a host name and off with one address; false turns it off
+  // (errors reach the caller as they are), true turns it on with one server
+  // too (the VectorEnv then retries that server once it answers again).
   static absl::StatusOr<VectorEnv> Create(
       const Client& client, int num_envs, RemoteEnvConfig config = {},
       int batch_size = 0, std::optional<bool> failover = std::nullopt);
@@ -212,9 +245,12 @@ class VectorEnv {
   // Whether failover is on, and the failover events so far.
   bool failover() const;
   int failovers() const;
-  // Where each failover event's line goes (one line, no newline): by
-  // default stderr, prefixed "mll_client: "; to `log` instead once set (none
-  // to stderr then); an empty `log` restores stderr.
+  // The rebalancing events so far: each a move of envs onto one server
+  // (Rebalancing, above).
+  int rebalances() const;
+  // Where each failover (and rebalancing) event's line goes (one line, no
+  // newline): by default stderr, prefixed "mll_client: "; to `log` instead once
+  // set (none to stderr then); an empty `log` restores stderr.
   void SetEventLog(EventLog log);
 
   // Env `env`'s snapshot: bytes that recreate it at this point to the same
