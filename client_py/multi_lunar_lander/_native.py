@@ -91,6 +91,21 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     return lib
 
 
+_bare: dict[int, ctypes.CDLL] = {}  # id(library) -> its bare twin.
+
+
+def bare(lib: ctypes.CDLL) -> ctypes.CDLL:
+    """The same library as a second ctypes.CDLL whose functions declare no argument types: a call
+    passes its ctypes objects (c_void_p for pointers) and ints (C int) as they are, with none of the
+    per-argument conversion of declared signatures, for the calls made on every step. Results are
+    C int but for mll_vector_env_take_events (text)."""
+    twin = _bare.get(id(lib))
+    if twin is None:
+        twin = _bare[id(lib)] = ctypes.CDLL(lib._name)
+        twin.mll_vector_env_take_events.restype = ctypes.c_char_p
+    return twin
+
+
 def _load() -> tuple[ctypes.CDLL | None, str]:
     global _loaded
     with _lock:

@@ -339,6 +339,18 @@ class VectorEnv:
         self._action_blocks: dict[int, tuple] = {}  # Row count -> (buffer for actions, its address, size).
         self._action_dtype = np.dtype(np.float32 if self.continuous else np.int32)
         self._action_shape = (self.n_landers, 2) if self.continuous else (self.n_landers,)
+        # What step() needs with batch_size == num_envs, looked up once: the actions' buffer, the
+        # library's step and take_events without argument conversion (_native.bare), their
+        # arguments as ctypes values, and the results' record. None once closed.
+        self._fast = None
+        if self.batch_size == self.num_envs:
+            bare = _native.bare(lib)
+            self._put_actions(np.zeros((self.num_envs,) + self._action_shape, self._action_dtype), self.num_envs)
+            block, address, count = self._action_blocks[self.num_envs]
+            self._fast = (
+                block, bare.mll_vector_env_step, ctypes.c_void_p(handle), ctypes.c_void_p(address), count,
+                int(self.continuous), self._results_of[self.num_envs], bare.mll_vector_env_take_events,
+            )
 
     # ----------------------------------------------------------------- calls into the engine
 
@@ -367,9 +379,11 @@ class VectorEnv:
                 context = self._descriptions[(named or list(self._descriptions))[0]]
         return from_call_status(code, message, context)
 
-    def _check(self, code: int) -> None:
-        """Logs the engine's failover events, then raises the call's error if it failed."""
-        events = self._lib.mll_vector_env_take_events(self._handle)
+    def _check(self, code: int, events: bytes | None = None) -> None:
+        """Logs the engine's failover events (`events`: those already taken), then raises the
+        call's error if it failed."""
+        if events is None:
+            events = self._lib.mll_vector_env_take_events(self._handle)
         if events:
             for line in events.decode(errors="replace").splitlines():
                 _LOG.warning("%s", line)
@@ -414,22 +428,30 @@ class VectorEnv:
         """step(actions) steps every env (batch_size == num_envs: the synchronous API). With the
         async API, step(actions, env_id) is send(actions, env_id) then recv(); env_id None means
         every env."""
-        if self._interrupted:
-            self._finish_interrupted()
-        if env_id is None and self.batch_size == self.num_envs:
-            # One call into the library: the step sent, waited for and its results written in place.
-            address, count = self._put_actions(actions, self.num_envs)
-            code = self._lib.mll_vector_env_step(self._live(), address, count, self.continuous, _native.READ_SLICE_MS)
+        fast = self._fast
+        if fast is not None and env_id is None and not self._interrupted and self._pid == os.getpid():
+            # One call into the library: the step sent, waited for and its results written in place
+            # (the fewest Python operations: this path is most of a trainer's client CPU).
+            block, call, handle, address, count, continuous, results, take_events = fast
+            if not (type(actions) is np.ndarray and actions.dtype is block.dtype and actions.shape == block.shape):
+                actions = check_actions(actions, self.continuous, block.shape[:2], "actions")
+            block[...] = actions
+            code = call(handle, address, count, continuous, _native.READ_SLICE_MS)
+            events = take_events(handle)
             if code == _native.PENDING:  # A slow server: wait on in slices, as step_wait.
+                self._check(0, events)
                 try:
                     self._wait(self._lib.mll_vector_env_step_wait)
                 except BaseException as error:
                     # E.g. Ctrl-C while a server is slow: this step's results are the caller's no more.
                     self._interrupted = not isinstance(error, MLLError)
                     raise
-            else:
-                self._check(code)
-            return self._results_of[self.num_envs].arrays(self._copy, False)
+            elif code or events:
+                self._check(code, events)
+            return results.arrays(self._copy, False)
+        self._finish_interrupted()
+        if env_id is None and self.batch_size == self.num_envs:  # Closed, or in a forked child: raises.
+            self._live()
         self.send(actions, np.arange(self.num_envs) if env_id is None else env_id)
         return self.recv()
 
@@ -605,6 +627,7 @@ class VectorEnv:
 
     def close(self) -> None:
         """Deletes the environments on their servers and closes the streams. Idempotent."""
+        self._fast = None
         self._finalizer()
 
     def __enter__(self) -> "VectorEnv":
