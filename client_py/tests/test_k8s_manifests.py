@@ -1,8 +1,10 @@
 """deploy/k8s/ checked against the Kubernetes API schemas that kubernetes-validate bundles (no
 cluster and no network needed), strictly (an unknown field is an error), for the oldest
 Kubernetes the deployment docs support and the newest bundled; then for what the schemas cannot
-see: the objects refer to each other by the right names, and a pod is given the time its drain
-takes. A deliberately broken copy fails each check, so the checks can fail."""
+see: the objects refer to each other by the right names, a pod is given the time its drain
+takes, the Service is headless and lists ready pods only, and every autoscaler metric can reach
+its target by the figures measured in docs/deployment.md ("Autoscaling"). A deliberately broken
+copy fails each check, so the checks can fail."""
 
 import pathlib
 import re
@@ -15,6 +17,11 @@ import yaml
 REPO = pathlib.Path(__file__).resolve().parents[2]
 K8S = REPO / "deploy" / "k8s"
 COMPOSE = REPO / "docker" / "compose.yaml"
+DEPLOYMENT_DOC = REPO / "docs" / "deployment.md"
+# A pod under training load: a full pod's environments stepped at most this often each (a trainer
+# steps a vector env as fast as its policy allows, far more often) must reach the CPU target.
+MAX_STEPS_PER_S_PER_ENV = 20
+N_LANDERS = 3  # The environments the measured figures are of.
 # docs/deployment.md: kubectl 1.27+.
 VERSIONS = ("1.27.0", kubernetes_validate.latest_version())
 # The server's defaults for the flags that bound how long it takes to stop (mll_server --help).
@@ -45,7 +52,109 @@ def manifest_errors(folder: pathlib.Path) -> list[str]:
                     errors.append(f"{path.name}[{index}] (Kubernetes {version}) {where}: {error.message}")
                 except kubernetes_validate.SchemaNotFoundError as error:
                     errors.append(f"{path.name}[{index}] (Kubernetes {version}): no schema: {error}")
-    return errors + reference_errors(by_kind)
+    optional = sorted((folder / "optional").glob("*.yaml"))
+    for path in optional:
+        for index, document in enumerate(yaml.safe_load_all(path.read_text())):
+            for version in VERSIONS:
+                try:
+                    kubernetes_validate.validate(document, version, strict=True)
+                except kubernetes_validate.ValidationError as error:
+                    where = ".".join(str(part) for part in error.path)
+                    errors.append(f"optional/{path.name}[{index}] (Kubernetes {version}) {where}: {error.message}")
+            if document["kind"] == "HorizontalPodAutoscaler" and "StatefulSet" in by_kind:
+                errors += [f"optional/{path.name}: {e}" for e in autoscaling_errors(by_kind["StatefulSet"], document)]
+    errors += reference_errors(by_kind)
+    if "StatefulSet" in by_kind and "HorizontalPodAutoscaler" in by_kind:
+        errors += autoscaling_errors(by_kind["StatefulSet"], by_kind["HorizontalPodAutoscaler"])
+    return errors
+
+
+def measured_figures() -> dict[str, float]:
+    """The "used below" column of docs/deployment.md's table of measured figures (Autoscaling):
+    cores per 1,000 agent-steps/s, cores per 1,000 idle environments, memory idle (MiB) and per
+    environment (KiB)."""
+    section = DEPLOYMENT_DOC.read_text().split("### Autoscaling", 1)[1]
+    rows = {}
+    for line in section.splitlines():
+        cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+        if len(cells) == 3 and cells[0] not in ("figure", "---"):
+            rows[cells[0]] = float(re.match(r"[\d.,]+", cells[2]).group().replace(",", ""))
+    return {
+        "cores_per_1000_agent_steps_per_s": rows["CPU per 1,000 agent-steps/s"],
+        "cores_per_1000_idle_envs": rows["CPU per 1,000 hosted idle environments"],
+        "idle_mib": rows["memory idle"],
+        "kib_per_env": rows["memory per hosted environment (3 landers, reset)"],
+    }
+
+
+def _quantity(text: str) -> float:
+    """A Kubernetes quantity as a number: cores for CPU ("2", "500m"), MiB for memory ("640Mi",
+    "1Gi")."""
+    text = str(text)
+    for suffix, scale in (("m", 1e-3), ("Mi", 1.0), ("Gi", 1024.0), ("Ki", 1 / 1024)):
+        if text.endswith(suffix):
+            return float(text[: -len(suffix)]) * scale
+    return float(text)
+
+
+def _flag(flags: list[str], name: str) -> float:
+    values = [flag.partition("=")[2].split()[0] for flag in flags if flag.startswith(f"--{name}=")]
+    assert values, f"the StatefulSet's server has no --{name}"
+    return float(values[-1])
+
+
+def autoscaling_errors(server: dict, autoscaler: dict) -> list[str]:
+    """One line per autoscaler metric that cannot reach its target, by the measured figures: CPU
+    must be reached by a full pod whose environments are stepped MAX_STEPS_PER_S_PER_ENV times a
+    second each and by a pod whose --threads are busy; memory by a full pod; environments hosted
+    below --max_envs. There must be a CPU metric."""
+    figures = measured_figures()
+    container = server["spec"]["template"]["spec"]["containers"][0]
+    flags = container.get("args", [])
+    threads, max_envs = _flag(flags, "threads"), _flag(flags, "max_envs")
+    requests = container["resources"]["requests"]
+    errors = []
+    kinds = []
+    for metric in autoscaler["spec"].get("metrics", []):
+        if metric["type"] == "Resource":
+            name, target = metric["resource"]["name"], metric["resource"]["target"]
+            kinds.append(name)
+            if target.get("type") != "Utilization":
+                continue
+            share = target["averageUtilization"] / 100
+            if name == "cpu":
+                target_cores = share * _quantity(requests["cpu"])
+                agent_steps = target_cores / figures["cores_per_1000_agent_steps_per_s"] * 1000
+                per_env = agent_steps / (max_envs * N_LANDERS)
+                if per_env > MAX_STEPS_PER_S_PER_ENV:
+                    errors.append(
+                        f"the CPU target ({target_cores:g} cores) needs {agent_steps:,.0f} agent-steps/s, a full pod's "
+                        f"{max_envs:g} environments stepped {per_env:.1f} times a second each (more than "
+                        f"{MAX_STEPS_PER_S_PER_ENV})"
+                    )
+                if target_cores >= threads:
+                    errors.append(
+                        f"the CPU target ({target_cores:g} cores) is not below --threads={threads:g}: a pod whose "
+                        "worker threads are busy does not reach it"
+                    )
+            elif name == "memory":
+                target_mib = share * _quantity(requests["memory"])
+                full_mib = figures["idle_mib"] + max_envs * figures["kib_per_env"] / 1024
+                if full_mib < target_mib:
+                    errors.append(
+                        f"the memory target ({target_mib:g} MiB) can never be reached: a full pod ({max_envs:g} "
+                        f"environments) holds {full_mib:.0f} MiB"
+                    )
+        elif metric["type"] == "Pods" and metric["pods"]["metric"]["name"] == "mll_envs_live":
+            value = metric["pods"]["target"].get("averageValue")  # Missing: the schema check says so.
+            if value is not None and _quantity(value) >= max_envs:
+                errors.append(
+                    f"the mll_envs_live target ({value}) is not below --max_envs={max_envs:g}: pods refuse "
+                    "environments before reaching it"
+                )
+    if "cpu" not in kinds:
+        errors.append("the HorizontalPodAutoscaler has no CPU metric")
+    return errors
 
 
 def stop_seconds(flags: list[str]) -> float:
@@ -77,6 +186,8 @@ def reference_errors(by_kind: dict[str, dict]) -> list[str]:
         )
     if service["spec"].get("clusterIP") != "None":
         errors.append("the Service is not headless (clusterIP: None): no per-pod DNS names")
+    if service["spec"].get("publishNotReadyAddresses", False) is not False:
+        errors.append("the Service publishes pods that are not ready: its name would resolve to draining pods")
     pod_labels = server["spec"]["template"]["metadata"]["labels"]
     selectors = {
         "Service": service["spec"].get("selector", {}),
@@ -125,6 +236,14 @@ def test_compose_gives_the_server_the_time_its_drain_takes():
         ("pdb.yaml", "      app.kubernetes.io/name: mll-server", "      app.kubernetes.io/name: mll", "PodDisruptionBudget's selector"),  # Selects nothing.
         ("hpa.yaml", "kind: StatefulSet", "kind: Deployment", "scaleTargetRef"),  # Scales another object.
         ("statefulset.yaml", "--drain_s=15", "--drain_s=25", "terminationGracePeriodSeconds 30"),  # Drain cut short.
+        ("service.yaml", "publishNotReadyAddresses: false", "publishNotReadyAddresses: true", "not ready"),
+        ("hpa.yaml", "  behavior:", "    - type: Resource\n      resource:\n        name: memory\n        target:\n"
+         "          type: Utilization\n          averageUtilization: 80\n  behavior:", "memory target"),  # Never fires.
+        ("hpa.yaml", "averageUtilization: 70", "averageUtilization: 150", "not below --threads"),
+        ("hpa.yaml", "name: cpu", "name: memory", "no CPU metric"),
+        ("statefulset.yaml", "--max_envs=2048", "--max_envs=1024", "stepped 26.8 times a second"),  # Small pods.
+        ("optional/hpa-envs-hosted.yaml", 'averageValue: "1536"', 'averageValue: "2048"', "mll_envs_live target"),
+        ("optional/hpa-envs-hosted.yaml", "averageValue:", "averageValu:", "optional/hpa-envs-hosted.yaml[0]"),
     ],
 )
 def test_a_broken_manifest_fails(tmp_path, file, old, new, expected):
