@@ -218,14 +218,16 @@ def connect_single(
 
 
 def no_server_takes(addresses: Sequence[str], connections: Sequence["Connection"], answers: Sequence) -> MLLError:
-    """UNAVAILABLE naming each server of `addresses` and why it takes no new environment."""
+    """The error naming each server of `addresses` and why it takes no new environment:
+    RESOURCE_EXHAUSTED when those that answered are full, UNAVAILABLE when none answered."""
     reasons = [
         f"{connection.address}: {answer.message}" if isinstance(answer, MLLError)
         else f"{connection.address}: full ({answer.load.envs_hosted} of --max_envs={answer.limits.max_envs})"
         for connection, answer in zip(connections, answers)
     ]
+    answered = any(not isinstance(answer, MLLError) for answer in answers)
     return MLLError(
-        grpc.StatusCode.UNAVAILABLE,
+        grpc.StatusCode.RESOURCE_EXHAUSTED if answered else grpc.StatusCode.UNAVAILABLE,
         f"no server of address {', '.join(addresses)} takes a new environment: {'; '.join(reasons)}",
     )
 

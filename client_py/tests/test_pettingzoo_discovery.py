@@ -8,6 +8,7 @@ servers outside it (the network is the same).
 - failover: the env's server dies after a second server joined the name; failover resolves the
   name again and moves the env there, every step the same bits as an undisturbed env.
 - TLS: the certificate names the name, not the addresses; the env checks it against the name.
+- every server full: RESOURCE_EXHAUSTED naming each (a plain list, no name needed).
 """
 
 import json
@@ -61,6 +62,19 @@ def placement(port):
     envs[0].step({agent: 0 for agent in envs[0].agents})
     for env in envs:
         env.close()
+
+
+def test_no_server_with_room_is_resource_exhausted_naming_each():
+    with mll.ServerProcess(threads=1, max_envs=1) as a, mll.ServerProcess(threads=1, max_envs=1) as b:
+        held = [mll.parallel_env(address=[a.address, b.address], n_landers=1) for _ in range(2)]
+        assert sorted(env.address for env in held) == sorted([a.address, b.address])
+        with pytest.raises(mll.MLLError) as caught:
+            mll.parallel_env(address=[a.address, b.address], n_landers=1)
+        assert caught.value.code.name == "RESOURCE_EXHAUSTED"
+        for server in (a, b):
+            assert f"{server.address}: full (1 of --max_envs=1)" in caught.value.message, caught.value.message
+        for env in held:
+            env.close()
 
 
 def test_failover_resolves_the_name_again(tmp_path):
