@@ -128,10 +128,10 @@ std::string DescribeResolution(const AddressEntry& entry,
                                const std::vector<std::string>& addresses,
                                const absl::Status& failure) {
   if (!entry.is_name) return "";
-  if (!failure.ok() || addresses.empty()) {
-    return absl::StrCat(
-        entry.text, " resolves to no address",
-        failure.ok() ? "" : absl::StrCat(" (", failure.message(), ")"));
+  // The failure names the entry and says why.
+  if (!failure.ok()) return std::string(failure.message());
+  if (addresses.empty()) {
+    return absl::StrCat(entry.text, " resolves to no address");
   }
   return absl::StrCat(entry.text, " resolves to ",
                       absl::StrJoin(addresses, ", "));

@@ -64,8 +64,9 @@ absl::StatusOr<std::vector<Endpoint>> ResolveEntries(
 ClientOptions EndpointOptions(const AddressEntry& entry,
                               const ClientOptions& options);
 
-// "NAME:PORT resolves to A, B" or "NAME:PORT resolves to no address (why)",
-// for messages; "" for an entry that is no name.
+// "NAME:PORT resolves to A, B", or the failure's message (which names the
+// entry and says why it resolves to no address), for messages; "" for an
+// entry that is no name.
 std::string DescribeResolution(const AddressEntry& entry,
                                const std::vector<std::string>& addresses,
                                const absl::Status& failure);

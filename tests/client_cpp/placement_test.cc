@@ -141,8 +141,13 @@ TEST(ResolveTest, ANameWithoutAddressesIsUnavailableNamingIt) {
   const absl::Status status = ResolveEntry(*entry).status();
   EXPECT_EQ(status.code(), absl::StatusCode::kUnavailable);
   EXPECT_THAT(status.message(), HasSubstr("no-such-host.invalid:50051"));
-  EXPECT_THAT(DescribeResolution(*entry, {}, status),
-              HasSubstr("no-such-host.invalid:50051 resolves to no address"));
+  EXPECT_EQ(DescribeResolution(*entry, {}, status), status.message());
+  EXPECT_EQ(DescribeResolution(*entry, {}, absl::OkStatus()),
+            "no-such-host.invalid:50051 resolves to no address");
+  EXPECT_EQ(DescribeResolution(*entry, {"127.0.0.2:50051", "127.0.0.3:50051"},
+                               absl::OkStatus()),
+            "no-such-host.invalid:50051 resolves to 127.0.0.2:50051, "
+            "127.0.0.3:50051");
 }
 
 TEST(ResolveTest, EntriesMergeRepeatedAddressesAndRecordFailures) {
