@@ -1,5 +1,5 @@
-"""Several servers: envs pinned to one server each, vector_env spread over the servers (env i on
-server i mod S) with one StepBatch per server, and the same bits as on one server (whether a
+"""Several servers: envs pinned to one server each, vector_env spread over the servers by their
+load with one StepBatch per server, and the same bits as on one server (whether a
 server listens on TCP or on a Unix-domain socket)."""
 
 import subprocess
@@ -38,15 +38,21 @@ def test_a_socket_path_too_long_for_a_unix_socket_is_invalid_argument(monkeypatc
     assert list(long_dir.iterdir()) == []  # Its work directory is removed.
 
 
-def test_vector_env_spreads_envs_round_robin_over_the_servers(two_servers):
+def test_vector_env_spreads_envs_by_load_over_the_servers(two_servers):
     first, second = two_servers
     before = listed_names(first), listed_names(second)
     vector = mll.vector_env(5, address=[first, second], n_landers=2)
     assert vector.addresses == [first, second] and vector.address == f"{first},{second}"
-    assert vector.env_addresses == [first, second, first, second, first]
+    # Water-filling on what each server hosts (the two have the same --max_envs): each env to the
+    # one holding fewer, the first on a tie; each server's envs a run of consecutive indices.
+    hosted, placed = [len(before[0]), len(before[1])], [0, 0]
+    for _ in range(5):
+        server = 0 if hosted[0] + placed[0] <= hosted[1] + placed[1] else 1
+        placed[server] += 1
+    assert vector.env_addresses == [first] * placed[0] + [second] * placed[1]
     names = vector.names
-    assert listed_names(first) - before[0] == {names[0], names[2], names[4]}
-    assert listed_names(second) - before[1] == {names[1], names[3]}
+    assert listed_names(first) - before[0] == set(names[: placed[0]])
+    assert listed_names(second) - before[1] == set(names[placed[0] :])
     vector.close()
     assert listed_names(first) == before[0] and listed_names(second) == before[1]
 
@@ -94,9 +100,13 @@ def test_two_servers_give_the_same_bits_as_one(address, two_servers, unix_server
     single.close()
 
 
-def test_more_servers_than_envs_uses_the_first_ones(two_servers, address):
-    vector = mll.vector_env(1, address=[*two_servers, address])
-    assert vector.addresses == [two_servers[0]] and vector.env_addresses == [two_servers[0]]
+def test_more_servers_than_envs_uses_the_least_loaded(two_servers, address):
+    servers = [*two_servers, address]
+    hosted = [len(listed_names(server)) for server in servers]
+    vector = mll.vector_env(1, address=servers)
+    assert vector.addresses == servers
+    # The same --max_envs everywhere: the server hosting fewest, the first of those on a tie.
+    assert vector.env_addresses == [servers[hosted.index(min(hosted))]]
     vector.close()
 
 
@@ -148,12 +158,18 @@ def test_bad_address_forms_are_invalid_argument(address):
     assert "address" in caught.value.message
 
 
-def test_an_unreachable_server_in_the_list_is_named_with_the_servers_tried(two_servers):
+def test_an_unreachable_server_in_the_list_takes_no_envs(two_servers):
     first = two_servers[0]
     before = listed_names(first)
+    # A server of the list that does not answer (a pod not up yet) gets none; failover may use it
+    # once it answers.
+    with mll.vector_env(4, address=[first, "127.0.0.1:1"], n_landers=1) as vector:
+        assert vector.env_addresses == [first] * 4
+        assert vector.failover
+        vector.reset(seed=0)
+    assert listed_names(first) == before
+    # None answers: UNAVAILABLE naming one.
     with pytest.raises(mll.MLLError) as caught:
-        mll.vector_env(4, address=[first, "127.0.0.1:1"])
-    error = caught.value
-    assert error.code == grpc.StatusCode.UNAVAILABLE
-    assert error.message.startswith("mll_server at 127.0.0.1:1 ") and f"{first}, 127.0.0.1:1" in error.message
-    assert listed_names(first) == before  # The envs made on the reachable server were deleted.
+        mll.vector_env(4, address=["127.0.0.1:1", "127.0.0.1:2"])
+    assert caught.value.code == grpc.StatusCode.UNAVAILABLE
+    assert "127.0.0.1:1" in caught.value.message

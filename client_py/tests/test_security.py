@@ -209,7 +209,7 @@ def test_vector_env_over_two_tls_token_servers_matches_one_plaintext_server(tls_
         4, address=list(tls_auth_servers), tls_root_cert=str(certificate[0]),
         tls_server_name=SERVER_NAME, token=TOKEN_A, **options,
     )
-    assert spread.env_addresses == [*tls_auth_servers, *tls_auth_servers]
+    assert set(spread.env_addresses) == set(tls_auth_servers)  # Placed by load, both used.
     single = mll.vector_env(4, address=address, **options)
     observations, _ = spread.reset(seed=9)
     reference, _ = single.reset(seed=9)
@@ -269,7 +269,7 @@ def test_a_pickled_env_keeps_tls_and_token_without_the_certificate_file(
     parallel, vector = (pickle.loads(item) for item in data)
     assert parallel.address == tls_auth_servers[1]
     assert parallel.reset(seed=4)[0]["lander_0"].tobytes() == envs[0].reset(seed=4)[0]["lander_0"].tobytes()
-    assert vector.vector.env_addresses == list(tls_auth_servers)
+    assert set(vector.vector.env_addresses) <= set(tls_auth_servers)  # Placed by load.
     assert vector.reset(seed=4)[0].tobytes() == envs[1].reset(seed=4)[0].tobytes()
     # Same token as the originals: the copies' envs belong to TOKEN_A, so TOKEN_B cannot see them.
     stranger = _remote.Connection(tls_auth_servers[1], Security.from_options(str(certificate[0]), SERVER_NAME, TOKEN_B))

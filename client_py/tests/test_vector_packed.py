@@ -84,12 +84,12 @@ def two_servers():
 
 
 def test_uneven_shares_over_two_servers_give_the_same_bits_as_one(address, two_servers, continuous):
-    # 7 envs: 4 on the first server, 3 on the second; random actions crash landers at different
+    # 7 envs over both servers (placed by load); random actions crash landers at different
     # steps in different envs, and max_cycles 20 over 50 steps auto-resets every env.
     options = dict(n_landers=3, continuous=continuous, max_cycles=20)
     spread = mll.vector_env(7, address=list(two_servers), **options)
     single = mll.vector_env(7, address=address, **options)
-    assert spread.env_addresses == [two_servers[i % 2] for i in range(7)]
+    assert set(spread.env_addresses) == set(two_servers)
     ours, reference = rollout(spread, 5, 50), rollout(single, 5, 50)
     assert len(ours) == len(reference)
     for got, expected in zip(ours, reference):
