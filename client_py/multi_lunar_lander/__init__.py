@@ -22,8 +22,8 @@ comma-separated string. An environment lives on exactly one server for its whole
 state is there). An entry whose host is a name (a Kubernetes headless Service's) stands for every
 address the name resolves to. `env`/`parallel_env` take server_index= (0-based into the servers
 the list stands for); without it they go to the least-loaded server (envs hosted against its
---max_envs, then CPU), asked with GetServerInfo. `vector_env(n, address=[...])` puts env i on server
-i mod S and steps with one StepBatch per server (each on a Session stream kept open to that
+--max_envs, then CPU), asked with GetServerInfo. `vector_env(n, address=[...])` places its envs the
+same way (and moves them onto servers that join a name) and steps with one StepBatch per server (each on a Session stream kept open to that
 server), all in flight at once; results are in env order and are the same bits as on one server
 (each env's physics is its own).
 

@@ -5,8 +5,9 @@ Session streams (shared memory with a server on this host), batch handles, pipel
 failover by replay and the snapshot format are that engine's; this module keeps Python's part:
 arguments, spaces, arrays the caller owns, infos, exceptions and the log.
 
-Several servers (address= a list or "host:port,host:port"): env i lives on server i mod S
-(until failover moves it). Each step sends one packed StepBatch to every server at once, each
+Several servers (address= a list or "host:port,host:port", or a host name standing for every
+address it resolves to): the envs are placed on the least-loaded servers (until failover or
+rebalancing moves them). Each step sends one packed StepBatch to every server at once, each
 with that server's envs, and puts the results back in env order. Each env's physics and
 generator are its own, so the results are the same bits as on one server.
 
@@ -175,7 +176,7 @@ def _free(lib: ctypes.CDLL, handle: int, lease, pid: int) -> None:
 
 class VectorEnv:
     """`num_envs` Multi Lunar Lander environments with the same options, on the server(s) of
-    `address` (env i on server i mod S; None: the embedded server). TLS and token: as for
+    `address` (placed on the least-loaded servers; None: the embedded server). TLS and token: as for
     `parallel_env` (tls_root_cert=, tls_server_name=, token=). Needs the native library
     (libmll_native_stream.so: in the binary wheel and `pip install .`; see _native), whose C++
     VectorEnv does the work; FAILED_PRECONDITION saying how to get it when it is missing.
@@ -620,8 +621,8 @@ class VectorEnv:
 
     @property
     def env_addresses(self) -> list[str]:
-        """The address of the server of each environment, in env order (env i: server i mod S
-        until a failover moves it)."""
+        """The address of the server of each environment, in env order (as placed by load,
+        until failover or rebalancing moves it)."""
         handle = self._live()
         return [self._lib.mll_vector_env_env_address(handle, index).decode() for index in range(self.num_envs)]
 
