@@ -343,9 +343,20 @@ absl::Status Client::CheckHealth(absl::string_view service) const {
 
 absl::StatusOr<RemoteEnv> Client::CreateEnv(const RemoteEnvConfig& config,
                                             bool detached) const {
-  const size_t server = next_server_->fetch_add(1, std::memory_order_relaxed) %
-                        transports_.size();
-  return CreateEnvAt(server, config, detached);
+  // A server that does not answer (e.g. a name's IPv6 address where the
+  // server listens on IPv4 only, or a pod not up yet) is passed over for
+  // the next; UNAVAILABLE only when none answers.
+  absl::StatusOr<RemoteEnv> env = absl::UnavailableError("no server");
+  for (size_t tried = 0; tried < transports_.size(); ++tried) {
+    const size_t server =
+        next_server_->fetch_add(1, std::memory_order_relaxed) %
+        transports_.size();
+    env = CreateEnvAt(server, config, detached);
+    if (!absl::IsUnavailable(env.status())) break;
+    if (transports_.size() > 1)
+      env = AtServer(*transports_[server], env.status());
+  }
+  return env;
 }
 
 absl::StatusOr<RemoteEnv> Client::CreateEnvOn(int server,

@@ -146,6 +146,21 @@ TEST(ScaleOutTest, CreateEnvOnPicksTheServer) {
   }
 }
 
+// A server of the list that does not answer (a name's address where no
+// server listens yet) is passed over: every CreateEnv lands on the other.
+TEST(ScaleOutTest, CreateEnvPassesOverAServerThatDoesNotAnswer) {
+  const Client client = Connect({"127.0.0.1:1", TwoServers::addresses()[0]});
+  for (int k = 0; k < 3; ++k) {
+    absl::StatusOr<RemoteEnv> env = client.CreateEnv(Landers(1));
+    ASSERT_TRUE(env.ok()) << env.status();
+    EXPECT_EQ(env->server(), 1);
+  }
+  const Client none = Connect({"127.0.0.1:1", "127.0.0.1:2"});
+  absl::StatusOr<RemoteEnv> env = none.CreateEnv(Landers(1));
+  EXPECT_EQ(env.status().code(), absl::StatusCode::kUnavailable);
+  EXPECT_THAT(env.status().message(), HasSubstr("server 127.0.0.1:"));
+}
+
 TEST(ScaleOutTest, NamesAreFoundOnWhicheverServerHasThem) {
   const Client client = ConnectBoth();
   absl::StatusOr<RemoteEnv> env = client.CreateEnvOn(1, Landers(2));

@@ -175,8 +175,10 @@ class Client {
   absl::Status CheckHealth(absl::string_view service = "") const;
 
   // Creates an environment on the next server in round-robin order (shared
-  // by the threads using this client); the handle owns it. `detached`
-  // matters on a session only: the env outlives the stream.
+  // by the threads using this client), passing over a server that answers
+  // UNAVAILABLE for the next (UNAVAILABLE naming the last when none
+  // answers); the handle owns it. `detached` matters on a session only: the
+  // env outlives the stream.
   absl::StatusOr<RemoteEnv> CreateEnv(const RemoteEnvConfig& config = {},
                                       bool detached = false) const;
   // Creates an environment on server `server`; INVALID_ARGUMENT when it is
