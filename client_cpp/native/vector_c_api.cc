@@ -4,6 +4,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstring>
+#include <limits>
 #include <map>
 #include <memory>
 #include <optional>
@@ -167,6 +168,9 @@ struct mll_vector_env {
 
   // The caller's buffers (mll_vector_env_bind_results), by row count.
   std::map<int, std::vector<void*>> bound;
+  // send's env_ids as VectorEnv::Send takes them (kept: no allocation per
+  // call).
+  std::vector<int> send_ids;
 };
 
 namespace {
@@ -378,12 +382,28 @@ int mll_vector_env_async_reset(mll_vector_env* env, int has_seed,
 }
 
 int mll_vector_env_send(mll_vector_env* env, const void* actions, size_t count,
-                        int continuous, const int32_t* env_ids,
+                        int continuous, const int64_t* env_ids,
                         size_t env_count) {
   if (!env->envs) return CodeOf(env->create_status);
-  const absl::Span<const int> ids(env_ids, env_count);
+  if (env_ids == nullptr && env_count > 0) {
+    return env->Report(absl::InvalidArgumentError(
+        absl::StrCat("env_ids is NULL with a count of ", env_count)));
+  }
+  // VectorEnv::Send checks the indices (range, repeats, in flight); only
+  // those that no int holds are refused here.
+  std::vector<int>& ids = env->send_ids;
+  ids.resize(env_count);
+  for (size_t k = 0; k < env_count; ++k) {
+    if (env_ids[k] < std::numeric_limits<int>::min() ||
+        env_ids[k] > std::numeric_limits<int>::max()) {
+      return env->Report(absl::InvalidArgumentError(
+          absl::StrCat("env_ids holds ", env_ids[k], "; allowed: 0..",
+                       env->envs->num_envs() - 1)));
+    }
+    ids[k] = static_cast<int>(env_ids[k]);
+  }
   return env->Report(WithActions(actions, count, continuous, [&](auto span) {
-    return env->envs->Send(span, ids);
+    return env->envs->Send(span, absl::MakeConstSpan(ids));
   }));
 }
 

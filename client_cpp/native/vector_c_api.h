@@ -152,12 +152,13 @@ MLL_NATIVE_API int mll_vector_env_step(mll_vector_env* env, const void* actions,
                                        int timeout_ms);
 MLL_NATIVE_API int mll_vector_env_step_wait(mll_vector_env* env,
                                             int timeout_ms);
-/* EnvPool's async API (VectorEnv::AsyncReset, Send, Recv). */
+/* EnvPool's async API (VectorEnv::AsyncReset, Send, Recv). send's env_ids
+ * are int64 (NumPy's and torch's index type, as recv's callers get them). */
 MLL_NATIVE_API int mll_vector_env_async_reset(mll_vector_env* env, int has_seed,
                                               uint64_t seed);
 MLL_NATIVE_API int mll_vector_env_send(mll_vector_env* env, const void* actions,
                                        size_t count, int continuous,
-                                       const int32_t* env_ids,
+                                       const int64_t* env_ids,
                                        size_t env_count);
 MLL_NATIVE_API int mll_vector_env_recv(mll_vector_env* env, int timeout_ms);
 /* Envs with a step (or async_reset) in flight whose results recv has not

@@ -165,6 +165,16 @@ def rediscover_interval_value(rediscover_interval_s) -> float:
     return float(rediscover_interval_s)
 
 
+def _fill(block: np.ndarray, actions, continuous: bool) -> None:
+    """Puts `actions` into `block`, a buffer of the adapter's in the wire's type (int32, or float32
+    when continuous) whose address the library reads. An array of the block's shape and element
+    type is copied as it is (256 bytes for 64 envs, cheaper than reading the array's own address);
+    anything else goes through check_actions first."""
+    if not (type(actions) is np.ndarray and actions.dtype is block.dtype and actions.shape == block.shape):
+        actions = check_actions(actions, continuous, block.shape[:2], "actions")
+    block[...] = actions
+
+
 def _free(lib: ctypes.CDLL, handle: int, lease, pid: int) -> None:
     """Frees a handle (deleting its envs) and then releases the embedded server it used."""
     if os.getpid() != pid:  # A forked child's copy: the handle and the lease are the parent's.
@@ -340,18 +350,23 @@ class VectorEnv:
         self._action_blocks: dict[int, tuple] = {}  # Row count -> (buffer for actions, its address, size).
         self._action_dtype = np.dtype(np.float32 if self.continuous else np.int32)
         self._action_shape = (self.n_landers, 2) if self.continuous else (self.n_landers,)
-        # What step() needs with batch_size == num_envs, looked up once: the actions' buffer, the
-        # library's step and take_events without argument conversion (_native.bare), their
-        # arguments as ctypes values, and the results' record. None once closed.
-        self._fast = None
+        # What step(), send() and recv() need on every call, looked up once: the library's
+        # functions without argument conversion (_native.bare) and their arguments as ctypes
+        # values, the actions' buffers and the results' records. None once closed.
+        bare, self._bare_handle = _native.bare(lib), ctypes.c_void_p(handle)
+        self._fast = None  # step() with batch_size == num_envs.
         if self.batch_size == self.num_envs:
-            bare = _native.bare(lib)
-            self._put_actions(np.zeros((self.num_envs,) + self._action_shape, self._action_dtype), self.num_envs)
-            block, address, count = self._action_blocks[self.num_envs]
+            block = np.zeros((self.num_envs,) + self._action_shape, self._action_dtype)
             self._fast = (
-                block, bare.mll_vector_env_step, ctypes.c_void_p(handle), ctypes.c_void_p(address), count,
-                int(self.continuous), self._results_of[self.num_envs], bare.mll_vector_env_take_events,
+                block, bare.mll_vector_env_step, self._bare_handle, ctypes.c_void_p(block.ctypes.data),
+                ctypes.c_size_t(block.size), int(self.continuous), self._results_of[self.num_envs],
+                bare.mll_vector_env_take_events,
             )
+        self._fast_send = (bare.mll_vector_env_send, self._bare_handle, bare.mll_vector_env_take_events,
+                           int(self.continuous))
+        self._fast_recv = (bare.mll_vector_env_recv, self._bare_handle, bare.mll_vector_env_take_events,
+                           self._results_of[self.batch_size])
+        self._send_of: dict[int, tuple] = {}  # len(env_id) -> send()'s buffers (_send_buffers).
 
     # ----------------------------------------------------------------- calls into the engine
 
@@ -403,17 +418,12 @@ class VectorEnv:
 
     def _put_actions(self, actions, rows: int) -> tuple[int, int]:
         """`actions` (a block of `rows` envs' actions) put into the adapter's buffer for `rows`
-        rows, as the wire's contiguous int32 or float32: that buffer's address and item count. An
-        array of that shape and element type is copied as it is (256 bytes for 64 envs: cheaper
-        than reading its address); anything else goes through check_actions first."""
+        rows (_fill): that buffer's address and item count."""
         entry = self._action_blocks.get(rows)
         if entry is None:
             block = np.empty((rows,) + self._action_shape, self._action_dtype)
             entry = self._action_blocks[rows] = (block, block.ctypes.data, block.size)
-        block = entry[0]
-        if not (type(actions) is np.ndarray and actions.dtype is self._action_dtype and actions.shape == block.shape):
-            actions = check_actions(actions, self.continuous, (rows, self.n_landers), "actions")
-        block[...] = actions
+        _fill(entry[0], actions, self.continuous)
         return entry[1:]
 
     # ----------------------------------------------------------------- the synchronous API
@@ -434,9 +444,7 @@ class VectorEnv:
             # One call into the library: the step sent, waited for and its results written in place
             # (the fewest Python operations: this path is most of a trainer's client CPU).
             block, call, handle, address, count, continuous, results, take_events = fast
-            if not (type(actions) is np.ndarray and actions.dtype is block.dtype and actions.shape == block.shape):
-                actions = check_actions(actions, self.continuous, block.shape[:2], "actions")
-            block[...] = actions
+            _fill(block, actions, self.continuous)
             code = call(handle, address, count, continuous, _native.READ_SLICE_MS)
             events = take_events(handle)
             if code == _native.PENDING:  # A slow server: wait on in slices, as step_wait.
@@ -493,8 +501,31 @@ class VectorEnv:
         step in flight) with `actions` (int (len(env_id), n_landers) or, continuous, float
         (len(env_id), n_landers, 2)) and returns at once: one packed StepBatch per server
         concerned, pipelined on its Session stream behind the requests already in flight."""
-        self._finish_interrupted()
-        handle = self._live()
+        if self._interrupted:
+            self._finish_interrupted()
+        fast = self._fast_send
+        if fast is None or self._pid != os.getpid():
+            self._live()  # Closed, or in a forked child: raises.
+        # An integer array is checked by the library (range, repeats, in flight); anything else here.
+        if not (type(env_id) is np.ndarray and env_id.ndim == 1 and 0 < env_id.size <= self.num_envs
+                and env_id.dtype.kind in "iu"):
+            env_id = self._env_ids(env_id)
+        call, handle, take_events, continuous = fast
+        ids, ids_address, ids_count, block, address, count = self._send_of.get(env_id.size) or self._send_buffers(
+            env_id.size
+        )
+        ids[...] = env_id
+        _fill(block, actions, self.continuous)
+        code = call(handle, address, count, continuous, ids_address, ids_count)
+        events = take_events(handle)
+        if code == grpc.StatusCode.INVALID_ARGUMENT.value[0]:
+            self._env_ids(env_id)  # A bad env_id in Python's words (as a list's would be).
+        if code or events:
+            self._check(code, events)
+
+    def _env_ids(self, env_id) -> np.ndarray:
+        """`env_id` as an int64 array after checking it names distinct envs; INVALID_ARGUMENT
+        saying what is wrong otherwise."""
         ids = np.asarray(env_id)
         if ids.ndim != 1 or ids.size == 0 or ids.dtype.kind not in "iu":
             raise invalid_argument(
@@ -506,17 +537,36 @@ class VectorEnv:
         if np.count_nonzero(np.bincount(ids, minlength=self.num_envs) > 1):
             values, counts = np.unique(ids, return_counts=True)
             raise invalid_argument(f"env_id holds {int(values[counts > 1][0])} more than once; each env at most once")
-        ids = ids.astype(np.int32)  # In range: exact.
-        address, count = self._put_actions(actions, ids.size)
-        self._check(self._lib.mll_vector_env_send(handle, address, count, self.continuous, ids.ctypes.data, ids.size))
+        return ids.astype(np.int64)  # In range: exact.
+
+    def _send_buffers(self, rows: int) -> tuple:
+        """send()'s buffers for `rows` envs, made once: the env indices (int64) and the actions,
+        each with its address and item count as ctypes values."""
+        ids = np.zeros(rows, np.int64)
+        block = np.zeros((rows,) + self._action_shape, self._action_dtype)
+        entry = self._send_of[rows] = (
+            ids, ctypes.c_void_p(ids.ctypes.data), ctypes.c_size_t(rows),
+            block, ctypes.c_void_p(block.ctypes.data), ctypes.c_size_t(block.size),
+        )
+        return entry
 
     def recv(self):
         """The results of the first batch_size envs whose steps are done (in the order their
         answers came), as step() returns them, with infos["env_id"] (int64, (batch_size,))
         naming the envs of each row. Waits for answers as needed; FAILED_PRECONDITION when fewer
         than batch_size envs have a step in flight."""
-        self._wait(self._lib.mll_vector_env_recv)
-        return self._results_of[self.batch_size].arrays(self._copy, True)
+        fast = self._fast_recv
+        if fast is None or self._pid != os.getpid():
+            self._live()  # Closed, or in a forked child: raises.
+        call, handle, take_events, results = fast
+        code = call(handle, _native.READ_SLICE_MS)
+        events = take_events(handle)
+        if code == _native.PENDING:  # Nothing due yet: wait on in slices.
+            self._check(0, events)
+            self._wait(self._lib.mll_vector_env_recv)
+        elif code or events:
+            self._check(code, events)
+        return results.arrays(self._copy, True)
 
     # ----------------------------------------------------------------- env snapshot
 
@@ -628,7 +678,7 @@ class VectorEnv:
 
     def close(self) -> None:
         """Deletes the environments on their servers and closes the streams. Idempotent."""
-        self._fast = None
+        self._fast = self._fast_send = self._fast_recv = None
         self._finalizer()
 
     def __enter__(self) -> "VectorEnv":

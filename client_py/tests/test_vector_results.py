@@ -118,3 +118,36 @@ def test_bad_arguments_get_clear_errors(address):
             assert copy.step(np.zeros((2, 1), np.int32))[0] is copy.step(np.zeros((2, 1), np.int32))[0]
         finally:
             copy.close()
+
+
+def test_env_ids_in_any_integer_form_give_the_same_bits(address):
+    """send() takes recv's int64 env_id as it is, other integer arrays and lists converted; an index
+    beyond any int is refused in Python's words, not wrapped onto a valid env."""
+    forms = [
+        lambda ids: ids,
+        lambda ids: ids.astype(np.int32),
+        lambda ids: ids.astype(np.uint8),
+        lambda ids: ids.tolist(),
+    ]
+    rng = np.random.default_rng(4)
+    table = rng.integers(0, 4, size=(20, 2, 1), dtype=np.int32)
+    runs = []
+    for form in forms:
+        with mll.vector_env(4, address=address, n_landers=1, batch_size=2) as vector:
+            vector.async_reset(seed=6)
+            out = []
+            for actions in table:
+                result = vector.recv()
+                out.append(_arrays(result))
+                vector.send(actions, form(result[5]["env_id"]))
+            runs.append(out)
+    for other in runs[1:]:
+        assert _same(runs[0], other)
+    with mll.vector_env(4, address=address, n_landers=1, batch_size=2) as vector:
+        vector.async_reset(seed=6)
+        vector.recv()
+        for bad in (np.array([0, 2**32 + 2], np.int64), np.array([2**64 - 1, 1], np.uint64)):
+            with pytest.raises(mll.MLLError) as error:
+                vector.send(np.zeros((2, 1), np.int32), bad)
+            assert error.value.code == grpc.StatusCode.INVALID_ARGUMENT
+            assert f"env_id holds {bad.max() if bad.dtype == np.uint64 else bad[1]}; allowed: 0..3" in error.value.message

@@ -281,8 +281,9 @@ TEST_F(VectorCApiTest, AsyncSendRecvGiveTheSameBitsAsTheCppVectorEnv) {
     ASSERT_EQ(ResultsOf(env.get()), ResultsOf(cpp)) << "round " << round;
     const std::vector<int32_t> actions = ActionsOf(round, kBatch);
     const std::vector<int32_t> ids(cpp.env_ids().begin(), cpp.env_ids().end());
+    const std::vector<int64_t> wide(ids.begin(), ids.end());
     ASSERT_EQ(mll_vector_env_send(env.get(), actions.data(), actions.size(), 0,
-                                  ids.data(), ids.size()),
+                                  wide.data(), wide.size()),
               kOk)
         << mll_vector_env_message(env.get());
     ASSERT_TRUE(cpp.Send(absl::MakeConstSpan(actions), ids).ok());
@@ -342,11 +343,13 @@ TEST_F(VectorCApiTest, WaitsThatTimeOutArePendingAndLoseNothing) {
     ASSERT_TRUE(cpp.Recv().ok());
   }
   const std::vector<int32_t> ids = {2, 0, 3, 1};
+  const std::vector<int64_t> wide(ids.begin(), ids.end());
   server.Pause();
-  ASSERT_EQ(mll_vector_env_send(env.get(), actions.data(), 4, 0, ids.data(), 2),
-            kOk);
+  ASSERT_EQ(
+      mll_vector_env_send(env.get(), actions.data(), 4, 0, wide.data(), 2),
+      kOk);
   ASSERT_EQ(mll_vector_env_send(env.get(), actions.data() + 4, 4, 0,
-                                ids.data() + 2, 2),
+                                wide.data() + 2, 2),
             kOk);
   ASSERT_TRUE(cpp.Send(absl::MakeConstSpan(actions.data(), 4),
                        absl::MakeConstSpan(ids.data(), 2))
@@ -419,11 +422,17 @@ TEST_F(VectorCApiTest, BadInputGetsItsCodeAndAMessageNamingIt) {
   EXPECT_THAT(message(), HasSubstr("the envs take discrete actions"));
   // Nothing was sent: step_wait still has nothing to wait for.
   EXPECT_EQ(mll_vector_env_step_wait(env.get(), -1), kFailedPrecondition);
-  const std::vector<int32_t> out_of_range = {0, 9};
+  const std::vector<int64_t> out_of_range = {0, 9};
   EXPECT_EQ(mll_vector_env_send(env.get(), actions.data(), 4, 0,
                                 out_of_range.data(), 2),
             kInvalidArgument);
   EXPECT_THAT(message(), HasSubstr("env_ids holds 9; allowed: 0..3"));
+  // An index no int holds is refused as such, not wrapped onto a valid one.
+  const std::vector<int64_t> wrapping = {0, (int64_t{1} << 32) + 1};
+  EXPECT_EQ(
+      mll_vector_env_send(env.get(), actions.data(), 4, 0, wrapping.data(), 2),
+      kInvalidArgument);
+  EXPECT_THAT(message(), HasSubstr("env_ids holds 4294967297; allowed: 0..3"));
   const char* data = nullptr;
   size_t size = 0;
   EXPECT_EQ(mll_vector_env_snapshot(env.get(), kEnvs, &data, &size),
