@@ -187,10 +187,13 @@ class PackedEquivalenceTest : public ::testing::TestWithParam<bool> {};
 // Per cycle: the core (with the service's auto-reset rule), the `steps` form
 // and the packed form, each on its own envs with the same seeds; every row
 // must serialize to the same bytes. The packed responses of the 1- and
-// 2-thread servers must be equal too.
+// 2-thread servers must be equal too: 12 envs of 3 landers are enough for the
+// 2-thread server to split a batch in two (a runner gets at least 16
+// agent-steps).
 TEST_P(PackedEquivalenceTest, MatchesStepsFormAndCoreOnOneAndTwoThreads) {
   const bool continuous = GetParam();
-  const std::vector<uint64_t> seeds = {0, 3, 7, 11, 19, 12345};
+  const std::vector<uint64_t> seeds = {0,  3,  7,  11, 19, 12345,
+                                       23, 29, 31, 37, 41, 43};
   const int num_envs = static_cast<int>(seeds.size());
   constexpr int kCycles = 130;
 

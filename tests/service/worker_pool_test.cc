@@ -1,15 +1,18 @@
 // WorkerPool::ParallelFor: every index runs exactly once, done() runs once
 // after all of them, the calling thread runs the first share, shares are
-// contiguous per runner, a busy worker is not woken, and concurrent batches do
-// not mix.
+// contiguous per runner, a busy worker is not woken, a batch is not split
+// below its least share, a batch does not wait for a worker that has not
+// begun, and concurrent batches do not mix.
 #include "mll/service/worker_pool.h"
 
 #include <atomic>
 #include <chrono>
 #include <functional>
+#include <set>
 #include <thread>
 #include <vector>
 
+#include "absl/synchronization/mutex.h"
 #include "absl/synchronization/notification.h"
 #include "gtest/gtest.h"
 
@@ -18,13 +21,16 @@ namespace {
 
 // Runs one ParallelFor and waits for its done().
 void RunAndWait(WorkerPool& pool, int count,
-                const std::function<void(int)>& body) {
+                const std::function<void(int)>& body, int min_per_runner = 1) {
   absl::Notification finished;
   std::atomic<int> done_calls{0};
-  pool.ParallelFor(count, body, [&] {
-    ++done_calls;
-    finished.Notify();
-  });
+  pool.ParallelFor(
+      count, body,
+      [&] {
+        ++done_calls;
+        finished.Notify();
+      },
+      min_per_runner);
   finished.WaitForNotification();
   EXPECT_EQ(done_calls.load(), 1);
 }
@@ -168,6 +174,60 @@ TEST(WorkerPoolTest, ABatchTakesNoMoreRunnersThanCores) {
   std::vector<std::thread::id> ran_on(64);
   RunAndWait(pool, 64, [&](int i) { ran_on[i] = std::this_thread::get_id(); });
   for (int i = 0; i < 64; ++i) EXPECT_EQ(ran_on[i], caller) << i;
+}
+
+// A runner gets at least min_per_runner indices: a batch of 8 with at least
+// 8 per runner is the caller's alone, one with at least 4 per runner is split
+// in two at most.
+TEST(WorkerPoolTest, ABatchIsNotSplitBelowTheLeastPerRunner) {
+  WorkerPool pool(4, /*cores=*/4);
+  const std::thread::id caller = std::this_thread::get_id();
+  std::vector<std::thread::id> ran_on(8);
+  absl::Notification finished;
+  pool.ParallelFor(
+      8, [&](int i) { ran_on[i] = std::this_thread::get_id(); },
+      [&] { finished.Notify(); }, /*min_per_runner=*/8);
+  // The caller alone: done() ran before ParallelFor returned.
+  EXPECT_TRUE(finished.HasBeenNotified());
+  for (int i = 0; i < 8; ++i) EXPECT_EQ(ran_on[i], caller) << i;
+
+  absl::Mutex mu;
+  std::set<std::thread::id> runners;
+  RunAndWait(
+      pool, 8,
+      [&](int) {
+        absl::MutexLock lock(&mu);
+        runners.insert(std::this_thread::get_id());
+      },
+      /*min_per_runner=*/4);
+  EXPECT_LE(runners.size(), 2u);
+}
+
+// The batch is done when its last index is: when the caller has run every
+// index (the worker it woke had not begun), done() has run before
+// ParallelFor returns, not later on that worker. Each batch's index 1 is the
+// worker's share and index 0 takes no time, so the caller usually takes
+// index 1 too before the woken worker gets to it.
+TEST(WorkerPoolTest, TheBatchDoesNotWaitForAWorkerThatHasNotBegun) {
+  WorkerPool pool(2, /*cores=*/2);
+  const std::thread::id caller = std::this_thread::get_id();
+  int caller_ran_all = 0;
+  for (int batch = 0; batch < 2000 && caller_ran_all < 20; ++batch) {
+    std::atomic<int> on_caller{0};
+    absl::Notification finished;
+    pool.ParallelFor(
+        2,
+        [&](int) {
+          if (std::this_thread::get_id() == caller) ++on_caller;
+        },
+        [&] { finished.Notify(); });
+    if (on_caller == 2) {
+      ++caller_ran_all;
+      EXPECT_TRUE(finished.HasBeenNotified()) << "batch " << batch;
+    }
+    finished.WaitForNotification();
+  }
+  EXPECT_GT(caller_ran_all, 0);
 }
 
 TEST(WorkerPoolTest, ConcurrentBatchesEachRunTheirOwnIndices) {

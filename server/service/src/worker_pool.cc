@@ -65,7 +65,7 @@ void WorkerPool::Run(int worker) {
 }
 
 void WorkerPool::ParallelFor(int count, std::function<void(int)> body,
-                             std::function<void()> done) {
+                             std::function<void()> done, int min_per_runner) {
   if (count <= 0) {
     done();
     return;
@@ -85,35 +85,45 @@ void WorkerPool::ParallelFor(int count, std::function<void(int)> body,
   // batch, and the CPU per item, stay flat as --threads grows under many
   // concurrent calls, while a lone batch still gets every thread.
   // Nor more runners than the cores this process may run on: with more,
-  // they would take turns on the cores, not step the batch any sooner.
+  // they would take turns on the cores, not step the batch any sooner; nor
+  // than shares of at least `min_per_runner` items: a smaller share is not
+  // worth the hand-off.
   const int in_flight = in_flight_.fetch_add(1) + 1;
   const int parallel = std::min(threads(), cores_);
   const int most_runners =
-      std::min(count, std::max(1, (parallel + in_flight - 1) / in_flight));
+      std::max(1, std::min({count / std::max(1, min_per_runner),
+                            (parallel + in_flight - 1) / in_flight}));
   struct Shared {
     std::function<void(int)> body;
     std::function<void()> done;
     std::vector<int> share_end;
     std::unique_ptr<std::atomic<int>[]> share_next;
     int runners = 0;
-    std::atomic<int> running{0};
+    // Items not yet run to the end. The runner that runs the last one calls
+    // done(), so the batch never waits for a woken worker that has not got a
+    // core yet: the caller and the others take its share, and the worker,
+    // when it runs, finds nothing left and goes back to sleep.
+    std::atomic<int> remaining{0};
   };
   auto shared = std::make_shared<Shared>();
   shared->body = std::move(body);
   shared->done = std::move(done);
   shared->share_next = std::make_unique<std::atomic<int>[]>(most_runners);
   shared->share_end.reserve(most_runners);
+  shared->remaining = count;
   auto run_share = [this, shared](int r) {
     const int runners = shared->runners;
+    int ran = 0;
     for (int k = 0; k < runners; ++k) {
       const int share = (r + k) % runners;
       std::atomic<int>& next = shared->share_next[share];
       for (int i = next.fetch_add(1); i < shared->share_end[share];
            i = next.fetch_add(1)) {
         shared->body(i);
+        ++ran;
       }
     }
-    if (shared->running.fetch_sub(1) == 1) {
+    if (ran > 0 && shared->remaining.fetch_sub(ran) == ran) {
       // Before done(): the caller's next batch must not count this one.
       in_flight_.fetch_sub(1);
       shared->done();
@@ -136,7 +146,6 @@ void WorkerPool::ParallelFor(int count, std::function<void(int)> body,
           static_cast<int>(int64_t{r + 1} * count / runners));
     }
     shared->runners = runners;
-    shared->running = runners;
     for (int r = 1; r < runners; ++r) {
       woken[r - 1]->tasks.push_back([run_share, r] { run_share(r); });
     }

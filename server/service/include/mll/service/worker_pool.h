@@ -31,9 +31,11 @@ class WorkerPool {
 
   // Calls body(i) for i in [0, count) spread over the calling thread and the
   // workers that are idle now (none queued or running a task), then calls
-  // done() on the thread that finished last (possibly the caller, before this
-  // returns). Returns once the caller has no index left to run; the workers
-  // may still be running theirs. count == 0 calls done() at once. Runner r
+  // done() on the thread that ran the last index to finish (possibly the
+  // caller, before this returns). Returns once the caller has no index left
+  // to run; the workers may still be running theirs. A woken worker that has
+  // not started when the others have taken every index runs none (the batch
+  // does not wait for it). count == 0 calls done() at once. Runner r
   // (the caller for r = 0, else the r-th idle worker) starts on the r-th
   // contiguous share of [0, count), so on an otherwise idle pool an index
   // goes to the same thread batch after batch (its environment stays warm in
@@ -41,9 +43,12 @@ class WorkerPool {
   // remaining indices of the others' shares. While other batches keep the
   // workers busy, a batch is not split over them: it would only wake them;
   // with B batches in flight, each takes at most ceil(P / B) runners, P
-  // being the lesser of threads() and the cores the process may run on.
+  // being the lesser of threads() and the cores the process may run on; and
+  // a runner gets at least `min_per_runner` indices (fewer runners, not
+  // smaller shares), so a small batch is not split into pieces whose work
+  // does not pay for waking a thread.
   void ParallelFor(int count, std::function<void(int)> body,
-                   std::function<void()> done);
+                   std::function<void()> done, int min_per_runner = 1);
 
  private:
   // One worker's queue, the condition it sleeps on, and whether it is
