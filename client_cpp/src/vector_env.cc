@@ -1043,7 +1043,18 @@ struct VectorEnv::State {
   // in this failover, those gone from their names none.
   void DiscoverNow() {
     if (!HasNames()) return;
-    if (discovery.valid()) TakeIn(discovery.get());
+    if (discovery.valid()) {
+      // Its probes of servers now found down predate the failure: dropped.
+      Discovery found = discovery.get();
+      const std::set<std::string> known = Addresses(false);
+      found.joiners.erase(
+          std::remove_if(found.joiners.begin(), found.joiners.end(),
+                         [&](const Discovery::Joiner& joiner) {
+                           return known.count(joiner.address) != 0;
+                         }),
+          found.joiners.end());
+      TakeIn(std::move(found));
+    }
     // Servers found down are probed by UsableServers, which knows which
     // ones just stalled.
     TakeIn(Discover(entries, session.options_, Addresses(false), {}));

@@ -81,7 +81,8 @@ def _run(addresses, transport, servers=None, seed=3):
         _replace_drained(servers, draining)
     placement = None
     if servers is not None:
-        placement = {address: (set(), listed_names(server.address)) for address, server in zip(addresses, servers)}
+        # By the address each server listens on (what a host name resolved to).
+        placement = {server.address: (set(), listed_names(server.address)) for server in servers}
         for name, address in zip(vector.names, vector.env_addresses):
             placement[address][0].add(name)
     failovers = vector.failovers
