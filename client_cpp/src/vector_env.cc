@@ -1463,7 +1463,10 @@ absl::StatusOr<VectorEnv> VectorEnv::Create(const Client& client, int num_envs,
             down[server]
                 ? "unreachable"
                 : absl::StrCat("hosting ", capacity[server].envs_hosted,
-                               " of max_envs ", capacity[server].max_envs)));
+                               " of max_envs ", capacity[server].max_envs,
+                               capacity[server].usable
+                                   ? ""
+                                   : ", refusing more (RESOURCE_EXHAUSTED)")));
       }
       return absl::ResourceExhaustedError(absl::StrCat(
           "no room for ", remaining.size() - planned, " of ", num_envs,
@@ -1501,6 +1504,7 @@ absl::StatusOr<VectorEnv> VectorEnv::Create(const Client& client, int num_envs,
         if (envs[k] == 0) spec = responses[k].env().SerializeAsString();
         infos[envs[k]] = internal::DecodeEnv(responses[k].env());
         infos[envs[k]].server = server;
+        ++capacity[server].envs_hosted;
       }
     }
     remaining = std::move(retry);

@@ -17,6 +17,7 @@ import time
 
 import grpc
 import numpy as np
+import pytest
 
 HERE = pathlib.Path(__file__).resolve().parent
 if str(HERE) not in sys.path:
@@ -274,6 +275,28 @@ def test_placement_puts_new_envs_beside_a_half_full_server_first():
                 vector.close()
         finally:
             tenant.close()
+
+
+def test_a_token_quota_reached_on_one_server_moves_the_rest_to_the_others(tmp_path):
+    """Placement plans by envs hosted against --max_envs; a server whose per-token quota is lower
+    answers RESOURCE_EXHAUSTED past it, and the envs it refused go to the server with room."""
+    tokens = tmp_path / "tokens"
+    tokens.write_text("tenant-a\n")
+    auth = (f"--auth_token_file={tokens}", "--max_envs=20")
+    small = mll.ServerProcess(threads=1, extra_args=(*auth, "--max_envs_per_token=4"))
+    large = mll.ServerProcess(threads=1, extra_args=auth)
+    with small, large:
+        addresses = [small.address, large.address]
+        with mll.vector_env(12, address=addresses, token="tenant-a", n_landers=1) as vector:
+            placed = vector.env_addresses
+            assert placed.count(small.address) == 4 and placed.count(large.address) == 8, placed
+            vector.reset(seed=2)
+            vector.step(np.zeros((12, 1), np.int32))
+        # 25 envs, room for 24 (4 + 20): RESOURCE_EXHAUSTED naming the servers and the quota.
+        with pytest.raises(mll.MLLError) as caught:
+            mll.vector_env(25, address=addresses, token="tenant-a", n_landers=1)
+        assert caught.value.code == grpc.StatusCode.RESOURCE_EXHAUSTED, caught.value
+        assert "no room for" in caught.value.message and small.address in caught.value.message, caught.value
 
 
 if __name__ == "__main__":
