@@ -171,6 +171,8 @@ struct mll_vector_env {
   // send's env_ids as VectorEnv::Send takes them (kept: no allocation per
   // call).
   std::vector<int> send_ids;
+  // The caller's flag of events waiting (mll_vector_env_bind_event_flag).
+  int32_t* event_flag = nullptr;
 };
 
 namespace {
@@ -237,6 +239,7 @@ mll_vector_env* mll_vector_env_new(
   handle->envs->SetEventLog([handle](const std::string& line) {
     if (!handle->events.empty()) handle->events += '\n';
     handle->events += line;
+    if (handle->event_flag != nullptr) *handle->event_flag = 1;
   });
   return handle;
 }
@@ -344,7 +347,13 @@ const char* mll_vector_env_transport(mll_vector_env* env) {
 const char* mll_vector_env_take_events(mll_vector_env* env) {
   env->taken_events.swap(env->events);
   env->events.clear();
+  if (env->event_flag != nullptr) *env->event_flag = 0;
   return env->taken_events.c_str();
+}
+
+void mll_vector_env_bind_event_flag(mll_vector_env* env, int32_t* flag) {
+  env->event_flag = flag;
+  if (flag != nullptr) *flag = env->events.empty() ? 0 : 1;
 }
 
 int mll_vector_env_reset(mll_vector_env* env, int has_seed, uint64_t seed) {

@@ -128,6 +128,11 @@ MLL_NATIVE_API const char* mll_vector_env_transport(mll_vector_env* env);
  * '\n' ("" when none); valid until the next call on the handle. The handle
  * writes none of them to stderr: the caller logs them. */
 MLL_NATIVE_API const char* mll_vector_env_take_events(mll_vector_env* env);
+/* Binds `flag` (the caller's; NULL unbinds): the handle sets it to 1 when it
+ * logs an event and take_events sets it to 0, so that a caller looks at it
+ * instead of calling take_events after every call. */
+MLL_NATIVE_API void mll_vector_env_bind_event_flag(mll_vector_env* env,
+                                                   int32_t* flag);
 
 /* ------------------------------------------------------------- operations
  * Actions: `count` items of int32 (discrete, [rows, n_landers]) or float32

@@ -86,6 +86,7 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
         declare(name, integer, handle, integer)
     declare("results", None, handle, ctypes.c_void_p)
     declare("bind_results", integer, handle, integer, ctypes.c_void_p)
+    declare("bind_event_flag", None, handle, ctypes.c_void_p)
     declare("snapshot", integer, handle, integer, *data[1:])
     declare("restore", integer, handle, integer, ctypes.c_char_p, size, ctypes.c_void_p)
     return lib
@@ -97,12 +98,11 @@ _bare: dict[int, ctypes.CDLL] = {}  # id(library) -> its bare twin.
 def bare(lib: ctypes.CDLL) -> ctypes.CDLL:
     """The same library as a second ctypes.CDLL whose functions declare no argument types: a call
     passes its ctypes objects (c_void_p for pointers) and ints (C int) as they are, with none of the
-    per-argument conversion of declared signatures, for the calls made on every step. Results are
-    C int but for mll_vector_env_take_events (text)."""
+    per-argument conversion of declared signatures, for the calls made on every step (each
+    returns a C int)."""
     twin = _bare.get(id(lib))
     if twin is None:
         twin = _bare[id(lib)] = ctypes.CDLL(lib._name)
-        twin.mll_vector_env_take_events.restype = ctypes.c_char_p
     return twin
 
 

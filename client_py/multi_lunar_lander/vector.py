@@ -175,8 +175,22 @@ def _fill(block: np.ndarray, actions, continuous: bool) -> None:
     block[...] = actions
 
 
-def _free(lib: ctypes.CDLL, handle: int, lease, pid: int) -> None:
-    """Frees a handle (deleting its envs) and then releases the embedded server it used."""
+# Every open VectorEnv of this process: a forked child turns their fast paths off (_disown), so that
+# the per-call paths need no process check (os.getpid() is a system call).
+_OPEN: weakref.WeakSet = weakref.WeakSet()
+
+
+def _disown() -> None:
+    for env in list(_OPEN):
+        env._fast = env._fast_send = env._fast_recv = None
+
+
+os.register_at_fork(after_in_child=_disown)
+
+
+def _free(lib: ctypes.CDLL, handle: int, lease, pid: int, keep: list) -> None:
+    """Frees a handle (deleting its envs) and then releases the embedded server it used. `keep`:
+    memory the handle writes into (its event flag), kept alive until then."""
     if os.getpid() != pid:  # A forked child's copy: the handle and the lease are the parent's.
         return
     lib.mll_vector_env_free(handle)
@@ -330,7 +344,8 @@ class VectorEnv:
             for server in addresses or [lease.address]
         }
         self._handle, self._pid = handle, os.getpid()
-        self._finalizer = weakref.finalize(self, _free, lib, handle, lease, self._pid)
+        self._events = ctypes.c_int32(0)  # The handle's flag of events to take (_check).
+        self._finalizer = weakref.finalize(self, _free, lib, handle, lease, self._pid, [self._events])
         code = lib.mll_vector_env_create_status(handle)
         if code:
             error = self._error(code)
@@ -354,18 +369,17 @@ class VectorEnv:
         # functions without argument conversion (_native.bare) and their arguments as ctypes
         # values, the actions' buffers and the results' records. None once closed.
         bare, self._bare_handle = _native.bare(lib), ctypes.c_void_p(handle)
+        lib.mll_vector_env_bind_event_flag(handle, ctypes.addressof(self._events))
         self._fast = None  # step() with batch_size == num_envs.
         if self.batch_size == self.num_envs:
             block = np.zeros((self.num_envs,) + self._action_shape, self._action_dtype)
             self._fast = (
                 block, bare.mll_vector_env_step, self._bare_handle, ctypes.c_void_p(block.ctypes.data),
-                ctypes.c_size_t(block.size), int(self.continuous), self._results_of[self.num_envs],
-                bare.mll_vector_env_take_events,
+                ctypes.c_size_t(block.size), int(self.continuous), self._results_of[self.num_envs], self._events,
             )
-        self._fast_send = (bare.mll_vector_env_send, self._bare_handle, bare.mll_vector_env_take_events,
-                           int(self.continuous))
-        self._fast_recv = (bare.mll_vector_env_recv, self._bare_handle, bare.mll_vector_env_take_events,
-                           self._results_of[self.batch_size])
+        self._fast_send = (bare.mll_vector_env_send, self._bare_handle, int(self.continuous), self._events)
+        self._fast_recv = (bare.mll_vector_env_recv, self._bare_handle, self._results_of[self.batch_size], self._events)
+        _OPEN.add(self)
         self._send_of: dict[int, tuple] = {}  # len(env_id) -> send()'s buffers (_send_buffers).
 
     # ----------------------------------------------------------------- calls into the engine
@@ -395,11 +409,9 @@ class VectorEnv:
                 context = self._descriptions[(named or list(self._descriptions))[0]]
         return from_call_status(code, message, context)
 
-    def _check(self, code: int, events: bytes | None = None) -> None:
-        """Logs the engine's failover events (`events`: those already taken), then raises the
-        call's error if it failed."""
-        if events is None:
-            events = self._lib.mll_vector_env_take_events(self._handle)
+    def _check(self, code: int) -> None:
+        """Logs the engine's failover events, then raises the call's error if it failed."""
+        events = self._lib.mll_vector_env_take_events(self._handle) if self._events.value else None
         if events:
             for line in events.decode(errors="replace").splitlines():
                 _LOG.warning("%s", line)
@@ -440,23 +452,21 @@ class VectorEnv:
         async API, step(actions, env_id) is send(actions, env_id) then recv(); env_id None means
         every env."""
         fast = self._fast
-        if fast is not None and env_id is None and not self._interrupted and self._pid == os.getpid():
+        if fast is not None and env_id is None and not self._interrupted:
             # One call into the library: the step sent, waited for and its results written in place
             # (the fewest Python operations: this path is most of a trainer's client CPU).
-            block, call, handle, address, count, continuous, results, take_events = fast
+            block, call, handle, address, count, continuous, results, events = fast
             _fill(block, actions, self.continuous)
             code = call(handle, address, count, continuous, _native.READ_SLICE_MS)
-            events = take_events(handle)
             if code == _native.PENDING:  # A slow server: wait on in slices, as step_wait.
-                self._check(0, events)
                 try:
                     self._wait(self._lib.mll_vector_env_step_wait)
                 except BaseException as error:
                     # E.g. Ctrl-C while a server is slow: this step's results are the caller's no more.
                     self._interrupted = not isinstance(error, MLLError)
                     raise
-            elif code or events:
-                self._check(code, events)
+            elif code or events.value:
+                self._check(code)
             return results.arrays(self._copy, False)
         self._finish_interrupted()
         if env_id is None and self.batch_size == self.num_envs:  # Closed, or in a forked child: raises.
@@ -504,24 +514,23 @@ class VectorEnv:
         if self._interrupted:
             self._finish_interrupted()
         fast = self._fast_send
-        if fast is None or self._pid != os.getpid():
+        if fast is None:
             self._live()  # Closed, or in a forked child: raises.
         # An integer array is checked by the library (range, repeats, in flight); anything else here.
         if not (type(env_id) is np.ndarray and env_id.ndim == 1 and 0 < env_id.size <= self.num_envs
                 and env_id.dtype.kind in "iu"):
             env_id = self._env_ids(env_id)
-        call, handle, take_events, continuous = fast
+        call, handle, continuous, events = fast
         ids, ids_address, ids_count, block, address, count = self._send_of.get(env_id.size) or self._send_buffers(
             env_id.size
         )
         ids[...] = env_id
         _fill(block, actions, self.continuous)
         code = call(handle, address, count, continuous, ids_address, ids_count)
-        events = take_events(handle)
         if code == grpc.StatusCode.INVALID_ARGUMENT.value[0]:
             self._env_ids(env_id)  # A bad env_id in Python's words (as a list's would be).
-        if code or events:
-            self._check(code, events)
+        if code or events.value:
+            self._check(code)
 
     def _env_ids(self, env_id) -> np.ndarray:
         """`env_id` as an int64 array after checking it names distinct envs; INVALID_ARGUMENT
@@ -556,16 +565,14 @@ class VectorEnv:
         naming the envs of each row. Waits for answers as needed; FAILED_PRECONDITION when fewer
         than batch_size envs have a step in flight."""
         fast = self._fast_recv
-        if fast is None or self._pid != os.getpid():
+        if fast is None:
             self._live()  # Closed, or in a forked child: raises.
-        call, handle, take_events, results = fast
+        call, handle, results, events = fast
         code = call(handle, _native.READ_SLICE_MS)
-        events = take_events(handle)
         if code == _native.PENDING:  # Nothing due yet: wait on in slices.
-            self._check(0, events)
             self._wait(self._lib.mll_vector_env_recv)
-        elif code or events:
-            self._check(code, events)
+        elif code or events.value:
+            self._check(code)
         return results.arrays(self._copy, True)
 
     # ----------------------------------------------------------------- env snapshot

@@ -151,3 +151,38 @@ def test_env_ids_in_any_integer_form_give_the_same_bits(address):
                 vector.send(np.zeros((2, 1), np.int32), bad)
             assert error.value.code == grpc.StatusCode.INVALID_ARGUMENT
             assert f"env_id holds {bad.max() if bad.dtype == np.uint64 else bad[1]}; allowed: 0..3" in error.value.message
+
+
+_INHERITED = []  # The parent's vector env, inherited by a forked child through memory.
+
+
+def _use_inherited():
+    """In a forked child: each call of the parent's vector env, refused before it reaches the library."""
+    vector = _INHERITED[0]
+    refused = []
+    for call in (lambda: vector.step(np.zeros((2, 1), np.int32)), lambda: vector.send(np.zeros((2, 1), np.int32),
+                 np.arange(2)), vector.recv):
+        try:
+            call()
+            refused.append(None)
+        except mll.MLLError as error:
+            refused.append((error.code.name, error.message))
+    return refused
+
+
+def test_a_forked_child_cannot_step_the_parents_vector_env(address):
+    """step, send and recv look up nothing per call to know their process: a fork turns their
+    one-call paths off in the child, which then refuses them as every other call."""
+    import multiprocessing
+
+    with mll.vector_env(2, address=address, n_landers=1) as vector:
+        vector.reset(seed=1)
+        _INHERITED[:] = [vector]
+        try:
+            with multiprocessing.get_context("fork").Pool(1) as pool:
+                refused = pool.apply_async(_use_inherited).get(timeout=60)
+        finally:
+            _INHERITED.clear()
+        for code, message in refused:
+            assert code == "FAILED_PRECONDITION" and "forked process must make its own environments" in message
+        assert vector.step(np.zeros((2, 1), np.int32))[0].shape == (2, 1, 12)  # The parent's still steps.
