@@ -113,7 +113,8 @@ MLL_NATIVE_API const char* mll_vector_env_name(const mll_vector_env* env,
                                                int index);
 MLL_NATIVE_API const char* mll_vector_env_env_address(const mll_vector_env* env,
                                                       int index);
-/* The servers that hold envs, in server order: their count, each address,
+/* The servers the handle knows (those of `addresses`, a name's resolved, and
+ * those that joined a name since), in server order: their count, each address,
  * and each one's mll.v1.ServerInfo (GetServerInfo's answer), serialized
  * (valid until the next call on the handle). */
 MLL_NATIVE_API int mll_vector_env_server_count(const mll_vector_env* env);

@@ -647,7 +647,9 @@ class VectorEnv:
 
     @property
     def addresses(self) -> list[str]:
-        """The address of each server that holds environments, in server order."""
+        """The address of each server the vector env knows (those of `address=`, a name's as it
+        resolved, and those that joined a name since), in server order; `env_addresses` says
+        which hold environments."""
         handle = self._live()
         return [
             self._lib.mll_vector_env_server_address(handle, server).decode()
@@ -662,7 +664,7 @@ class VectorEnv:
 
     @property
     def server_infos(self) -> list[ServerInfo]:
-        """GetServerInfo's answer of each server that holds environments, in `addresses` order:
+        """GetServerInfo's answer of each server of `addresses`, in that order:
         release, wire protocol version, capabilities and limits."""
         count = self._lib.mll_vector_env_server_count(self._live())
         return [
