@@ -33,6 +33,10 @@ an older commit in one run, check the older commit out beside this one and keep 
         --engine before=/tmp/before/client_py,/tmp/before-bin/libmll_native_stream.so,/tmp/before-bin/mll_cli \\
         --engine after=client_py,build/client_cpp/libmll_native_stream.so,build/client_cpp/mll_cli
 
+`--reused NAME` measures engine NAME's Python client a second time with `vector_env(copy=False)`
+(the arrays the engine writes in place, handed out without the per-call copy), beside the same
+C++ figure.
+
 Lines of client code (`wc -l`) of each engine's checkout (the folder above its client_py) are
 printed too: the Python package, the C++ client (src, include, native) and, of these, the files
 of the vector engine. Loopback only; every run is bounded by --seconds. Prints Markdown tables
@@ -115,11 +119,12 @@ def client_lines(root: pathlib.Path) -> dict[str, int]:
 
 
 def measure(server: Server, engine: Engine, kind: str, transport: str, args) -> dict:
-    """One measurement: a Python (kind "python") or C++ ("cpp") client of `engine` on `transport`;
-    {"refused": why} when the engine's vector_env does not start on that transport."""
+    """One measurement: a Python (kind "python"; "python_reused": with copy=False) or C++ ("cpp")
+    client of `engine` on `transport`; {"refused": why} when the engine's vector_env does not start
+    on that transport."""
     options = argparse.Namespace(clients=1, envs=args.envs, seconds=args.seconds, transport=transport,
-                                 cli=engine.cli)
-    if kind == "python":
+                                 cli=engine.cli, copy=False if kind == "python_reused" else None)
+    if kind.startswith("python"):
         def clients():
             return PythonClients(options, server.address, 1, None, env=engine.env)
     else:
@@ -128,7 +133,7 @@ def measure(server: Server, engine: Engine, kind: str, transport: str, args) -> 
     try:
         window = measure_window(options, server, 1, clients)
     except RuntimeError as error:  # E.g. a package whose vector envs have no grpcio transport.
-        if kind != "python":
+        if not kind.startswith("python"):
             raise
         # The exception's last line, its first clause: "MLLError: INVALID_ARGUMENT: transport is 'grpc': ...".
         why = str(error).strip().splitlines()[-1].split(";")[0].rpartition("._errors.")[2]
@@ -161,6 +166,9 @@ def main() -> int:
     parser.add_argument("--threads", type=int, default=2, help="mll_server --threads")
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--seconds", type=float, default=4.0, help="each client's run, >= 4 (window: 2 s less)")
+    parser.add_argument("--reused", action="append", default=[], metavar="NAME",
+                        help="also measure engine NAME's Python client with vector_env(copy=False), the arrays "
+                             "reused between calls (repeatable; a package that has copy=)")
     args = parser.parse_args()
     transports = args.transports.split(",")
     if not set(transports) <= set(TRANSPORTS):
@@ -170,19 +178,22 @@ def main() -> int:
     engines = [Engine.parse(text, args.cli) for text in args.engine] or [Engine("current", None, None, args.cli)]
     if len({engine.name for engine in engines}) != len(engines):
         parser.error("--engine: the names must differ")
+    if not set(args.reused) <= {engine.name for engine in engines}:
+        parser.error("--reused: the name of an engine measured")
 
     # results[engine][kind][transport] -> one dict per round.
-    results = {engine.name: {"python": {t: [] for t in transports}, "cpp": {t: [] for t in transports}}
-               for engine in engines}
+    kinds = {engine.name: ["python"] + (["python_reused"] if engine.name in args.reused else []) + ["cpp"]
+             for engine in engines}
+    results = {engine.name: {kind: {t: [] for t in transports} for kind in kinds[engine.name]} for engine in engines}
     load = [os.getloadavg()]
     server = Server(args.server, args.threads, None)
     try:
         for _ in range(args.rounds):
             for transport in transports:
                 for engine in engines:
-                    results[engine.name]["python"][transport].append(measure(server, engine, "python", transport, args))
-                    results[engine.name]["cpp"][transport].append(
-                        measure(server, engine, "cpp", CPP_TRANSPORT[transport], args))
+                    for kind in kinds[engine.name]:
+                        results[engine.name][kind][transport].append(
+                            measure(server, engine, kind, CPP_TRANSPORT[transport] if kind == "cpp" else transport, args))
             load.append(os.getloadavg())
     finally:
         server.close()
@@ -195,26 +206,29 @@ def main() -> int:
           "| Python / C++ | calls/s Python / C++ | server CPU us/call Python / C++ |")
     print("|---|---|---|---|---|---|---|")
     ratios = {}
+
+    def column(rounds: list[dict], key: str) -> list[float]:
+        return [one[key] for one in rounds]
+
     for transport in transports:
         for engine in engines:
-            python, cpp = results[engine.name]["python"][transport], results[engine.name]["cpp"][transport]
-            if any("refused" in one for one in python):
-                print(f"| {transport} | {engine.name} | not measured: {python[0].get('refused', 'refused')} "
-                      f"| {_summary([one['client_us_per_call'] for one in cpp])} ({CPP_TRANSPORT[transport]}) "
-                      "| | | |")
-                continue
-            ratio = [p["client_us_per_call"] / c["client_us_per_call"] for p, c in zip(python, cpp)]
-            ratios[f"{engine.name}/{transport}"] = ratio
-
-            def column(rounds: list[dict], key: str) -> list[float]:
-                return [one[key] for one in rounds]
-
-            print(f"| {transport} | {engine.name} | {_summary(column(python, 'client_us_per_call'))} "
-                  f"| {_summary(column(cpp, 'client_us_per_call'))} ({CPP_TRANSPORT[transport]}) "
-                  f"| {_summary(ratio, 2)} | {statistics.median(column(python, 'calls_per_s')):,.0f} / "
-                  f"{statistics.median(column(cpp, 'calls_per_s')):,.0f} "
-                  f"| {statistics.median(column(python, 'server_us_per_call')):.0f} / "
-                  f"{statistics.median(column(cpp, 'server_us_per_call')):.0f} |")
+            cpp = results[engine.name]["cpp"][transport]
+            for kind in kinds[engine.name][:-1]:
+                python = results[engine.name][kind][transport]
+                name = engine.name + (" (copy=False)" if kind == "python_reused" else "")
+                if any("refused" in one for one in python):
+                    print(f"| {transport} | {name} | not measured: {python[0].get('refused', 'refused')} "
+                          f"| {_summary([one['client_us_per_call'] for one in cpp])} ({CPP_TRANSPORT[transport]}) "
+                          "| | | |")
+                    continue
+                ratio = [p["client_us_per_call"] / c["client_us_per_call"] for p, c in zip(python, cpp)]
+                ratios[f"{name}/{transport}"] = ratio
+                print(f"| {transport} | {name} | {_summary(column(python, 'client_us_per_call'))} "
+                      f"| {_summary(column(cpp, 'client_us_per_call'))} ({CPP_TRANSPORT[transport]}) "
+                      f"| {_summary(ratio, 2)} | {statistics.median(column(python, 'calls_per_s')):,.0f} / "
+                      f"{statistics.median(column(cpp, 'calls_per_s')):,.0f} "
+                      f"| {statistics.median(column(python, 'server_us_per_call')):.0f} / "
+                      f"{statistics.median(column(cpp, 'server_us_per_call')):.0f} |")
 
     lines = {engine.name: client_lines(engine.root) for engine in engines}
     print(f"\nLines of client code (wc -l) | {' | '.join(engine.name for engine in engines)} |")

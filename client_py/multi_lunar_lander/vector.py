@@ -26,7 +26,6 @@ import ctypes
 import logging
 import math
 import numbers
-import operator
 import os
 import weakref
 from typing import Any, NamedTuple, Sequence
@@ -99,6 +98,9 @@ def columns(lib: ctypes.CDLL) -> tuple[_Column, ...]:
     return table
 
 
+_copy_array = np.ndarray.copy
+
+
 class _Results:
     """The arrays the engine writes the results of `rows`-row calls into, in place: one buffer
     the adapter owns, laid out as a NumPy structured record of one field per result column
@@ -125,25 +127,26 @@ class _Results:
         if code:
             raise from_call_status(code, lib.mll_vector_env_message(handle).decode(errors="replace"))
         infos = [name for name in names if name not in _RETURNED and name != "env_ids"]
-        self._returned = operator.itemgetter(*_RETURNED)
         self._info_keys = [_INFO_KEYS.get(name, name) for name in infos]
-        self._infos = operator.itemgetter(*infos)
-        self._env_ids = operator.itemgetter("env_ids")
-        # The record's own arrays, handed out by every call with copy=False.
-        self._own = (self._returned(self.record), self._infos(self.record), self._env_ids(self.record))
+        # The record's arrays (each a view of its field): step()'s, then the infos', then env_ids.
+        self._own = [self.record[name] for name in _RETURNED + tuple(infos)]
+        self._own_returned = tuple(self._own[: len(_RETURNED)])
+        self._env_ids = self.record["env_ids"]
 
     def arrays(self, copy: bool, with_env_ids: bool) -> tuple:
-        """step()'s return value from the record: views of a copy of it (copy: the caller's own
-        arrays), or the record's own arrays (overwritten by the next call that makes results of as
-        many rows); the infos dict is new either way."""
+        """step()'s return value from the record: copies of its arrays (copy: the caller's own,
+        one ndarray.copy each, the cheapest way found to hand out new arrays), or the record's
+        arrays themselves (overwritten by the next call that makes results of as many rows); the
+        infos dict is new either way."""
+        count = len(_RETURNED)
         if copy:
-            record = np.ndarray((), self.dtype, self.raw.copy())
-            returned, infos, env_ids = self._returned(record), self._infos(record), self._env_ids(record)
+            arrays = list(map(_copy_array, self._own))
+            returned = tuple(arrays[:count])
         else:
-            returned, infos, env_ids = self._own
-        infos = dict(zip(self._info_keys, infos))
+            arrays, returned = self._own, self._own_returned
+        infos = dict(zip(self._info_keys, arrays[count:]))
         if with_env_ids:  # int64, NumPy's and torch's index type (the engine's column is int32).
-            infos["env_id"] = env_ids.astype(np.int64)
+            infos["env_id"] = self._env_ids.astype(np.int64)
         return returned + (infos,)
 
 
