@@ -112,11 +112,14 @@ def test_an_env_deleted_behind_its_back_is_recreated_on_its_server(address, raw_
 
 
 def _rounds(vector, table, rounds, fault_round=None, fault=None):
-    """Each env's results over `rounds` rounds after async_reset: a round sends envs 1 and 4,
-    then 2 and 5, then 0 and 3 (over three servers: the second server's first), and recvs all
-    six (batch_size 3). fault() runs before the sends of round `fault_round` (a server killed
-    after them may have answered already)."""
+    """Each env's results over `rounds` rounds after async_reset: a round sends the envs of each
+    server in turn, the second server's first (as placed at the start), and recvs all six
+    (batch_size 3). fault() runs before the sends of round `fault_round` (a server killed after
+    them may have answered already)."""
     deadline = time.monotonic() + SECONDS
+    placed = vector.env_addresses
+    servers = sorted(set(placed), key=placed.index)
+    groups = [[env for env in range(6) if placed[env] == server] for server in servers[1:] + servers[:1]]
     vector.async_reset(seed=3)
     got = [[] for _ in range(6)]
     for round_ in range(rounds + 1):
@@ -124,7 +127,7 @@ def _rounds(vector, table, rounds, fault_round=None, fault=None):
         if round_ == fault_round:
             fault()
         if round_:
-            for ids in ([1, 4], [2, 5], [0, 3]):
+            for ids in groups:
                 vector.send(table[round_ - 1, ids], ids)
         for _ in range(2):
             observations, rewards, *_, infos = vector.recv()
@@ -143,8 +146,8 @@ def test_a_target_that_drains_during_the_failover_is_passed_over(caplog):
             expected = _rounds(vector, table, rounds)
 
         def fault():
-            # b dies, then the steps of its envs 1 and 4 are sent first: their failover picks a and
-            # c round robin, and c drains already, so env 4 goes on to a.
+            # b dies, then the steps of its envs are sent first: their failover places them on a
+            # and c (the least loaded, one each), and c drains already, so its share goes on to a.
             _kill(b)
             c._process.send_signal(signal.SIGTERM)
             wait_draining(c.address)
