@@ -298,5 +298,56 @@ TEST_F(ElasticFleetTest, ASeededResetMovesEnvsWithoutReplay) {
               Undisturbed(absl::StrCat("127.0.0.2:", port), kEnvs, 0, 3));
 }
 
+// With TLS, each server a name resolves to is checked against the name (the
+// certificate of a headless Service's name serves every pod): a certificate
+// for fleet.test is accepted at 127.0.0.2 and .3, one for another name is
+// refused, and tls_target_name_override still decides when set.
+TEST_F(ElasticFleetTest, TlsChecksEachServerAgainstTheName) {
+  MLL_RUN_IN_NAMESPACE();
+  const int port = FreePortOnFleet();
+  ASSERT_GT(port, 0);
+  absl::StatusOr<Certificate> fleet =
+      MakeSelfSignedCertificate("mll_fleet", absl::StrCat("DNS:", kName));
+  ASSERT_TRUE(fleet.ok()) << fleet.status();
+  std::vector<std::unique_ptr<ServerProcess>> servers;
+  for (const char* host : {"127.0.0.2", "127.0.0.3"}) {
+    absl::StatusOr<std::unique_ptr<ServerProcess>> server =
+        ServerProcess::Start(
+            MLL_SERVER_PATH,
+            {absl::StrCat("--address=", host, ":", port), "--threads=1",
+             "--tls_cert=" + fleet->cert_file, "--tls_key=" + fleet->key_file});
+    ASSERT_TRUE(server.ok()) << server.status();
+    servers.push_back(*std::move(server));
+  }
+  WriteHosts(hosts_, {"127.0.0.2", "127.0.0.3"});
+  ClientOptions options;
+  options.use_tls = true;
+  options.tls_root_certificates = fleet->cert_pem;
+  absl::StatusOr<Client> client =
+      Client::Create(absl::StrCat(kName, ":", port), options);
+  ASSERT_TRUE(client.ok()) << client.status();
+  absl::StatusOr<VectorEnv> envs = VectorEnv::Create(*client, 4, Config());
+  ASSERT_TRUE(envs.ok()) << envs.status();
+  EXPECT_EQ(Hosted(*envs),
+            (std::map<std::string, int>{{"127.0.0.2", 2}, {"127.0.0.3", 2}}));
+  EXPECT_TRUE(envs->Reset(uint64_t{1}).ok());
+  // The same servers by address: the certificate does not name 127.0.0.2.
+  absl::StatusOr<Client> by_address =
+      Client::Create(absl::StrCat("127.0.0.2:", port), options);
+  ASSERT_TRUE(by_address.ok()) << by_address.status();
+  EXPECT_EQ(by_address->CheckHealth().code(), absl::StatusCode::kUnavailable);
+  // An override names what the certificate is checked against.
+  options.tls_target_name_override = kName;
+  absl::StatusOr<Client> overridden =
+      Client::Create(absl::StrCat("127.0.0.2:", port), options);
+  ASSERT_TRUE(overridden.ok()) << overridden.status();
+  EXPECT_TRUE(overridden->CheckHealth().ok());
+  options.tls_target_name_override = "other.test";
+  absl::StatusOr<Client> wrong =
+      Client::Create(absl::StrCat(kName, ":", port), options);
+  ASSERT_TRUE(wrong.ok()) << wrong.status();
+  EXPECT_EQ(wrong->CheckHealth().code(), absl::StatusCode::kUnavailable);
+}
+
 }  // namespace
 }  // namespace mll::client
