@@ -130,7 +130,7 @@ class _Results:
         self._info_keys = [_INFO_KEYS.get(name, name) for name in infos]
         # The record's arrays (each a view of its field): step()'s, then the infos', then env_ids.
         self._own = [self.record[name] for name in _RETURNED + tuple(infos)]
-        self._own_returned = tuple(self._own[: len(_RETURNED)])
+        self._own_returned, self._own_infos = tuple(self._own[: len(_RETURNED)]), self._own[len(_RETURNED):]
         self._env_ids = self.record["env_ids"]
 
     def arrays(self, copy: bool, with_env_ids: bool) -> tuple:
@@ -138,13 +138,12 @@ class _Results:
         one ndarray.copy each, the cheapest way found to hand out new arrays), or the record's
         arrays themselves (overwritten by the next call that makes results of as many rows); the
         infos dict is new either way."""
-        count = len(_RETURNED)
         if copy:
             arrays = list(map(_copy_array, self._own))
-            returned = tuple(arrays[:count])
+            returned, infos = tuple(arrays[: len(_RETURNED)]), arrays[len(_RETURNED):]
         else:
-            arrays, returned = self._own, self._own_returned
-        infos = dict(zip(self._info_keys, arrays[count:]))
+            returned, infos = self._own_returned, self._own_infos
+        infos = dict(zip(self._info_keys, infos))
         if with_env_ids:  # int64, NumPy's and torch's index type (the engine's column is int32).
             infos["env_id"] = self._env_ids.astype(np.int64)
         return returned + (infos,)
