@@ -31,10 +31,20 @@ CPU per agent-step, (server - floor) x E x L, the CPU a call costs beyond its ph
 --pin (for a host with more than T cores): the server and the floor on cores 0..T-1, the
 clients on the others.
 
+--rounds N measures each configuration N times, the server and its floor alternating (server,
+floor, server, floor, ...), and reports the median ratio and fixed cost with the range: on a
+shared machine the load moves between one run and the next by more than the server's own
+per-call work, and a single server run against a single floor run, taken one after the other,
+says little. --compare_server PATH measures a second server binary in every round too (the order
+of the two swapping each round), so that before and after a change are compared under the same
+load.
+
 Loopback only; every run is bounded by --seconds. Prints a Markdown table and one JSON line.
 
     .venv/bin/python bench/service/bench_server_cpu.py --seconds 8
     .venv/bin/python bench/service/bench_server_cpu.py --clients_kind python --threads 2,8 --n_landers 1,3
+    .venv/bin/python bench/service/bench_server_cpu.py --clients_kind python --threads 2,8 --n_landers 1 \
+        --rounds 3 --compare_server /tmp/mll_server_before
 """
 
 from __future__ import annotations
@@ -44,6 +54,7 @@ import json
 import os
 import pathlib
 import re
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -308,8 +319,8 @@ def measure_window(args, server: Server, n_landers: int, clients_factory) -> dic
     }
 
 
-def measure_server(args, threads: int, n_landers: int, server_cores, client_cores) -> dict:
-    server = Server(args.server, threads, server_cores)
+def measure_server(args, binary: str, threads: int, n_landers: int, server_cores, client_cores) -> dict:
+    server = Server(binary, threads, server_cores)
     try:
         if server_cores:
             _pin(server.pid, server_cores)
@@ -331,6 +342,11 @@ def measure_core(args, threads: int, n_landers: int, cores, lockstep: bool) -> d
     result["cpu_s"] = children_cpu_s() - cpu_before
     result["cpu_us_per_agent_step"] = result["cpu_s"] / result["agent_steps"] * 1e6
     return result
+
+
+def _label(binary: str, servers: list[str]) -> str:
+    """"server" alone; with --compare_server, "server" and "compared"."""
+    return "server" if binary == servers[0] else "compared"
 
 
 def _ints(text: str) -> list[int]:
@@ -368,13 +384,20 @@ def main() -> int:
     parser.add_argument("--transport", default="native", choices=["native", "shared_memory"])
     parser.add_argument("--pin", action="store_true",
                         help="server and floor on cores 0..T-1, clients on the other cores")
+    parser.add_argument("--rounds", type=int, default=1,
+                        help="measurements of each configuration, server and floor alternating; medians reported")
+    parser.add_argument("--compare_server", default="",
+                        help="a second mll_server binary measured in every round too (e.g. before a change)")
     parser.add_argument("--max_ratio", type=float, default=0.0,
                         help="exit 1 if a ratio exceeds this (0: report only)")
     args = parser.parse_args()
     if args.seconds < 4:
         parser.error("--seconds: at least 4 (a second either side of the window is left out)")
+    if args.rounds < 1:
+        parser.error("--rounds: at least 1")
     cores = sorted(os.sched_getaffinity(0))
 
+    servers = [args.server] + ([args.compare_server] if args.compare_server else [])
     rows = []
     load_before = os.getloadavg()
     for threads in args.threads:
@@ -385,47 +408,85 @@ def main() -> int:
                 continue
             server_cores, client_cores = cores[:threads], cores[threads:]
         for n_landers in args.n_landers:
-            server = measure_server(args, threads, n_landers, server_cores, client_cores)
-            core = measure_core(args, threads, n_landers, server_cores, lockstep=True)
+            for round_index in range(args.rounds):
+                # The binaries take turns going first.
+                order = servers if round_index % 2 == 0 else servers[::-1]
+                measured = {binary: measure_server(args, binary, threads, n_landers, server_cores, client_cores)
+                            for binary in order}
+                core = measure_core(args, threads, n_landers, server_cores, lockstep=True)
+                for binary in servers:
+                    server = measured[binary]
+                    # What a call costs the server beyond its physics: its CPU over the window less
+                    # the floor's CPU for the same agent-steps, per call.
+                    fixed_us = (server["server_cpu_s"] * 1e6
+                                - core["cpu_us_per_agent_step"] * server["window_agent_steps"]) / max(
+                        1, server["window_calls"])
+                    rows.append({"threads": threads, "n_landers": n_landers, "round": round_index,
+                                 "binary": binary, "server": server, "core": core,
+                                 "fixed_us_per_call": fixed_us,
+                                 "ratio": server["server_cpu_us_per_agent_step"] / core["cpu_us_per_agent_step"],
+                                 "throughput_vs_core": server["agent_steps_per_s"] / core["agent_steps_per_s"],
+                                 "load": os.getloadavg()[0]})
+                    disagreement = abs(server["server_cpu_s"] - server["server_proc_cpu_s"])
+                    if disagreement > max(0.05, 0.03 * server["server_proc_cpu_s"]):
+                        print(f"warning: /metrics CPU {server['server_cpu_s']:.3f} s vs /proc "
+                              f"{server['server_proc_cpu_s']:.3f} s", file=sys.stderr)
             free_running = measure_core(args, threads, n_landers, server_cores, lockstep=False)
-            server_us = server["server_cpu_us_per_agent_step"]
-            # What a call costs the server beyond its physics: its CPU over the window less the
-            # floor's CPU for the same agent-steps, per call.
-            fixed_us = (server["server_cpu_s"] * 1e6 - core["cpu_us_per_agent_step"] * server["window_agent_steps"]) / max(
-                1, server["window_calls"])
-            rows.append({"threads": threads, "n_landers": n_landers, "server": server, "core": core,
-                         "fixed_us_per_call": fixed_us,
-                         "free_running_core": free_running,
-                         "ratio": server_us / core["cpu_us_per_agent_step"],
-                         "ratio_free_running": server_us / free_running["cpu_us_per_agent_step"],
-                         "throughput_vs_core": server["agent_steps_per_s"] / core["agent_steps_per_s"]})
-            disagreement = abs(server["server_cpu_s"] - server["server_proc_cpu_s"])
-            if disagreement > max(0.05, 0.03 * server["server_proc_cpu_s"]):
-                print(f"warning: /metrics CPU {server['server_cpu_s']:.3f} s vs /proc {server['server_proc_cpu_s']:.3f} s",
-                      file=sys.stderr)
+            for row in rows:
+                if row["threads"] == threads and row["n_landers"] == n_landers:
+                    row["free_running_core"] = free_running
+                    row["ratio_free_running"] = (row["server"]["server_cpu_us_per_agent_step"]
+                                                 / free_running["cpu_us_per_agent_step"])
     load_after = os.getloadavg()
 
     load = "mll_cli bench" if args.clients_kind == "cli" else "Python vector_env"
     print(f"{args.clients} clients x {args.envs} envs ({load}, {args.transport}), {args.seconds:g} s runs, "
           f"{len(cores)} cores{' pinned' if args.pin else ''}; load average {load_before[0]:.2f} before, "
           f"{load_after[0]:.2f} after\n")
-    print("| T | landers | agent-steps/s | vs core | server CPU us/agent-step | core CPU us/agent-step | ratio "
-          "| free-running core us/agent-step | ratio to it | server CPU per call beyond the floor, us "
-          "| context switches/call |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| T | landers | server | round | load | agent-steps/s | vs core | server CPU us/agent-step "
+          "| core CPU us/agent-step | ratio | free-running core us/agent-step | ratio to it "
+          "| server CPU per call beyond the floor, us | context switches/call |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for row in rows:
         server, core = row["server"], row["core"]
-        print(f"| {row['threads']} | {row['n_landers']} | {server['agent_steps_per_s']:,.0f} "
+        print(f"| {row['threads']} | {row['n_landers']} | {_label(row['binary'], servers)} | {row['round'] + 1} "
+              f"| {row['load']:.1f} | {server['agent_steps_per_s']:,.0f} "
               f"| {row['throughput_vs_core']:.2f} | {server['server_cpu_us_per_agent_step']:.2f} "
               f"| {core['cpu_us_per_agent_step']:.2f} | {row['ratio']:.2f}x "
               f"| {row['free_running_core']['cpu_us_per_agent_step']:.2f} | {row['ratio_free_running']:.2f}x "
               f"| {row['fixed_us_per_call']:.0f} | {server['voluntary_switches_per_call']:.1f} |")
+    if args.rounds > 1:
+        print("\nMedians over the rounds (range in brackets):\n")
+        print("| T | landers | server | ratio to the lockstep floor | server CPU per call beyond the floor, us "
+              "| context switches/call |")
+        print("|---|---|---|---|---|---|")
+        for threads in args.threads:
+            for n_landers in args.n_landers:
+                for binary in servers:
+                    group = [row for row in rows if (row["threads"], row["n_landers"], row["binary"])
+                             == (threads, n_landers, binary)]
+                    if not group:
+                        continue
+                    ratios = [row["ratio"] for row in group]
+                    fixed = [row["fixed_us_per_call"] for row in group]
+                    switches = [row["server"]["voluntary_switches_per_call"] for row in group]
+                    print(f"| {threads} | {n_landers} | {_label(binary, servers)} "
+                          f"| {statistics.median(ratios):.2f}x ({min(ratios):.2f}-{max(ratios):.2f}) "
+                          f"| {statistics.median(fixed):.0f} ({min(fixed):.0f} to {max(fixed):.0f}) "
+                          f"| {statistics.median(switches):.2f} |")
     print(json.dumps({"benchmark": "server_cpu", "clients": args.clients, "clients_kind": args.clients_kind,
                       "envs": args.envs,
                       "transport": args.transport, "seconds": args.seconds, "pin": args.pin, "cores": len(cores),
+                      "rounds": args.rounds, "servers": servers,
                       "load_before": load_before, "load_after": load_after, "rows": rows}))
-    if args.max_ratio and any(row["ratio"] > args.max_ratio for row in rows):
-        return 1
+    if args.max_ratio:
+        # Each configuration's median over its rounds, of the server under test.
+        for threads in args.threads:
+            for n_landers in args.n_landers:
+                ratios = [row["ratio"] for row in rows if (row["threads"], row["n_landers"], row["binary"])
+                          == (threads, n_landers, servers[0])]
+                if ratios and statistics.median(ratios) > args.max_ratio:
+                    return 1
     return 0
 
 
