@@ -7,6 +7,7 @@
 #include "absl/container/flat_hash_set.h"
 #include "absl/strings/str_cat.h"
 #include "discovery.h"
+#include "placement.h"
 #include "transport.h"
 #include "wire.h"
 
@@ -247,8 +248,7 @@ std::string RemoteEnv::Release() {
 // ------------------------------------------------------------------- Client
 
 Client::Client(std::vector<std::shared_ptr<Transport>> transports)
-    : transports_(std::move(transports)),
-      next_server_(std::make_shared<std::atomic<uint64_t>>(0)) {}
+    : transports_(std::move(transports)) {}
 Client::Client(Client&&) noexcept = default;
 Client& Client::operator=(Client&&) noexcept = default;
 Client::~Client() = default;
@@ -343,18 +343,38 @@ absl::Status Client::CheckHealth(absl::string_view service) const {
 
 absl::StatusOr<RemoteEnv> Client::CreateEnv(const RemoteEnvConfig& config,
                                             bool detached) const {
-  // A server that does not answer (e.g. a name's IPv6 address where the
-  // server listens on IPv4 only, or a pod not up yet) is passed over for
-  // the next; UNAVAILABLE only when none answers.
+  if (transports_.size() == 1) return CreateEnvAt(0, config, detached);
+  // The least-loaded server by what each reports now (PlanPlacement, the
+  // rule of VectorEnv's placement). One that does not answer (e.g. a name's
+  // IPv6 address where the server listens on IPv4 only, or a pod not up
+  // yet) or refuses (RESOURCE_EXHAUSTED: full, or this token's quota there)
+  // is passed over for the next; its error, naming it, when none is left.
+  std::vector<internal::ServerCapacity> capacity(transports_.size());
   absl::StatusOr<RemoteEnv> env = absl::UnavailableError("no server");
+  for (size_t server = 0; server < transports_.size(); ++server) {
+    absl::StatusOr<v1::ServerInfo> info =
+        transports_[server]->ServerInfo(/*fresh=*/true);
+    if (info.ok()) {
+      capacity[server] =
+          internal::CapacityOf(internal::DecodeServerInfo(*info));
+    } else {
+      capacity[server].usable = false;
+      env = AtServer(*transports_[server], info.status());
+    }
+  }
   for (size_t tried = 0; tried < transports_.size(); ++tried) {
-    const size_t server =
-        next_server_->fetch_add(1, std::memory_order_relaxed) %
-        transports_.size();
+    const std::vector<int> plan = internal::PlanPlacement(capacity, 1);
+    const auto chosen = std::find(plan.begin(), plan.end(), 1);
+    if (chosen == plan.end()) break;
+    const size_t server = static_cast<size_t>(chosen - plan.begin());
     env = CreateEnvAt(server, config, detached);
-    if (!absl::IsUnavailable(env.status())) break;
-    if (transports_.size() > 1)
-      env = AtServer(*transports_[server], env.status());
+    if (env.ok()) return env;
+    env = AtServer(*transports_[server], env.status());
+    if (!absl::IsUnavailable(env.status()) &&
+        !absl::IsResourceExhausted(env.status())) {
+      return env;
+    }
+    capacity[server].usable = false;
   }
   return env;
 }

@@ -15,6 +15,15 @@ double CpuUse(const ServerCapacity& server) {
 
 }  // namespace
 
+ServerCapacity CapacityOf(const ServerInfo& info) {
+  ServerCapacity capacity;
+  capacity.envs_hosted = info.load.envs_hosted;
+  capacity.max_envs = info.max_envs;
+  capacity.cpu_cores = info.load.cpu_cores;
+  capacity.cores_available = info.load.cores_available;
+  return capacity;
+}
+
 std::vector<int> PlanPlacement(absl::Span<const ServerCapacity> servers,
                                int count) {
   std::vector<int> taken(servers.size(), 0);

@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "absl/types/span.h"
+#include "mll/client_types.h"
 
 namespace mll::client {
 namespace internal {
@@ -25,6 +26,9 @@ struct ServerCapacity {
   // False: the server takes no new env (down, gone from its name, full).
   bool usable = true;
 };
+
+// What placement reads of a server's GetServerInfo answer (usable).
+ServerCapacity CapacityOf(const ServerInfo& info);
 
 // How many of `count` new envs each server gets (one entry per server):
 // water-filling, each env in turn to the usable server with room whose fill

@@ -420,13 +420,7 @@ constexpr absl::string_view kVectorNeeds[] = {"packed_step_batch",
 
 // A server's load as placement reads it.
 ServerCapacity CapacityOf(const v1::ServerInfo& proto) {
-  const ServerInfo info = internal::DecodeServerInfo(proto);
-  ServerCapacity capacity;
-  capacity.envs_hosted = info.load.envs_hosted;
-  capacity.max_envs = info.max_envs;
-  capacity.cpu_cores = info.load.cpu_cores;
-  capacity.cores_available = info.load.cores_available;
-  return capacity;
+  return internal::CapacityOf(internal::DecodeServerInfo(proto));
 }
 
 // A resolution of a VectorEnv's address list (made off its thread, taken

@@ -94,7 +94,7 @@ TEST(ScaleOutTest, CreateRejectsBadAddressLists) {
   EXPECT_THAT(empty.status().message(), HasSubstr("addresses[1]"));
 }
 
-TEST(ScaleOutTest, EnvsSpreadRoundRobinOverBothServers) {
+TEST(ScaleOutTest, EnvsSpreadEvenlyOverBothServers) {
   const Client client = ConnectBoth();
   ASSERT_EQ(client.server_count(), kServers);
   EXPECT_EQ(client.address(1), TwoServers::addresses()[1]);
@@ -104,10 +104,13 @@ TEST(ScaleOutTest, EnvsSpreadRoundRobinOverBothServers) {
   for (int i = 0; i < 4; ++i) {
     absl::StatusOr<RemoteEnv> env = client.CreateEnv(Landers(1));
     ASSERT_TRUE(env.ok()) << env.status();
-    EXPECT_EQ(env->server(), i % kServers);
+    // Each new env goes to the server hosting fewer: the two alternate.
+    if (i % 2 == 1) EXPECT_NE(env->server(), envs.back().server());
     placed[env->server()].insert(env->name());
     envs.push_back(*std::move(env));
   }
+  EXPECT_EQ(placed[0].size(), 2u);
+  EXPECT_EQ(placed[1].size(), 2u);
   // Each server holds exactly its share, as its own ListEnvs says.
   for (int server = 0; server < kServers; ++server) {
     const std::set<std::string> listed = Names(ConnectOne(server));
@@ -129,6 +132,26 @@ TEST(ScaleOutTest, EnvsSpreadRoundRobinOverBothServers) {
     }
   }
   EXPECT_EQ(found, 4);
+}
+
+// Placement by load: a server already hosting another client's envs gets
+// none of the new ones until the other has caught up.
+TEST(ScaleOutTest, CreateEnvGoesToTheLeastLoadedServer) {
+  const Client tenant = ConnectOne(0);
+  std::vector<RemoteEnv> theirs;
+  for (int i = 0; i < 3; ++i) {
+    absl::StatusOr<RemoteEnv> env = tenant.CreateEnv(Landers(1));
+    ASSERT_TRUE(env.ok()) << env.status();
+    theirs.push_back(*std::move(env));
+  }
+  const Client client = ConnectBoth();
+  std::vector<RemoteEnv> mine;
+  for (int i = 0; i < 3; ++i) {
+    absl::StatusOr<RemoteEnv> env = client.CreateEnv(Landers(1));
+    ASSERT_TRUE(env.ok()) << env.status();
+    EXPECT_EQ(env->server(), 1) << "env " << i;
+    mine.push_back(*std::move(env));
+  }
 }
 
 TEST(ScaleOutTest, CreateEnvOnPicksTheServer) {
@@ -285,9 +308,10 @@ TEST_P(ScaleOutBatchTest, BatchAcrossServersIsBitIdenticalToOneServer) {
   Fleet single(one, kEnvs);
   ASSERT_EQ(spread.envs().size(), static_cast<size_t>(kEnvs));
   ASSERT_EQ(single.envs().size(), static_cast<size_t>(kEnvs));
-  for (int j = 0; j < kEnvs; ++j) {
-    EXPECT_EQ(spread.envs()[j].server(), j % kServers);
-  }
+  // Placed by load: each server holds its even share.
+  std::vector<int> per_server(kServers, 0);
+  for (const RemoteEnv& env : spread.envs()) ++per_server[env.server()];
+  EXPECT_EQ(per_server, std::vector<int>(kServers, kEnvs / kServers));
   std::vector<StepData> a = spread.Reset();
   std::vector<StepData> b = single.Reset();
   int steps = 0;

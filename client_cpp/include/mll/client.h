@@ -9,12 +9,13 @@
 // Several servers (scale-out): `Client::Create(addresses)` makes one client
 // over a list of servers; a host name in it stands for every address it
 // resolves to (discovery, below at Create). Each environment lives on one
-// server for its life: CreateEnv places them round-robin (CreateEnvOn picks the
-// server), and the handle's calls go to that server only. StepBatch splits a
-// batch by server, sends one StepBatch per server, all in flight at once, and
-// returns results in the caller's order. ListEnvs concatenates every server's
-// list; GetEnv, Attach and DeleteEnv look a name up on each server in turn. A
-// session client over several servers holds one stream per server.
+// server for its life: CreateEnv places each on the least-loaded server
+// (CreateEnvOn picks the server), and the handle's calls go to that server
+// only. StepBatch splits a batch by server, sends one StepBatch per server, all
+// in flight at once, and returns results in the caller's order. ListEnvs
+// concatenates every server's list; GetEnv, Attach and DeleteEnv look a name up
+// on each server in turn. A session client over several servers holds one
+// stream per server.
 //
 // Security: `ClientOptions` selects TLS (root certificates, target name
 // override) and a bearer token, which is sent on every call: unary calls,
@@ -174,11 +175,13 @@ class Client {
   // not SERVING), prefixed with its address when there are several servers.
   absl::Status CheckHealth(absl::string_view service = "") const;
 
-  // Creates an environment on the next server in round-robin order (shared
-  // by the threads using this client), passing over a server that answers
-  // UNAVAILABLE for the next (UNAVAILABLE naming the last when none
-  // answers); the handle owns it. `detached` matters on a session only: the
-  // env outlives the stream.
+  // Creates an environment on the least-loaded server by what each reports
+  // now (GetServerInfo's load: envs hosted against max_envs, then CPU use;
+  // the rule of VectorEnv's placement), passing over a server that does not
+  // answer (UNAVAILABLE) or refuses it (RESOURCE_EXHAUSTED: full, or the
+  // token's quota there) for the next; the last such error, naming its
+  // server, when none is left. The handle owns the env. `detached` matters on a
+  // session only: the env outlives the stream.
   absl::StatusOr<RemoteEnv> CreateEnv(const RemoteEnvConfig& config = {},
                                       bool detached = false) const;
   // Creates an environment on server `server`; INVALID_ARGUMENT when it is
@@ -246,8 +249,6 @@ class Client {
   // VectorEnv resolves again to find servers that joined a name.
   std::vector<std::string> entries_;
   ClientOptions options_;
-  // Round-robin placement counter; on the heap because atomics cannot move.
-  std::shared_ptr<std::atomic<uint64_t>> next_server_;
 };
 
 }  // namespace mll::client
