@@ -17,7 +17,7 @@ from . import _arrays, _lease, _record
 from ._errors import MLLError
 from ._channel import Security, is_name, parse_addresses, resolve_endpoints, step_timeout_value
 from ._remote import (
-    Connection, config_dict, connect_endpoint, connect_single, make_config, place, rebuild, space_from_proto,
+    Connection, config_dict, connect_endpoint, create_single, make_config, place, rebuild, space_from_proto,
 )
 from ._server_info import ServerInfo
 from ._stubs import pb
@@ -68,7 +68,12 @@ class RemoteEnvBase:
         step_timeout = step_timeout_value(step_timeout_s)
         config = make_config(render_mode, False, options)
         addresses = parse_addresses(address)
-        connection = connect_single(addresses or None, server_index, security, step_timeout)
+
+        def create(connection: Connection):
+            connection.check_server()  # GetServerInfo, once per connection.
+            return connection.call("CreateEnv", pb.CreateEnvRequest(config=config))
+
+        connection, env = create_single(addresses or None, server_index, security, step_timeout, create)
         # What a pickle carries (__reduce__): the arguments that make the same environment on the
         # same server again (the one it lives on now), never the connection.
         self._init_kwargs = dict(
@@ -85,12 +90,6 @@ class RemoteEnvBase:
         self._down: set[str] = set()
         self._servers_seen = max(len(addresses), 1)  # Servers `address` stood for at the last resolution.
         self._pin_pickles_to(connection.address)
-        try:
-            connection.check_server()  # GetServerInfo, once per connection.
-            env = connection.call("CreateEnv", pb.CreateEnvRequest(config=config))
-        except BaseException:
-            connection.close()
-            raise
         self._adopt(connection, env)
         self.render_mode = render_mode
         self.config = config_dict(env.config)

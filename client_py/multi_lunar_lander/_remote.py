@@ -189,32 +189,60 @@ def place(connections: Sequence["Connection"], timeout: float = PLACEMENT_TIMEOU
     return _server_info.least_loaded(infos), answers
 
 
-def connect_single(
-    address, server_index: int | None, security: Security, step_timeout_s: float | None = DEFAULT_STEP_TIMEOUT_S
-) -> "Connection":
-    """The connection of one AEC or parallel environment, to one of the servers `address` stands
-    for (address=None: the embedded server): `server_index`'s, else the least-loaded one."""
+def create_single(
+    address,
+    server_index: int | None,
+    security: Security,
+    step_timeout_s: float | None,
+    create: Callable[["Connection"], Any],
+) -> tuple["Connection", Any]:
+    """The connection of one AEC or parallel environment and what `create` made on it, on one of
+    the servers `address` stands for (address=None: the embedded server): `server_index`'s,
+    else the least-loaded one; a server that refuses the environment (RESOURCE_EXHAUSTED: full,
+    or this token's quota there) or stops answering meanwhile (UNAVAILABLE) is passed over for
+    the next least-loaded, and the last refusal raised when none is left."""
     addresses = parse_addresses(address)
     if not addresses:
         if server_index not in (None, 0):
             raise invalid_argument(f"server_index is {server_index!r} but address is None (one embedded server)")
-        return Connection(None, security, step_timeout_s=step_timeout_s)
+        return _create_on(Connection(None, security, step_timeout_s=step_timeout_s), create)
     endpoints = resolve_endpoints(addresses)
     index = check_server_index(server_index, len(endpoints))
     if index is None and len(endpoints) == 1:
         index = 0
     if index is not None:
-        return connect_endpoint(endpoints[index], security, addresses, step_timeout_s)
+        return _create_on(connect_endpoint(endpoints[index], security, addresses, step_timeout_s), create)
     connections = [connect_endpoint(endpoint, security, addresses, step_timeout_s) for endpoint in endpoints]
+    usable = list(range(len(connections)))
+    chosen = None
     try:
-        index, answers = place(connections)
-        if index is None:
-            raise no_server_takes(addresses, connections, answers)
+        while True:
+            choice, answers = place([connections[i] for i in usable])
+            if choice is None:
+                raise no_server_takes(addresses, [connections[i] for i in usable], answers)
+            try:
+                created = create(connections[usable[choice]])
+            except MLLError as error:
+                if error.code not in (grpc.StatusCode.RESOURCE_EXHAUSTED, grpc.StatusCode.UNAVAILABLE):
+                    raise
+                del usable[choice]
+                if not usable:
+                    raise
+                continue
+            chosen = usable[choice]
+            return connections[chosen], created
     finally:
         for i, connection in enumerate(connections):
-            if i != index:
+            if i != chosen:
                 connection.close()
-    return connections[index]
+
+
+def _create_on(connection: "Connection", create: Callable[["Connection"], Any]) -> tuple["Connection", Any]:
+    try:
+        return connection, create(connection)
+    except BaseException:
+        connection.close()
+        raise
 
 
 def no_server_takes(addresses: Sequence[str], connections: Sequence["Connection"], answers: Sequence) -> MLLError:

@@ -77,6 +77,28 @@ def test_no_server_with_room_is_resource_exhausted_naming_each():
             env.close()
 
 
+def test_a_token_quota_reached_on_the_least_loaded_server_passes_it_over(tmp_path):
+    """Placement reads envs hosted against --max_envs, which a per-token quota does not show: the
+    least-loaded server answers RESOURCE_EXHAUSTED once the token's quota there is reached, and
+    the env goes to the next one."""
+    tokens = tmp_path / "tokens"
+    tokens.write_text("tenant-a\ntenant-b\n")
+    auth = (f"--auth_token_file={tokens}", "--max_envs=20")
+    quota = mll.ServerProcess(threads=1, extra_args=(*auth, "--max_envs_per_token=1"))
+    roomy = mll.ServerProcess(threads=1, extra_args=auth)
+    with quota, roomy:
+        addresses = [quota.address, roomy.address]
+        # Another tenant's 3 envs keep the quota server the least loaded for tenant-a's first 3
+        # envs: the first lands there, the next two are refused there and go to the other.
+        theirs = [mll.parallel_env(address=roomy.address, token="tenant-b", n_landers=1) for _ in range(3)]
+        ours = [mll.parallel_env(address=addresses, token="tenant-a", n_landers=1) for _ in range(3)]
+        assert [env.address for env in ours] == [quota.address, roomy.address, roomy.address]
+        ours[-1].reset(seed=3)
+        ours[-1].step({agent: 0 for agent in ours[-1].agents})
+        for env in ours + theirs:
+            env.close()
+
+
 def test_failover_resolves_the_name_again(tmp_path):
     port = free_port_on(A, B)
     with server_at(A, port) as a, server_at(B, port):
