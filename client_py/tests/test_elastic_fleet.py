@@ -91,11 +91,12 @@ def _hosted(port):
 
 
 def _scenario_join(hosts_file, port):
-    """48 envs over two servers of the name; a third joins it: when does it hold >= 12?"""
+    """48 envs over two servers of the name; a third joins it: when does it hold >= 12? With the
+    default rediscover interval (10 s), as a trainer that sets nothing runs."""
     seed = 11
     with server_at(HOSTS[0], port), server_at(HOSTS[1], port):
         write_hosts(hosts_file, {NAME: HOSTS[:2]})
-        vector = mll.vector_env(NUM_ENVS, address=f"{NAME}:{port}", n_landers=LANDERS, rediscover_interval_s=1)
+        vector = mll.vector_env(NUM_ENVS, address=f"{NAME}:{port}", n_landers=LANDERS)
         try:
             trajectory = _Trajectory()
             trajectory.add(vector.reset(seed=seed)[0])
