@@ -438,7 +438,11 @@ void Operations::StepPacked(const v1::PackedSteps& request,
   const int n_landers = std::max(1, batch->actions.n_landers());
   pool_->ParallelFor(
       num_envs,
-      [this, &request, declared_names, batch, owner, kept](int e) {
+      [this, &request, declared_names, batch, owner, kept, num_envs](int e) {
+        // This runner's next env is most often e + 1.
+        if (kept != nullptr && e + 1 < num_envs) {
+          SessionBatches::Prefetch(*kept, e + 1);
+        }
         batch->statuses[e] = [&]() -> absl::Status {
           std::shared_ptr<EnvSlot> slot =
               kept != nullptr ? SessionBatches::Find(*kept, e, owner) : nullptr;

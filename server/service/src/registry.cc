@@ -292,6 +292,17 @@ void Registry::ReapLoop() {
   }
 }
 
+std::vector<uintptr_t> SessionBatches::AddressesOf(
+    const std::vector<std::weak_ptr<EnvSlot>>& slots) {
+  std::vector<uintptr_t> addresses;
+  addresses.reserve(slots.size());
+  for (const std::weak_ptr<EnvSlot>& slot : slots) {
+    const std::shared_ptr<EnvSlot> held = slot.lock();
+    addresses.push_back(reinterpret_cast<uintptr_t>(held.get()));
+  }
+  return addresses;
+}
+
 std::shared_ptr<EnvSlot> SessionBatches::Find(const Batch& batch, int index,
                                               absl::string_view owner) {
   std::shared_ptr<EnvSlot> slot = batch.slots[index].lock();
