@@ -55,22 +55,23 @@ CHANNEL_OPTIONS = (
 DEFAULT_STEP_TIMEOUT_S = 5.0
 
 
+def seconds_value(name: str, value, default: str, zero: str) -> float:
+    """`value` as float when it is a finite number of seconds >= 0; else INVALID_ARGUMENT naming
+    argument `name` and what it accepts (None: `default`; 0: `zero`)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value) or value < 0:
+        raise invalid_argument(
+            f"{name} is {value!r}; expected None (the default, {default}), 0 ({zero}) or a finite number of "
+            "seconds > 0"
+        )
+    return float(value)
+
+
 def step_timeout_value(step_timeout_s) -> float | None:
     """The deadline in seconds of a `step_timeout_s=` argument: None takes the default, 0 means no
     deadline (returned as None); INVALID_ARGUMENT for anything but a finite number >= 0."""
     if step_timeout_s is None:
         return DEFAULT_STEP_TIMEOUT_S
-    if (
-        isinstance(step_timeout_s, bool)
-        or not isinstance(step_timeout_s, numbers.Real)
-        or not math.isfinite(step_timeout_s)
-        or step_timeout_s < 0
-    ):
-        raise invalid_argument(
-            f"step_timeout_s is {step_timeout_s!r}; expected None (the default, {DEFAULT_STEP_TIMEOUT_S:g} s), "
-            "0 (no deadline) or a finite number of seconds > 0"
-        )
-    return float(step_timeout_s) or None
+    return seconds_value("step_timeout_s", step_timeout_s, f"{DEFAULT_STEP_TIMEOUT_S:g} s", "no deadline") or None
 
 
 def parse_addresses(address: str | Sequence[str] | None) -> tuple[str, ...]:

@@ -24,8 +24,6 @@ from __future__ import annotations
 
 import ctypes
 import logging
-import math
-import numbers
 import os
 import weakref
 from typing import Any, NamedTuple, Sequence
@@ -35,7 +33,7 @@ import numpy as np
 
 from . import _arrays, _native, _record
 from ._actions import _short, check_actions
-from ._channel import Security, parse_addresses, step_timeout_value
+from ._channel import Security, parse_addresses, seconds_value, step_timeout_value
 from ._errors import MLLError, from_call_status, invalid_argument
 from ._remote import (
     check_process,
@@ -154,17 +152,7 @@ def rediscover_interval_value(rediscover_interval_s) -> float:
     None, else a finite number of seconds >= 0 (0: never); INVALID_ARGUMENT for anything else."""
     if rediscover_interval_s is None:
         return -1.0
-    if (
-        isinstance(rediscover_interval_s, bool)
-        or not isinstance(rediscover_interval_s, numbers.Real)
-        or not math.isfinite(rediscover_interval_s)
-        or rediscover_interval_s < 0
-    ):
-        raise invalid_argument(
-            f"rediscover_interval_s is {rediscover_interval_s!r}; expected None (the default, 10 s), 0 (never) "
-            "or a finite number of seconds > 0"
-        )
-    return float(rediscover_interval_s)
+    return seconds_value("rediscover_interval_s", rediscover_interval_s, "10 s", "never")
 
 
 def _fill(block: np.ndarray, actions, continuous: bool) -> None:

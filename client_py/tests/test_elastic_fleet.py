@@ -306,3 +306,11 @@ if __name__ == "__main__":
     scenario_port = free_port_on(*HOSTS)
     print(json.dumps(SCENARIOS[scenario_name](hosts_path, scenario_port)), flush=True)
     os._exit(0)
+
+
+@pytest.mark.parametrize("value", [-1, float("nan"), float("inf"), "10", True])
+def test_rediscover_interval_s_must_be_a_finite_number_of_seconds(value):
+    with pytest.raises(mll.MLLError) as raised:
+        mll.vector_env(2, address="127.0.0.1:1", rediscover_interval_s=value)
+    assert raised.value.code == grpc.StatusCode.INVALID_ARGUMENT, raised.value
+    assert "rediscover_interval_s is" in raised.value.message and "0 (never)" in raised.value.message
