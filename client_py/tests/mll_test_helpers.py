@@ -273,3 +273,13 @@ def run_with_hosts(hosts_file, argv, timeout_s=120):
         ["unshare", "-m", "sh", "-c", script, str(hosts_file), *map(str, argv)],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=timeout_s,
     )
+
+
+def quota_and_roomy_servers(tmp_path, tenants, max_envs_per_token, max_envs=20):
+    """Two servers (not started) that accept the bearer tokens `tenants`, each hosting at most
+    `max_envs` envs; the first also bounds each token to `max_envs_per_token` envs there."""
+    tokens = tmp_path / "tokens"
+    tokens.write_text("".join(f"{tenant}\n" for tenant in tenants))
+    auth = (f"--auth_token_file={tokens}", f"--max_envs={max_envs}")
+    quota = mll.ServerProcess(threads=1, extra_args=(*auth, f"--max_envs_per_token={max_envs_per_token}"))
+    return quota, mll.ServerProcess(threads=1, extra_args=auth)

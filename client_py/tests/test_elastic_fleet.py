@@ -27,6 +27,7 @@ import multi_lunar_lander as mll  # noqa: E402
 from mll_test_helpers import (  # noqa: E402
     free_port_on,
     listed_names,
+    quota_and_roomy_servers,
     run_with_hosts,
     server_at,
     write_hosts,
@@ -281,11 +282,7 @@ def test_placement_puts_new_envs_beside_a_half_full_server_first():
 def test_a_token_quota_reached_on_one_server_moves_the_rest_to_the_others(tmp_path):
     """Placement plans by envs hosted against --max_envs; a server whose per-token quota is lower
     answers RESOURCE_EXHAUSTED past it, and the envs it refused go to the server with room."""
-    tokens = tmp_path / "tokens"
-    tokens.write_text("tenant-a\n")
-    auth = (f"--auth_token_file={tokens}", "--max_envs=20")
-    small = mll.ServerProcess(threads=1, extra_args=(*auth, "--max_envs_per_token=4"))
-    large = mll.ServerProcess(threads=1, extra_args=auth)
+    small, large = quota_and_roomy_servers(tmp_path, ["tenant-a"], max_envs_per_token=4)
     with small, large:
         addresses = [small.address, large.address]
         with mll.vector_env(12, address=addresses, token="tenant-a", n_landers=1) as vector:

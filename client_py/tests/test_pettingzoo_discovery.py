@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 import multi_lunar_lander as mll
-from mll_test_helpers import free_port_on, run_with_hosts, server_at, write_hosts
+from mll_test_helpers import free_port_on, quota_and_roomy_servers, run_with_hosts, server_at, write_hosts
 
 NAME = "fleet.test"
 A, B = "127.0.0.2", "127.0.0.3"
@@ -81,11 +81,7 @@ def test_a_token_quota_reached_on_the_least_loaded_server_passes_it_over(tmp_pat
     """Placement reads envs hosted against --max_envs, which a per-token quota does not show: the
     least-loaded server answers RESOURCE_EXHAUSTED once the token's quota there is reached, and
     the env goes to the next one."""
-    tokens = tmp_path / "tokens"
-    tokens.write_text("tenant-a\ntenant-b\n")
-    auth = (f"--auth_token_file={tokens}", "--max_envs=20")
-    quota = mll.ServerProcess(threads=1, extra_args=(*auth, "--max_envs_per_token=1"))
-    roomy = mll.ServerProcess(threads=1, extra_args=auth)
+    quota, roomy = quota_and_roomy_servers(tmp_path, ["tenant-a", "tenant-b"], max_envs_per_token=1)
     with quota, roomy:
         addresses = [quota.address, roomy.address]
         # Another tenant's 3 envs keep the quota server the least loaded for tenant-a's first 3
