@@ -1,21 +1,22 @@
 #!/usr/bin/env python3
-"""The Python client's own cost per vector_env step in CPU instructions (valgrind callgrind),
-which unlike CPU time does not depend on what else the machine is running.
+"""Client cost per 64-env vector step in CPU instructions (valgrind callgrind), which unlike CPU
+time does not depend on what else the machine is running: the Python vector env beside the C++
+`VectorEnv` (`mll_cli bench`) doing the same work on the same transport.
 
-One real mll_server (not under valgrind) holds `--envs` envs x `--n_landers` landers; a client
-process under callgrind makes `--steps` calls of one kind after the same set-up, and a run with
-no calls gives the set-up's count, so (run - set-up) / steps is the cost of one step:
+One real mll_server (not under valgrind) holds the envs; each client runs under callgrind:
 
-  packed   vector_env.step: actions array in, numpy columns out (one packed StepBatch)
-  per_env  the same step in StepBatch's per-env form (bench_client.PerEnvForm, what vector_env
-           did before the packed form)
-  raw      the floor: the packed request's bytes sent as bytes and the response's bytes
-           returned unparsed, through the same gRPC Python channel (no protobuf, no numpy)
+  C++       `mll_cli bench --envs=--envs --n_landers=--n_landers --transport=T`: the instructions
+            inside `VectorEnv::Step` per call (callgrind's inclusive count of its calls);
+  library   Python calling the C interface's `mll_vector_env_step` through ctypes, nothing else
+            (the actions copied into the adapter's buffer, the call): vector_env.step's floor;
+  nocopy    `vector_env(copy=False).step(actions)`;
+  copy      `vector_env().step(actions)` (each result array copied for the caller).
 
-Counts are given for the calling thread (Python, protobuf, numpy and gRPC's synchronous part
-of the call) and for all threads of the client process: gRPC's background threads wake on
-timers, so their share grows with the run's wall time under valgrind, not only with the work.
-Loopback only; bounded by --steps and a timeout per run.
+A Python client makes `--steps` calls of one kind after the same set-up, and a run with no calls
+gives the set-up's count, so (run - set-up) / steps is one step's cost in the calling thread
+(Python, ctypes, NumPy and the library). Beside it, the instructions inside `mll_vector_env_step`
+per call in the same run (the library's share, the same engine as C++'s `VectorEnv::Step`).
+Loopback only; bounded by --steps, --seconds and a timeout per run.
 
     .venv/bin/python bench/python/client_instructions.py --server build/server/service/mll_server
 """
@@ -34,91 +35,118 @@ import numpy as np
 
 HERE = pathlib.Path(__file__).resolve().parent
 REPO = HERE.parents[1]
-KINDS = ("none", "raw", "packed", "per_env")
+KINDS = ("none", "library", "nocopy", "copy")
+CPP_STEP = r"mll::client::VectorEnv::Step\(absl::[^)]*Span<int const>\)"
+LIBRARY_STEP = r"mll_vector_env_step(_async|_wait)?"
+LIBRARY_CALL = r"mll_vector_env_step(_wait)?"
 
 
-def client(kind: str, steps: int, address: str, envs: int, n_landers: int) -> None:
+def client(kind: str, steps: int, address: str, envs: int, n_landers: int, transport: str) -> None:
     """Child process (run under callgrind): the same set-up for every kind, then `steps` calls."""
-    import grpc
-
     import multi_lunar_lander as mll
+    from multi_lunar_lander import _native
 
-    sys.path.insert(0, str(HERE))
-    from bench_client import PerEnvForm
-
-    env = mll.vector_env(envs, address=address, n_landers=n_landers)
+    env = mll.vector_env(envs, address=address, n_landers=n_landers, transport=transport, copy=kind != "nocopy")
     env.reset(seed=0)
     table = np.random.default_rng(0).integers(0, 4, size=(256, envs, n_landers), dtype=np.int32)
-    per_env = PerEnvForm(env)
-    server = env._servers[0]
-    raw_requests = []
-    for actions in table:  # Each step's packed request, as bytes.
-        server.actions.data = actions.astype("<i4").tobytes()
-        raw_requests.append(server.message.step_batch.SerializeToString())
-    channel = grpc.insecure_channel(address)
-    raw = channel.unary_unary("/mll.v1.MultiLunarLander/StepBatch")
-    raw(raw_requests[0])  # Every kind's first call is made here, outside the count.
-    env.step(table[0])
-    per_env.step(table[0])
+    env.step(table[0])  # Every kind's first step is made here, outside the count.
+    block, call, handle, address_of_block, count, continuous, _, _ = env._fast
     for i in range(steps if kind != "none" else 0):
-        if kind == "raw":
-            raw(raw_requests[i % 256])
-        elif kind == "packed":
-            env.step(table[i % 256])
+        if kind == "library":
+            block[...] = table[i % 256]
+            if call(handle, address_of_block, count, continuous, _native.READ_SLICE_MS):
+                raise RuntimeError("mll_vector_env_step failed")
         else:
-            per_env.step(table[i % 256])
-    channel.close()
+            env.step(table[i % 256])
     env.close()
 
 
-def thread_counts(folder: pathlib.Path, kind: str) -> dict[str, int]:
-    """Instructions of the calling (main) thread and of all threads, from callgrind's per-thread
-    files `<kind>-01` (the main thread), `<kind>-02`, ..."""
-    counts = {}
-    for path in sorted(folder.glob(f"{kind}-*")):
-        counts[path.name.rsplit("-", 1)[1]] = int(re.search(r"^totals: (\d+)", path.read_text(), re.M).group(1))
-    return {"main": counts["01"], "all": sum(counts.values())}
+def callgrind_totals(path: pathlib.Path) -> int:
+    return int(re.search(r"^totals: (\d+)", path.read_text(), re.M).group(1))
+
+
+def inclusive(path: pathlib.Path, function: str, counted: str | None = None) -> tuple[int, int]:
+    """(calls, instructions inside them) of the functions whose name matches `function`, summed
+    over their call sites in callgrind file `path` from functions that do not match it (names are
+    compressed to "(id)" after their first appearance). Calls are counted for the names matching
+    `counted` (default: `function`): ctypes' libffi enters mll_vector_env_step by a jump, which
+    callgrind shows as libffi calling mll_vector_env_step_async and mll_vector_env_step_wait."""
+    names, caller, callee, calls, cost, pending = {}, "", "", 0, 0, False
+    for line in path.read_text().splitlines():
+        named = re.match(r"c?fn=\((\d+)\)(?: (.*))?$", line)
+        if named:
+            if named.group(2):
+                names[named.group(1)] = named.group(2)
+            if line.startswith("cfn="):
+                callee = names.get(named.group(1), "")
+            else:
+                caller = names.get(named.group(1), "")
+            continue
+        if line.startswith("calls="):
+            pending = re.fullmatch(function, callee) is not None and re.fullmatch(function, caller) is None
+            if pending and re.fullmatch(counted or function, callee):
+                calls += int(line.split("=", 1)[1].split()[0])
+            continue
+        if pending:  # The call line's cost: "<position> <inclusive Ir>".
+            cost += int(line.split()[-1])
+            pending = False
+    return calls, cost
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--server", default=os.environ.get("MLL_SERVER_BIN", str(REPO / "build/server/service/mll_server")))
+    parser.add_argument("--cli", default=str(REPO / "build/client_cpp/mll_cli"))
     parser.add_argument("--envs", type=int, default=64)
-    parser.add_argument("--n_landers", type=int, default=3)
-    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--n_landers", type=int, default=1)
+    parser.add_argument("--transport", choices=("shared_memory", "native"), default="shared_memory")
+    parser.add_argument("--steps", type=int, default=1000, help="calls of each Python kind")
+    parser.add_argument("--seconds", type=float, default=10.0, help="how long mll_cli bench steps")
     parser.add_argument("--client", choices=KINDS, help=argparse.SUPPRESS)
     parser.add_argument("--address", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.client:
-        client(args.client, args.steps, args.address, args.envs, args.n_landers)
+        client(args.client, args.steps, args.address, args.envs, args.n_landers, args.transport)
         return 0
 
     import multi_lunar_lander as mll
 
-    counts = {}
+    python, library = {}, {}
     with mll.ServerProcess(args.server, threads=2) as server, tempfile.TemporaryDirectory() as tmp:
+        folder = pathlib.Path(tmp)
+        cli_file = folder / "cli"
+        subprocess.run(
+            ["valgrind", "--tool=callgrind", f"--callgrind-out-file={cli_file}", args.cli, "bench",
+             f"--address={server.address}", f"--envs={args.envs}", f"--n_landers={args.n_landers}",
+             f"--transport={args.transport}", f"--seconds={args.seconds}"],
+            capture_output=True, text=True, timeout=args.seconds * 10 + 300, check=True,
+        )
+        cpp_calls, cpp_cost = inclusive(cli_file, CPP_STEP)
         for kind in KINDS:
             subprocess.run(
-                ["valgrind", "--tool=callgrind", "--separate-threads=yes", f"--callgrind-out-file={tmp}/{kind}",
+                ["valgrind", "--tool=callgrind", "--separate-threads=yes", f"--callgrind-out-file={folder / kind}",
                  sys.executable, __file__, f"--client={kind}", f"--steps={args.steps}", f"--address={server.address}",
-                 f"--envs={args.envs}", f"--n_landers={args.n_landers}"],
+                 f"--envs={args.envs}", f"--n_landers={args.n_landers}", f"--transport={args.transport}"],
                 capture_output=True, text=True, timeout=900, check=True,
             )
-            counts[kind] = thread_counts(pathlib.Path(tmp), kind)
-    agent_steps = args.envs * args.n_landers
-    print(f"client instructions per step, {args.envs} envs x {args.n_landers} landers, {args.steps} steps each:")
-    print("| form | calling thread per step | per agent-step | vs floor | all client threads per step | vs floor |")
-    print("|---|---|---|---|---|---|")
-    per_step = {
-        kind: {thread: (counts[kind][thread] - counts["none"][thread]) / args.steps for thread in ("main", "all")}
-        for kind in KINDS[1:]
-    }
-    floor = per_step["raw"]
-    for kind, what in (("raw", "raw bytes StepBatch (floor)"), ("packed", "vector_env.step, packed"),
-                       ("per_env", "same step, per-env form")):
-        main, every = per_step[kind]["main"], per_step[kind]["all"]
-        print(f"| {what} | {main:,.0f} | {main / agent_steps:,.0f} | {main / floor['main']:.2f} "
-              f"| {every:,.0f} | {every / floor['all']:.2f} |")
+            main_thread = folder / f"{kind}-01"  # The calling thread's file.
+            python[kind] = callgrind_totals(main_thread)
+            library[kind] = inclusive(main_thread, LIBRARY_STEP, LIBRARY_CALL)
+    if cpp_calls == 0:
+        raise RuntimeError("mll_cli bench made no VectorEnv::Step call under callgrind")
+    cpp = cpp_cost / cpp_calls
+    print(f"client instructions per call, {args.envs} envs x {args.n_landers} landers, {args.transport}, "
+          f"C++ over {cpp_calls} calls, Python {args.steps} calls of each kind:")
+    print("| client | instructions per call | inside mll_vector_env_step / VectorEnv::Step | vs C++ |")
+    print("|---|---|---|---|")
+    print(f"| C++ `VectorEnv::Step` (`mll_cli bench`) | {cpp:,.0f} | {cpp:,.0f} | 1.00 |")
+    for kind, what in (("library", "Python, ctypes `mll_vector_env_step` alone"),
+                       ("nocopy", "Python `vector_env(copy=False).step`"), ("copy", "Python `vector_env().step`")):
+        per_call = (python[kind] - python["none"]) / args.steps
+        # The set-up run's calls (reset's none, the first step's one) are outside the count.
+        calls = library[kind][0] - library["none"][0]
+        inside = (library[kind][1] - library["none"][1]) / calls if calls else float("nan")
+        print(f"| {what} | {per_call:,.0f} | {inside:,.0f} | {per_call / cpp:.2f} |")
     return 0
 
 
