@@ -105,7 +105,9 @@ TEST(ScaleOutTest, EnvsSpreadEvenlyOverBothServers) {
     absl::StatusOr<RemoteEnv> env = client.CreateEnv(Landers(1));
     ASSERT_TRUE(env.ok()) << env.status();
     // Each new env goes to the server hosting fewer: the two alternate.
-    if (i % 2 == 1) EXPECT_NE(env->server(), envs.back().server());
+    if (i % 2 == 1) {
+      EXPECT_NE(env->server(), envs.back().server());
+    }
     placed[env->server()].insert(env->name());
     envs.push_back(*std::move(env));
   }
