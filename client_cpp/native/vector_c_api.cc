@@ -145,6 +145,15 @@ struct mll_vector_env {
   std::string returned;
   std::string snapshot;
 
+  // INVALID_ARGUMENT unless `rows` is a row count of results (num_envs or
+  // batch_size).
+  int CheckRows(int rows) {
+    if (rows == envs->num_envs() || rows == envs->batch_size()) return 0;
+    return Report(absl::InvalidArgumentError(absl::StrCat(
+        "rows is ", rows, "; allowed: num_envs = ", envs->num_envs(),
+        " or batch_size = ", envs->batch_size())));
+  }
+
   // The code of `status` (its message kept).
   int Report(const absl::Status& status) {
     if (!status.ok()) message = std::string(status.message());
@@ -161,13 +170,34 @@ struct mll_vector_env {
     const int code = Report(status);
     if (code == 0) {
       const auto found = bound.find(static_cast<int>(envs->env_ids().size()));
-      if (found != bound.end()) CopyResults(*envs, found->second.data());
+      if (found != bound.end()) found->second.Write(*envs);
     }
     return code;
   }
 
-  // The caller's buffers (mll_vector_env_bind_results), by row count.
-  std::map<int, std::vector<void*>> bound;
+  // The caller's buffers for results of one row count
+  // (mll_vector_env_bind_results), and the caller's offset into them
+  // (mll_vector_env_bind_results_offset).
+  struct BoundResults {
+    std::vector<void*> buffers;
+    const int64_t* offset = nullptr;
+
+    void Write(const VectorEnv& results) const {
+      if (buffers.empty()) return;
+      if (offset == nullptr || *offset == 0) {
+        CopyResults(results, buffers.data());
+        return;
+      }
+      void* moved[kResultColumnCount];
+      for (int column = 0; column < kResultColumnCount; ++column) {
+        moved[column] = buffers[column] == nullptr
+                            ? nullptr
+                            : static_cast<char*>(buffers[column]) + *offset;
+      }
+      CopyResults(results, moved);
+    }
+  };
+  std::map<int, BoundResults> bound;
   // send's env_ids as VectorEnv::Send takes them (kept: no allocation per
   // call).
   std::vector<int> send_ids;
@@ -437,16 +467,20 @@ void mll_vector_env_results(const mll_vector_env* env, void* const* buffers) {
 int mll_vector_env_bind_results(mll_vector_env* env, int rows,
                                 void* const* buffers) {
   if (!env->envs) return CodeOf(env->create_status);
-  if (rows != env->envs->num_envs() && rows != env->envs->batch_size()) {
-    return env->Report(absl::InvalidArgumentError(absl::StrCat(
-        "rows is ", rows, "; allowed: num_envs = ", env->envs->num_envs(),
-        " or batch_size = ", env->envs->batch_size())));
-  }
+  if (const int code = env->CheckRows(rows); code != 0) return code;
   if (buffers == nullptr) {
-    env->bound.erase(rows);
+    env->bound[rows].buffers.clear();
   } else {
-    env->bound[rows].assign(buffers, buffers + kResultColumnCount);
+    env->bound[rows].buffers.assign(buffers, buffers + kResultColumnCount);
   }
+  return 0;
+}
+
+int mll_vector_env_bind_results_offset(mll_vector_env* env, int rows,
+                                       const int64_t* offset) {
+  if (!env->envs) return CodeOf(env->create_status);
+  if (const int code = env->CheckRows(rows); code != 0) return code;
+  env->bound[rows].offset = offset;
   return 0;
 }
 

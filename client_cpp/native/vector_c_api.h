@@ -186,6 +186,16 @@ MLL_NATIVE_API void mll_vector_env_results(const mll_vector_env* env,
  * nothing. INVALID_ARGUMENT for rows other than num_envs and batch_size. */
 MLL_NATIVE_API int mll_vector_env_bind_results(mll_vector_env* env, int rows,
                                                void* const* buffers);
+/* Makes the results of `rows` rows go `*offset` bytes past each bound buffer,
+ * `*offset` read afresh by every call that writes them (NULL: no offset, as
+ * at first). A caller that hands out every call's results as arrays of their
+ * own binds one large block once and moves the offset to a fresh slot of it
+ * before each call: no copy and no call to rebind. The caller keeps each
+ * buffer plus offset within its memory. INVALID_ARGUMENT for rows other than
+ * num_envs and batch_size. */
+MLL_NATIVE_API int mll_vector_env_bind_results_offset(mll_vector_env* env,
+                                                      int rows,
+                                                      const int64_t* offset);
 
 /* ---------------------------------------------------------------- snapshots
  * Env `index`'s snapshot (VectorEnv::EnvSnapshot), valid until the next call

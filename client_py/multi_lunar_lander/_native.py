@@ -86,6 +86,7 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
         declare(name, integer, handle, integer)
     declare("results", None, handle, ctypes.c_void_p)
     declare("bind_results", integer, handle, integer, ctypes.c_void_p)
+    declare("bind_results_offset", integer, handle, integer, ctypes.c_void_p)
     declare("bind_event_flag", None, handle, ctypes.c_void_p)
     declare("snapshot", integer, handle, integer, *data[1:])
     declare("restore", integer, handle, integer, ctypes.c_char_p, size, ctypes.c_void_p)

@@ -25,6 +25,8 @@ from __future__ import annotations
 import ctypes
 import logging
 import os
+import sys
+import sysconfig
 import weakref
 from typing import Any, NamedTuple, Sequence
 
@@ -96,17 +98,34 @@ def columns(lib: ctypes.CDLL) -> tuple[_Column, ...]:
     return table
 
 
-_copy_array = np.ndarray.copy
+# copy=True: the records of one block (_Results), so that a call finds one whose arrays nobody holds.
+_RECORDS_PER_BLOCK = 4
+# A reference count tells whether anything outside the adapter refers to an array (not in a
+# free-threaded build, whose counts are not exact).
+_COUNTS_ARE_EXACT = not sysconfig.get_config_var("Py_GIL_DISABLED")
 
 
 class _Results:
-    """The arrays the engine writes the results of `rows`-row calls into, in place: one buffer
-    the adapter owns, laid out as a NumPy structured record of one field per result column
-    (shape and element type from the column table; flags as bool), bound to the handle once
-    (mll_vector_env_bind_results), so that a call that makes results fills it before it returns
-    and Python only hands the arrays out."""
+    """Where the engine writes the results of `rows`-row calls, in place, and what a call hands out.
 
-    def __init__(self, lib: ctypes.CDLL, handle: int, table: tuple[_Column, ...], rows: int, n_landers: int):
+    The results of one call are one record: a NumPy structured record of one field per result
+    column (shape and element type from the column table; flags as bool). The adapter binds a
+    block of records to the handle (mll_vector_env_bind_results), with an offset the library
+    reads at each call (mll_vector_env_bind_results_offset), so that a call that makes results
+    writes them into the current record before it returns. Each record's arrays are made with
+    its block.
+
+    copy=False: one record, written by every call. copy=True: every call's arrays are the
+    caller's own, never written again while anything refers to them. After each call the offset
+    moves on to a record of the block whose arrays nothing outside the adapter refers to any more
+    (their reference counts say so: no variable, container, view, buffer or tensor of the caller's
+    holds them), as NumPy reuses the memory of temporaries; when every record is still held, a
+    new block is made and bound, and the old one lives on as long as its arrays do. A trainer
+    that lets go of a step's results within a few calls is handed the same memory again, with no
+    copy and no new array per call; one that keeps them all gets new arrays every call."""
+
+    def __init__(self, lib: ctypes.CDLL, handle: int, table: tuple[_Column, ...], rows: int, n_landers: int,
+                 copy: bool):
         names, formats, offsets, offset = [], [], [], 0
         for column in table:
             offset = -(-offset // 16) * 16
@@ -116,35 +135,67 @@ class _Results:
             formats.append((element, shape))
             offsets.append(offset)
             offset += int(np.prod(shape)) * element.itemsize
-        self.dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": offset})
-        self.raw = np.zeros(offset, np.uint8)  # The engine writes here.
-        self.record = np.ndarray((), self.dtype, self.raw)
-        address = self.raw.ctypes.data
-        self._pointers = np.array([address + offset for offset in offsets], np.uint64)  # Read by the library.
-        code = lib.mll_vector_env_bind_results(handle, rows, self._pointers.ctypes.data)
-        if code:
-            raise from_call_status(code, lib.mll_vector_env_message(handle).decode(errors="replace"))
+        self.dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets,
+                               "itemsize": -(-offset // 16) * 16})
+        self._offsets, self._lib, self._handle, self._rows = offsets, lib, handle, rows
+        self._reuse = copy and _COUNTS_ARE_EXACT
+        self._fresh = copy and not _COUNTS_ARE_EXACT  # Then a new block (of one record) every call.
+        self._records = _RECORDS_PER_BLOCK if self._reuse else 1
         infos = [name for name in names if name not in _RETURNED and name != "env_ids"]
         self._info_keys = [_INFO_KEYS.get(name, name) for name in infos]
-        # The record's arrays (each a view of its field): step()'s, then the infos', then env_ids.
-        self._own = [self.record[name] for name in _RETURNED + tuple(infos)]
-        self._own_returned, self._own_infos = tuple(self._own[: len(_RETURNED)]), self._own[len(_RETURNED):]
-        self._env_ids = self.record["env_ids"]
+        self._order = _RETURNED + tuple(infos)
+        self._offset = ctypes.c_int64(0)  # Bytes past the block's first record; read by the library.
+        self._new_block()
+        code = lib.mll_vector_env_bind_results_offset(handle, rows, ctypes.addressof(self._offset))
+        if code:
+            raise from_call_status(code, lib.mll_vector_env_message(handle).decode(errors="replace"))
 
-    def arrays(self, copy: bool, with_env_ids: bool) -> tuple:
-        """step()'s return value from the record: copies of its arrays (copy: the caller's own,
-        one ndarray.copy each, the cheapest way found to hand out new arrays), or the record's
-        arrays themselves (overwritten by the next call that makes results of as many rows); the
-        infos dict is new either way."""
-        if copy:
-            arrays = list(map(_copy_array, self._own))
-            returned, infos = tuple(arrays[: len(_RETURNED)]), arrays[len(_RETURNED):]
-        else:
-            returned, infos = self._own_returned, self._own_infos
-        infos = dict(zip(self._info_keys, infos))
+    def _new_block(self) -> None:
+        """A new block of records, bound to the handle, the offset at its first record."""
+        block = np.zeros(self._records * self.dtype.itemsize, np.uint8)
+        self._made = [self._record_arrays(block, record) for record in range(self._records)]
+        # The reference counts of a record's owner and of its handed-out arrays while only _made
+        # holds them (counted as _next_record counts them).
+        self._free_counts = list(map(sys.getrefcount, self._made[0]))
+        self._pointers = np.array([block.ctypes.data + offset for offset in self._offsets], np.uint64)
+        code = self._lib.mll_vector_env_bind_results(self._handle, self._rows, self._pointers.ctypes.data)
+        if code:
+            raise from_call_status(code, self._lib.mll_vector_env_message(self._handle).decode(errors="replace"))
+        self._record, self._offset.value = 0, 0
+
+    def _record_arrays(self, block: np.ndarray, record: int) -> tuple:
+        """Record `record` of `block`: step()'s arrays, the infos' arrays, env_ids, then their owner,
+        a one-record array over a memoryview of the record's bytes. NumPy makes a view's base the
+        array it is a view of, or that array's base while that is an array too: here every view
+        of the record's arrays, a view of a view included, refers to the owner and stops there,
+        so that the owner's reference count tells whether anything still refers to the record."""
+        size = self.dtype.itemsize
+        owner = np.frombuffer(memoryview(block)[record * size:(record + 1) * size], self.dtype, count=1)
+        return tuple(owner[name][0] for name in self._order + ("env_ids",)) + (owner,)
+
+    def arrays(self, with_env_ids: bool) -> tuple:
+        """step()'s return value of the call that just wrote the current record, as the class
+        says; infos is a new dict either way, with infos["env_id"] (int64) when `with_env_ids`."""
+        made = self._made[self._record]
+        returned, infos = made[: len(_RETURNED)], dict(zip(self._info_keys, made[len(_RETURNED):-2]))
         if with_env_ids:  # int64, NumPy's and torch's index type (the engine's column is int32).
-            infos["env_id"] = self._env_ids.astype(np.int64)
+            infos["env_id"] = made[-2].astype(np.int64)
+        if self._reuse:
+            self._next_record()
+        elif self._fresh:
+            self._new_block()
         return returned + (infos,)
+
+    def _next_record(self) -> None:
+        """Points the offset at the next record of the block that nothing outside the adapter
+        refers to, or at a new block when every record is held."""
+        count = self._records
+        for step in range(1, count):
+            record = (self._record + step) % count
+            if list(map(sys.getrefcount, self._made[record])) == self._free_counts:
+                self._record, self._offset.value = record, record * self.dtype.itemsize
+                return
+        self._new_block()
 
 
 def rediscover_interval_value(rediscover_interval_s) -> float:
@@ -227,14 +278,14 @@ class VectorEnv:
       (num_envs, n_landers) with codes indexing OUTCOMES, "episode_return" float32 and
       "episode_length" int32 (num_envs, n_landers) (so far in the episode, final once done).
     copy= (default True) how results are handed out: the engine writes each call's results in
-      place into arrays the adapter owns (one set for num_envs rows, one for batch_size rows).
-      True: every call returns copies, the caller's own (writable, not touched by later calls),
-      as Gymnasium's vector envs (copy=True), SB3's VecEnvs and EnvPool do, so that a trainer may
-      keep them (e.g. append observations to a list). False: every call returns the adapter's
-      arrays themselves, overwritten by the next call that makes results of as many rows (reset,
-      step, step_wait: num_envs; recv: batch_size), as Gymnasium's copy=False: for a trainer that
-      copies what it keeps into its own buffers; it saves a copy (about 1-2 us per call of 64
-      envs). infos is a new dict each call either way; infos["env_id"] is a new array.
+      place into arrays the adapter owns. True: every call returns arrays of the caller's own,
+      which no later call writes while anything refers to them (a variable, a list, a view, a
+      memoryview, a tensor sharing their memory), as Gymnasium's vector envs (copy=True), SB3's
+      VecEnvs and EnvPool do, so that a trainer may keep them (e.g. append observations to a
+      list); the memory of results nothing refers to any more is written again, with no copy.
+      False: every call returns the same arrays, overwritten by the next call that makes results
+      of as many rows (reset, step, step_wait: num_envs; recv: batch_size), as Gymnasium's
+      copy=False. infos is a new dict each call either way; infos["env_id"] is a new array.
     Errors: when the step of some envs fails on the server (e.g. an env deleted behind this
       object's back: NOT_FOUND), step raises MLLError with the server's code and message for
       the first of them in env order, prefixed "env {i} ({name}): "; the other envs did step.
@@ -350,7 +401,7 @@ class VectorEnv:
         self.single_action_space = space_from_proto(spec.action_space)
         self._observation_width = next(column.width for column in self._columns if column.name == "observations")
         # Where results are written in place: num_envs rows (reset, step), batch_size rows (recv).
-        self._results_of = {rows: _Results(lib, handle, self._columns, rows, self.n_landers)
+        self._results_of = {rows: _Results(lib, handle, self._columns, rows, self.n_landers, self._copy)
                             for rows in {self.num_envs, self.batch_size}}
         self._action_blocks: dict[int, tuple] = {}  # Row count -> (buffer for actions, its address, size).
         self._action_dtype = np.dtype(np.float32 if self.continuous else np.int32)
@@ -434,7 +485,7 @@ class VectorEnv:
         self._finish_interrupted()
         seed = seed_value(seed)
         self._check(self._lib.mll_vector_env_reset(self._live(), seed is not None, seed or 0))
-        observations, *_, infos = self._results_of[self.num_envs].arrays(self._copy, False)
+        observations, *_, infos = self._results_of[self.num_envs].arrays(False)
         return observations, infos
 
     def step(self, actions, env_id=None):
@@ -457,7 +508,7 @@ class VectorEnv:
                     raise
             elif code or events.value:
                 self._check(code)
-            return results.arrays(self._copy, False)
+            return results.arrays(False)
         self._finish_interrupted()
         if env_id is None and self.batch_size == self.num_envs:  # Closed, or in a forked child: raises.
             self._live()
@@ -485,7 +536,7 @@ class VectorEnv:
     def step_wait(self):
         """The results of the step sent by step_async, as step() returns them."""
         self._wait(self._lib.mll_vector_env_step_wait)
-        return self._results_of[self.num_envs].arrays(self._copy, False)
+        return self._results_of[self.num_envs].arrays(False)
 
     # ----------------------------------------------------------------- EnvPool's async API
 
@@ -563,7 +614,7 @@ class VectorEnv:
             self._wait(self._lib.mll_vector_env_recv)
         elif code or events.value:
             self._check(code)
-        return results.arrays(self._copy, True)
+        return results.arrays(True)
 
     # ----------------------------------------------------------------- env snapshot
 

@@ -4,7 +4,9 @@ every call returns arrays of the caller's own, with copy=False the adapter's arr
 by the next call of the same shape. Actions of the wire's type are taken as they are, any other
 form is converted; the same bits either way."""
 
+import gc
 import pickle
+import weakref
 
 import grpc
 import numpy as np
@@ -49,6 +51,99 @@ def test_copy_false_reuses_its_arrays_with_the_same_bits_as_copy_true(address, c
         again = fresh.step(actions[1])
         assert not any(np.shares_memory(a, b) for a, b in zip(kept[:5], again[:5]))
         assert not any(np.shares_memory(kept[5][key], again[5][key]) for key in kept[5])
+
+
+def _block_of(array: np.ndarray) -> np.ndarray:
+    """The allocation an array of results is a view of (through arrays and memoryviews)."""
+    while True:
+        if isinstance(array, np.ndarray) and array.base is not None:
+            array = array.base
+        elif isinstance(array, memoryview):
+            array = array.obj
+        else:
+            return array
+
+
+def test_copy_true_results_stay_the_callers_across_blocks_and_blocks_are_freed(address):
+    """copy=True hands out each call's results from a block of records made beforehand: across
+    several blocks, no call's arrays are written by a later call (sync steps, and recv's batches),
+    and a block no array refers to any more is freed."""
+    rng = np.random.default_rng(12)
+    actions = random_actions(rng, (4, 1), False)
+    with mll.vector_env(4, address=address, n_landers=1, max_cycles=20) as vector:
+        kept = [vector.reset(seed=3)]
+        taken = [_arrays(kept[0])]
+        for _ in range(150):  # More than two blocks of 64 records.
+            kept.append(vector.step(actions))
+            taken.append(_arrays(kept[-1]))
+        assert _same([_arrays(result) for result in kept], taken)
+        blocks = {id(_block_of(result[0])) for result in kept}
+        assert len(blocks) >= 3
+        assert not np.shares_memory(kept[0][0], kept[1][0])  # reset's observations, then a step's.
+        for before, after in zip(kept[1:], kept[2:]):
+            assert not any(np.shares_memory(a, b) for a, b in zip(before[:5], after[:5]))
+            assert before[5] is not after[5]
+        first_block = weakref.ref(_block_of(kept[0][0]))
+        del kept, taken
+        gc.collect()
+        assert first_block() is None
+    with mll.vector_env(4, address=address, n_landers=1, batch_size=2, max_cycles=20) as vector:
+        vector.async_reset(seed=7)
+        kept, taken = [], []
+        for _ in range(140):
+            result = vector.recv()
+            kept.append(result)
+            taken.append(_arrays(result))
+            vector.send(np.zeros((2, 1), np.int32), result[5]["env_id"])
+        assert _same([_arrays(result) for result in kept], taken)
+
+
+def test_copy_true_reuses_the_memory_of_results_nothing_refers_to_and_only_that(address):
+    """A call's arrays are written again only once nothing of the caller's refers to them: results
+    dropped at once are written again within a few calls; one array of a step kept alone, in a
+    variable, as a view of a view, a memoryview, a tensor sharing its memory or an infos array, is
+    never written."""
+    torch = pytest.importorskip("torch")
+    holds = {
+        "observations": lambda result: result[0],
+        "view of a view": lambda result: result[1][1:].reshape(-1)[::2],
+        "memoryview": lambda result: memoryview(result[2]),
+        "tensor": lambda result: torch.from_numpy(result[4]),
+        "infos array": lambda result: result[5]["episode_return"],
+    }
+    rng = np.random.default_rng(21)
+    table = [random_actions(rng, (3, 2), False) for _ in range(60)]
+    with mll.vector_env(3, address=address, n_landers=2, max_cycles=12) as vector:
+        vector.reset(seed=2)
+        kept, expected = {}, {}
+        for name, hold in holds.items():  # Each from a step of its own, the rest of it dropped.
+            kept[name] = hold(vector.step(table[len(kept)]))
+            expected[name] = np.array(kept[name], copy=True)
+        blocks = set()
+        for actions in table[len(kept):]:
+            latest = vector.step(actions)  # The previous step's results dropped here.
+            blocks.add(id(_block_of(latest[0])))  # The vector env holds its blocks: ids stay theirs.
+        for name, value in kept.items():
+            assert same_bits(np.asarray(value), expected[name]), name
+        # Dropped results' memory was used again: 55 steps in one block of 4 records.
+        assert len(blocks) == 1
+
+
+def test_copy_true_without_exact_reference_counts_makes_new_arrays_every_call(address, monkeypatch):
+    """Where reference counts are not exact (a free-threaded build), every call's results go into a
+    new record: no two calls share memory, with the same bits."""
+    from multi_lunar_lander import vector as vector_module
+
+    monkeypatch.setattr(vector_module, "_COUNTS_ARE_EXACT", False)
+    rng = np.random.default_rng(5)
+    table = [random_actions(rng, (2, 1), False) for _ in range(10)]
+    with mll.vector_env(2, address=address, n_landers=1) as fresh, mll.vector_env(
+        2, address=address, n_landers=1, copy=False
+    ) as reused:
+        assert _same(_rollout(fresh, table), _rollout(reused, table))
+        results = [fresh.step(actions) for actions in table]
+        for before, after in zip(results, results[1:]):
+            assert not any(np.shares_memory(a, b) for a, b in zip(before[:5], after[:5]))
 
 
 def test_copy_false_recv_reuses_its_batch_arrays(address):

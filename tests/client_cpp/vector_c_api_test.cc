@@ -7,6 +7,7 @@
 // queue for take_events instead of going to stderr.
 #include "vector_c_api.h"
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
@@ -488,6 +489,77 @@ TEST_F(VectorCApiTest, BadInputGetsItsCodeAndAMessageNamingIt) {
   EXPECT_EQ(mll_vector_env_create_status(bad_failover.get()), kInvalidArgument);
   EXPECT_THAT(mll_vector_env_message(bad_failover.get()),
               HasSubstr("failover is 7"));
+}
+
+// Bound buffers get every call's results in place, `*offset` bytes past each
+// buffer as the offset stands at that call: a caller that moves the offset
+// keeps each call's results where it left them.
+TEST_F(VectorCApiTest, BoundResultsGoPastEachBufferByTheBoundOffset) {
+  constexpr int kEnvs = 3;
+  constexpr int kSlots = 3;
+  Handle env = NewHandle(server_->address(), kEnvs);
+  ASSERT_EQ(mll_vector_env_create_status(env.get()), kOk);
+  const int count = mll_vector_env_column_count();
+  // Per column, kSlots slots of one call's results each, the slot's bytes
+  // (the same for every column: the widest column's), so that one offset
+  // moves every column to its next slot.
+  size_t slot_bytes = 0;
+  std::vector<size_t> column_bytes(count);
+  for (int c = 0; c < count; ++c) {
+    column_bytes[c] = kEnvs *
+                      (mll_vector_env_column_per_agent(c) ? kLanders : 1) *
+                      mll_vector_env_column_width(c) *
+                      ElementSize(mll_vector_env_column_dtype(c));
+    slot_bytes = std::max(slot_bytes, column_bytes[c]);
+  }
+  std::vector<std::string> blocks(count, std::string(kSlots * slot_bytes, 0));
+  std::vector<void*> buffers(count);
+  for (int c = 0; c < count; ++c) buffers[c] = blocks[c].data();
+  int64_t offset = 0;
+  ASSERT_EQ(mll_vector_env_bind_results(env.get(), kEnvs, buffers.data()), kOk);
+  ASSERT_EQ(mll_vector_env_bind_results_offset(env.get(), kEnvs, &offset), kOk);
+  // The slot of each call as it was written, by call.
+  std::vector<std::vector<std::string>> written;
+  const auto slot_of = [&](int slot) {
+    std::vector<std::string> columns(count);
+    for (int c = 0; c < count; ++c) {
+      columns[c] = blocks[c].substr(slot * slot_bytes, column_bytes[c]);
+    }
+    return columns;
+  };
+  ASSERT_EQ(mll_vector_env_reset(env.get(), 1, 4), kOk);
+  EXPECT_EQ(slot_of(0), ResultsOf(env.get()));
+  written.push_back(slot_of(0));
+  for (int step = 1; step < kSlots; ++step) {
+    offset = static_cast<int64_t>(step * slot_bytes);
+    const std::vector<int32_t> actions = ActionsOf(step, kEnvs);
+    ASSERT_EQ(
+        mll_vector_env_step(env.get(), actions.data(), actions.size(), 0, -1),
+        kOk)
+        << mll_vector_env_message(env.get());
+    EXPECT_EQ(slot_of(step), ResultsOf(env.get()));
+    written.push_back(slot_of(step));
+  }
+  for (int slot = 0; slot < kSlots; ++slot) {
+    EXPECT_EQ(slot_of(slot), written[slot]) << "slot " << slot;
+  }
+  EXPECT_NE(written[1], written[2]);
+  // No offset again: the first slot.
+  ASSERT_EQ(mll_vector_env_bind_results_offset(env.get(), kEnvs, nullptr), kOk);
+  const std::vector<int32_t> actions = ActionsOf(9, kEnvs);
+  ASSERT_EQ(
+      mll_vector_env_step(env.get(), actions.data(), actions.size(), 0, -1),
+      kOk);
+  EXPECT_EQ(slot_of(0), ResultsOf(env.get()));
+  EXPECT_EQ(slot_of(2), written[2]);
+
+  EXPECT_EQ(mll_vector_env_bind_results_offset(env.get(), 7, &offset),
+            kInvalidArgument);
+  EXPECT_THAT(mll_vector_env_message(env.get()),
+              HasSubstr("rows is 7; allowed: num_envs = 3"));
+  EXPECT_EQ(mll_vector_env_bind_results(env.get(), 0, buffers.data()),
+            kInvalidArgument);
+  EXPECT_THAT(mll_vector_env_message(env.get()), HasSubstr("rows is 0"));
 }
 
 // A snapshot taken mid-episode and restored later puts the env back: the
