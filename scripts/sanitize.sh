@@ -4,6 +4,7 @@
 #
 #   scripts/sanitize.sh asan   # AddressSanitizer + UndefinedBehaviorSanitizer -> build-asan/
 #   scripts/sanitize.sh tsan   # ThreadSanitizer -> build-tsan/
+#   scripts/sanitize.sh asan --build-only   # builds, runs nothing
 #
 # Any report fails the run: the sanitizers halt on the first error, and leaks
 # are reported at exit. Suppressions live in scripts/sanitizer/*.supp,
@@ -24,7 +25,12 @@ kind=${1:-asan}
 case "$kind" in
   asan) sanitize="address,undefined"; BUILD_DIR=${BUILD_DIR:-build-asan} ;;
   tsan) sanitize="thread"; BUILD_DIR=${BUILD_DIR:-build-tsan} ;;
-  *) echo "usage: $0 [asan|tsan]" >&2; exit 2 ;;
+  *) echo "usage: $0 [asan|tsan] [--build-only]" >&2; exit 2 ;;
+esac
+case "${2:-}" in
+  "") build_only=0 ;;
+  --build-only) build_only=1 ;;
+  *) echo "usage: $0 [asan|tsan] [--build-only]" >&2; exit 2 ;;
 esac
 SUPP="$ROOT/scripts/sanitizer"
 
@@ -40,6 +46,10 @@ cmake -S . -B "$BUILD_DIR" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
   -DMLL_SANITIZE="$sanitize" -DMLL_BUILD_TESTS=ON -DMLL_BUILD_BENCHMARKS=OFF >/dev/null
 cmake --build "$BUILD_DIR" -j "${JOBS:-$(nproc)}"
 built=$(date +%s)
+if ((build_only)); then
+  echo "sanitize.sh $kind: dependencies $((deps_built - start)) s, build $((built - deps_built)) s"
+  exit 0
+fi
 
 # halt_on_error / abort_on_error: the first report ends the process with a
 # failure that ctest sees. Stack-use-after-return and init-order checks catch

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Installs what the project needs on Debian 12: the C++ toolchain and libraries
 # from Debian's packages, and the project's Python venv (.venv) from PyPI.
-# Idempotent: installs only what is missing.
+# Idempotent: installs only what is missing. `scripts/setup.sh --debian-only`: the Debian
+# packages alone.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -24,6 +25,8 @@ if ((${#missing[@]})); then
   $SUDO apt-get update -q
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -q --no-install-recommends "${missing[@]}"
 fi
+
+[ "${1:-}" = --debian-only ] && exit 0
 
 # The venv is rebuilt when requirements.txt changes.
 VENV=.venv
