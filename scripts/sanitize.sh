@@ -29,7 +29,7 @@ case "$kind" in
 esac
 case "${2:-}" in
   "") build_only=0 ;;
-  --build-only) build_only=1 ;;
+  "--build-only") build_only=1 ;;
   *) echo "usage: $0 [asan|tsan] [--build-only]" >&2; exit 2 ;;
 esac
 SUPP="$ROOT/scripts/sanitizer"
