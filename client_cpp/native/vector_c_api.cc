@@ -184,15 +184,12 @@ struct mll_vector_env {
 
     void Write(const VectorEnv& results) const {
       if (buffers.empty()) return;
-      if (offset == nullptr || *offset == 0) {
-        CopyResults(results, buffers.data());
-        return;
-      }
+      const int64_t shift = offset == nullptr ? 0 : *offset;
       void* moved[kResultColumnCount];
       for (int column = 0; column < kResultColumnCount; ++column) {
         moved[column] = buffers[column] == nullptr
                             ? nullptr
-                            : static_cast<char*>(buffers[column]) + *offset;
+                            : static_cast<char*>(buffers[column]) + shift;
       }
       CopyResults(results, moved);
     }
