@@ -562,9 +562,32 @@ std::optional<absl::Status> SessionStream::Receive(
 
 void SessionStream::Close() {
   if (stream_ == nullptr) return;
-  context_->TryCancel();
+  if (!HalfCloseAndAwaitEnd(std::min(step_timeout_, kCloseGrace))) {
+    context_->TryCancel();
+  }
   (void)EndStream();
   lost_ = 0;
+}
+
+bool SessionStream::HalfCloseAndAwaitEnd(absl::Duration grace) {
+  if (sent_ != received_) return false;
+  const gpr_timespec deadline = DeadlineAfter(grace);
+  if (write_outstanding_) {
+    if (!Await(kWrite, deadline).has_value()) return false;
+    write_outstanding_ = false;
+  }
+  stream_->WritesDone(TagOf(kWritesDone));
+  if (!Await(kWritesDone, deadline).has_value()) return false;
+  // The server's end shows as the read failing: the pending one (a stream
+  // attached to shared memory keeps one) or a new one.
+  if (!read_outstanding_) {
+    stream_->Read(&response_buffer_, TagOf(kRead));
+    read_outstanding_ = true;
+  }
+  const std::optional<bool> read = Await(kRead, deadline);
+  if (!read.has_value()) return false;
+  read_outstanding_ = false;
+  return !*read;  // An answer nobody asked for: cancel.
 }
 
 std::optional<bool> SessionStream::Await(Operation operation,

@@ -184,10 +184,15 @@ class SessionStream {
   void EnableBatchHandles(bool enabled) { batch_handles_enabled_ = enabled; }
   bool batch_handles_enabled() const { return batch_handles_enabled_; }
 
-  // Cancels the open stream, if any (the server then ends the session and
-  // deletes its bound envs); the next Send opens a new one. What was in
-  // flight is lost.
+  // Ends the open stream, if any; the next Send opens a new one. With
+  // nothing in flight it half-closes the stream and waits for the server to
+  // end it, which the server does after deleting the session's bound envs,
+  // so they are gone when Close returns. With requests in flight, or a
+  // server that has not ended the stream within min(step timeout,
+  // kCloseGrace), it cancels the stream: what was in flight is lost, and the
+  // server deletes the envs when it sees the cancellation.
   void Close();
+  static constexpr absl::Duration kCloseGrace = absl::Seconds(2);
 
   absl::Duration step_timeout() const { return step_timeout_; }
 
@@ -196,7 +201,14 @@ class SessionStream {
 
  private:
   // The stream's operations, as completion queue tags.
-  enum Operation : intptr_t { kStart, kWrite, kRead, kFinish, kOperations };
+  enum Operation : intptr_t {
+    kStart,
+    kWrite,
+    kRead,
+    kWritesDone,
+    kFinish,
+    kOperations
+  };
 
   absl::Status OpenStream();
   absl::Status NegotiateSharedMemory();
@@ -210,6 +222,10 @@ class SessionStream {
                                                 gpr_timespec deadline);
   std::optional<bool> Await(Operation operation, gpr_timespec deadline);
   absl::Status EndStream();
+  // Close's graceful path: true once the server has ended the stream after
+  // its half-close, within `grace`; false if requests are in flight or the
+  // server did not.
+  bool HalfCloseAndAwaitEnd(absl::Duration grace);
   // The server missed the deadline `timeout` of `waiting_for` ("its answer",
   // ...): the stream is cancelled and ended, and what was in flight lost
   // with DEADLINE_EXCEEDED naming the server and the timeout (returned).

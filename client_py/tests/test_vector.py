@@ -55,8 +55,11 @@ def test_episode_end_then_auto_reset(address):
     reference.close()
 
 
-def test_close_deletes_the_envs(address, raw_stub):
-    vector = mll.vector_env(3, address=address)
+@pytest.mark.parametrize("transport", ["shared_memory", "native"])
+def test_close_deletes_the_envs_before_it_returns(address, raw_stub, transport):
+    # close() half-closes each Session stream and waits for the server to end it, which the
+    # server does once it has deleted the session's envs: none is left the moment close returns.
+    vector = mll.vector_env(3, address=address, transport=transport)
     names = vector.names
     vector.close()
     vector.close()  # Idempotent.

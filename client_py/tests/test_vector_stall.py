@@ -139,6 +139,19 @@ def test_failover_off_the_only_server_stopped_raises_deadline_exceeded_within_th
         vector.close()
 
 
+@pytest.mark.parametrize("transport", ["shared_memory", "native"])
+def test_close_with_the_server_stopped_returns_within_the_step_timeout_and_the_envs_go_later(transport):
+    # close() waits for the server to end each stream only up to the step timeout (at most 2 s),
+    # then cancels it; resumed, the server deletes the cancelled session's envs.
+    with mll.ServerProcess(threads=1) as server:
+        vector = mll.vector_env(4, address=server.address, transport=transport, step_timeout_s=1.0)
+        vector.reset(seed=1)
+        with stopped(server), _timed() as took:
+            vector.close()
+        assert 1.0 <= took() <= 1.0 + ALLOWANCE_S
+        assert holds_no_env_within(server.address, 30)
+
+
 def test_computing_between_step_async_and_step_wait_longer_than_the_deadline_and_a_keepalive_round(address):
     """A trainer may compute for long between step_async and step_wait: the deadline counts from
     when it starts waiting (the answer came meanwhile and is read then), and the engine does not
