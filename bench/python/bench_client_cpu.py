@@ -74,7 +74,7 @@ VECTOR_ENGINE = (
     "client_py/multi_lunar_lander/vector.py", "client_py/multi_lunar_lander/_record.py",
     "client_py/multi_lunar_lander/_native.py", "client_cpp/src/vector_env.cc", "client_cpp/src/env_record.cc",
     "client_cpp/src/env_record.h", "client_cpp/include/mll/vector_env.h", "client_cpp/native/vector_c_api.h",
-    "client_cpp/native/vector_c_api.cc",
+    "client_cpp/native/vector_c_api.cc", "client_cpp/native/fast_calls_module.c",
 )
 
 

@@ -24,6 +24,7 @@ Loopback only; bounded by --steps, --seconds and a timeout per run.
 from __future__ import annotations
 
 import argparse
+import ctypes
 import os
 import pathlib
 import re
@@ -50,7 +51,9 @@ def client(kind: str, steps: int, address: str, envs: int, n_landers: int, trans
     env.reset(seed=0)
     table = np.random.default_rng(0).integers(0, 4, size=(256, envs, n_landers), dtype=np.int32)
     env.step(table[0])  # Every kind's first step is made here, outside the count.
-    block, call, handle, address_of_block, count, continuous, _, _ = env._fast
+    block = env._fast[0]
+    call, handle = _native.bare(env._lib).mll_vector_env_step, ctypes.c_void_p(env._handle)
+    address_of_block, count, continuous = ctypes.c_void_p(block.ctypes.data), ctypes.c_size_t(block.size), int(env.continuous)
     for i in range(steps if kind != "none" else 0):
         if kind == "library":
             block[...] = table[i % 256]

@@ -4,6 +4,10 @@ engine of every Python vector env (vector.py): placement over servers, the Sessi
 (through shared memory with a server on this host), pipelined send/recv and failover are the
 C++ client's code, run in the calling thread with the GIL released while it waits.
 
+Beside the library lies its companion, the extension module _fast_calls
+(client_cpp/native/fast_calls_module.c, for CPython's stable ABI): the vector env's step and recv
+as one call of the interpreter each. The two are built, shipped and loaded together.
+
 Where the library is looked for: $MLL_NATIVE_LIBRARY when set (only there); else beside this
 package (the binary wheel, and `pip install .` at the repository's root, install it there; the
 wheel's RPATH points at the libraries it needs in multi_lunar_lander.libs/); else a source
@@ -15,9 +19,12 @@ that has used the library use it (gRPC C++ does not survive a fork).
 from __future__ import annotations
 
 import ctypes
+import importlib.machinery
+import importlib.util
 import os
 import pathlib
 import threading
+import types
 
 import grpc
 
@@ -26,6 +33,8 @@ from ._server import checkout_build_path
 
 LIBRARY_ENV = "MLL_NATIVE_LIBRARY"
 LIBRARY_NAME = "libmll_native_stream.so"
+# The vector env's per-call path, a CPython extension built and shipped beside the library.
+FAST_CALLS_NAME = "_fast_calls"
 # MLL_NATIVE_STREAM_PENDING: a wait ran out (vector_c_api.h); and how long each wait is, so
 # that Python handles signals (Ctrl-C) between waits.
 PENDING = -1
@@ -33,6 +42,7 @@ READ_SLICE_MS = 100
 
 _lock = threading.Lock()
 _loaded: tuple[ctypes.CDLL | None, str] | None = None  # (library or None, why not)
+_fast_calls: types.ModuleType | None = None  # Loaded with the library.
 # The process that first used the library, which started its gRPC; gRPC C++ does not survive a
 # fork, so a forked child of that process cannot use the library.
 _started_in: int | None = None
@@ -107,8 +117,26 @@ def bare(lib: ctypes.CDLL) -> ctypes.CDLL:
     return twin
 
 
+def address_of(function) -> int:
+    """The address of a ctypes function of the library, for _fast_calls.Call."""
+    return ctypes.cast(function, ctypes.c_void_p).value
+
+
+def _load_fast_calls(directory: pathlib.Path) -> types.ModuleType:
+    """The extension module FAST_CALLS_NAME in `directory` (built beside the library, for this
+    interpreter's stable ABI or its own); ImportError when there is none that loads."""
+    for suffix in importlib.machinery.EXTENSION_SUFFIXES:
+        path = directory / (FAST_CALLS_NAME + suffix)
+        if path.is_file():
+            spec = importlib.util.spec_from_file_location(f"{__package__}.{FAST_CALLS_NAME}", path)
+            module = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(module)
+            return module
+    raise ImportError(f"no {FAST_CALLS_NAME} extension for this interpreter beside it")
+
+
 def _load() -> tuple[ctypes.CDLL | None, str]:
-    global _loaded
+    global _loaded, _fast_calls
     with _lock:
         if _loaded is None:
             problems = []
@@ -117,13 +145,22 @@ def _load() -> tuple[ctypes.CDLL | None, str]:
                     problems.append(f"{path}: no such file")
                     continue
                 try:
-                    _loaded = (_declare(ctypes.CDLL(str(path))), "")
+                    lib = _declare(ctypes.CDLL(str(path)))
+                    _fast_calls = _load_fast_calls(path.parent)
+                    _loaded = (lib, "")
                     break
-                except (OSError, AttributeError) as error:
+                except (OSError, AttributeError, ImportError) as error:
                     problems.append(f"{path}: cannot load it ({error})")
             else:
                 _loaded = (None, "; ".join(problems))
         return _loaded
+
+
+def fast_calls() -> types.ModuleType:
+    """The extension module of the vector env's per-call path (client_cpp/native/fast_calls_module.c),
+    loaded with the library (library() first)."""
+    assert _fast_calls is not None, "library() loads it"
+    return _fast_calls
 
 
 def _forked_from() -> int | None:

@@ -145,6 +145,16 @@ class _Results:
         self._info_keys = [_INFO_KEYS.get(name, name) for name in infos]
         self._order = _RETURNED + tuple(infos)
         self._offset = ctypes.c_int64(0)  # Bytes past the block's first record; read by the library.
+        # The per-call part (take: the current record as step() returns it, the offset moved on).
+        self.records = _native.fast_calls().Records(
+            offset_address=ctypes.addressof(self._offset),
+            record_bytes=self.dtype.itemsize,
+            returned=len(_RETURNED),
+            info_keys=tuple(self._info_keys),
+            reuse=self._reuse,
+            new_block=self._new_block if self._reuse or self._fresh else None,
+            env_id_dtype=np.dtype(np.int64),  # NumPy's and torch's index type (the engine's is int32).
+        )
         self._new_block()
         code = lib.mll_vector_env_bind_results_offset(handle, rows, ctypes.addressof(self._offset))
         if code:
@@ -153,15 +163,13 @@ class _Results:
     def _new_block(self) -> None:
         """A new block of records, bound to the handle, the offset at its first record."""
         block = np.zeros(self._records * self.dtype.itemsize, np.uint8)
-        self._made = [self._record_arrays(block, record) for record in range(self._records)]
-        # The reference counts of a record's owner and of its handed-out arrays while only _made
-        # holds them (counted as _next_record counts them).
-        self._free_counts = list(map(sys.getrefcount, self._made[0]))
+        made = [self._record_arrays(block, record) for record in range(self._records)]
         self._pointers = np.array([block.ctypes.data + offset for offset in self._offsets], np.uint64)
         code = self._lib.mll_vector_env_bind_results(self._handle, self._rows, self._pointers.ctypes.data)
         if code:
             raise from_call_status(code, self._lib.mll_vector_env_message(self._handle).decode(errors="replace"))
-        self._record, self._offset.value = 0, 0
+        # With the reference counts of a record's members while only the block holds them.
+        self.records.set_block(tuple(made), tuple(map(sys.getrefcount, made[0])))
 
     def _record_arrays(self, block: np.ndarray, record: int) -> tuple:
         """Record `record` of `block`: step()'s arrays, the infos' arrays, env_ids, then their owner,
@@ -176,26 +184,7 @@ class _Results:
     def arrays(self, with_env_ids: bool) -> tuple:
         """step()'s return value of the call that just wrote the current record, as the class
         says; infos is a new dict either way, with infos["env_id"] (int64) when `with_env_ids`."""
-        made = self._made[self._record]
-        returned, infos = made[: len(_RETURNED)], dict(zip(self._info_keys, made[len(_RETURNED):-2]))
-        if with_env_ids:  # int64, NumPy's and torch's index type (the engine's column is int32).
-            infos["env_id"] = made[-2].astype(np.int64)
-        if self._reuse:
-            self._next_record()
-        elif self._fresh:
-            self._new_block()
-        return returned + (infos,)
-
-    def _next_record(self) -> None:
-        """Points the offset at the next record of the block that nothing outside the adapter
-        refers to, or at a new block when every record is held."""
-        count = self._records
-        for step in range(1, count):
-            record = (self._record + step) % count
-            if list(map(sys.getrefcount, self._made[record])) == self._free_counts:
-                self._record, self._offset.value = record, record * self.dtype.itemsize
-                return
-        self._new_block()
+        return self.records.take(with_env_ids)
 
 
 def rediscover_interval_value(rediscover_interval_s) -> float:
@@ -406,20 +395,29 @@ class VectorEnv:
         self._action_blocks: dict[int, tuple] = {}  # Row count -> (buffer for actions, its address, size).
         self._action_dtype = np.dtype(np.float32 if self.continuous else np.int32)
         self._action_shape = (self.n_landers, 2) if self.continuous else (self.n_landers,)
-        # What step(), send() and recv() need on every call, looked up once: the library's
-        # functions without argument conversion (_native.bare) and their arguments as ctypes
-        # values, the actions' buffers and the results' records. None once closed.
+        # What step(), send() and recv() need on every call, made once: the calls of the
+        # library's step and recv with their arguments bound (_native.fast_calls: one call of the
+        # interpreter each, the results' record taken in it), send's function without argument
+        # conversion (_native.bare) and its arguments as ctypes values, the actions' buffer.
+        # None once closed.
         bare, self._bare_handle = _native.bare(lib), ctypes.c_void_p(handle)
         lib.mll_vector_env_bind_event_flag(handle, ctypes.addressof(self._events))
+        fast_calls, events_address = _native.fast_calls(), ctypes.addressof(self._events)
         self._fast = None  # step() with batch_size == num_envs.
         if self.batch_size == self.num_envs:
             block = np.zeros((self.num_envs,) + self._action_shape, self._action_dtype)
-            self._fast = (
-                block, bare.mll_vector_env_step, self._bare_handle, ctypes.c_void_p(block.ctypes.data),
-                ctypes.c_size_t(block.size), int(self.continuous), self._results_of[self.num_envs], self._events,
-            )
+            self._fast = (block, fast_calls.Call(
+                function_address=_native.address_of(bare.mll_vector_env_step), handle=handle,
+                timeout_ms=_native.READ_SLICE_MS, events_address=events_address,
+                records=self._results_of[self.num_envs].records, actions_address=block.ctypes.data,
+                count=block.size, continuous=self.continuous,
+            ))
         self._fast_send = (bare.mll_vector_env_send, self._bare_handle, int(self.continuous), self._events)
-        self._fast_recv = (bare.mll_vector_env_recv, self._bare_handle, self._results_of[self.batch_size], self._events)
+        self._fast_recv = fast_calls.Call(
+            function_address=_native.address_of(bare.mll_vector_env_recv), handle=handle,
+            timeout_ms=_native.READ_SLICE_MS, events_address=events_address,
+            records=self._results_of[self.batch_size].records, with_env_ids=True,
+        )
         _OPEN.add(self)
         self._send_of: dict[int, tuple] = {}  # len(env_id) -> send()'s buffers (_send_buffers).
 
@@ -496,19 +494,21 @@ class VectorEnv:
         if fast is not None and env_id is None and not self._interrupted:
             # One call into the library: the step sent, waited for and its results written in place
             # (the fewest Python operations: this path is most of a trainer's client CPU).
-            block, call, handle, address, count, continuous, results, events = fast
+            block, call = fast
             _fill(block, actions, self.continuous)
-            code = call(handle, address, count, continuous, _native.READ_SLICE_MS)
-            if code == _native.PENDING:  # A slow server: wait on in slices, as step_wait.
+            done = call()
+            if type(done) is tuple:
+                return done
+            if done == _native.PENDING:  # A slow server: wait on in slices, as step_wait.
                 try:
                     self._wait(self._lib.mll_vector_env_step_wait)
                 except BaseException as error:
                     # E.g. Ctrl-C while a server is slow: this step's results are the caller's no more.
                     self._interrupted = not isinstance(error, MLLError)
                     raise
-            elif code or events.value:
-                self._check(code)
-            return results.arrays(False)
+            else:
+                self._check(done)
+            return self._results_of[self.num_envs].arrays(False)
         self._finish_interrupted()
         if env_id is None and self.batch_size == self.num_envs:  # Closed, or in a forked child: raises.
             self._live()
@@ -605,16 +605,17 @@ class VectorEnv:
         answers came), as step() returns them, with infos["env_id"] (int64, (batch_size,))
         naming the envs of each row. Waits for answers as needed; FAILED_PRECONDITION when fewer
         than batch_size envs have a step in flight."""
-        fast = self._fast_recv
-        if fast is None:
+        call = self._fast_recv
+        if call is None:
             self._live()  # Closed, or in a forked child: raises.
-        call, handle, results, events = fast
-        code = call(handle, _native.READ_SLICE_MS)
-        if code == _native.PENDING:  # Nothing due yet: wait on in slices.
+        done = call()
+        if type(done) is tuple:
+            return done
+        if done == _native.PENDING:  # Nothing due yet: wait on in slices.
             self._wait(self._lib.mll_vector_env_recv)
-        elif code or events.value:
-            self._check(code)
-        return results.arrays(True)
+        else:
+            self._check(done)
+        return self._results_of[self.batch_size].arrays(True)
 
     # ----------------------------------------------------------------- env snapshot
 

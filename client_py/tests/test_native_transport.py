@@ -8,6 +8,7 @@ import json
 import multiprocessing
 import os
 import pickle
+import shutil
 
 import grpc
 import numpy as np
@@ -179,6 +180,20 @@ def test_without_the_library_vector_env_says_how_to_get_it_and_parallel_env_work
         assert code == "FAILED_PRECONDITION"
         assert str(missing) in message and _native.LIBRARY_ENV in message and "wheel" in message
         assert "pip install ." in message
+
+
+def test_a_library_without_its_extension_beside_it_is_refused_naming_the_extension(address, tmp_path):
+    # The library alone, copied where no _fast_calls extension lies: the two are built and shipped
+    # together, and one without the other is refused as a missing library is.
+    lonely = tmp_path / _native.LIBRARY_NAME
+    shutil.copy(_native.library("vector_env")._name, lonely)
+    env = dict(os.environ, **{_native.LIBRARY_ENV: str(lonely)})
+    result = subprocess.run([sys.executable, "-c", _WITHOUT_LIBRARY, address], env=env, capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    code, message = json.loads(result.stdout)
+    assert code == "FAILED_PRECONDITION"
+    assert f"{lonely}: cannot load it (no {_native.FAST_CALLS_NAME} extension" in message, message
 
 
 # The parent's vector env, inherited by a forked child through memory.
