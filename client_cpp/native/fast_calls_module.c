@@ -76,14 +76,20 @@ static int Records_clear(Records* self) {
   return 0;
 }
 
-static void Records_dealloc(Records* self) {
+/* The end of a dealloc of this module's (heap) types: the memory freed and
+ * the type's reference dropped. */
+static void FreeObject(PyObject* self) {
   PyTypeObject* type = Py_TYPE(self);
-  PyObject_GC_UnTrack(self);
-  Records_clear(self);
-  PyMem_Free(self->free_counts);
   freefunc free_slot = (freefunc)PyType_GetSlot(type, Py_tp_free);
   free_slot(self);
   Py_DECREF(type);
+}
+
+static void Records_dealloc(Records* self) {
+  PyObject_GC_UnTrack(self);
+  Records_clear(self);
+  PyMem_Free(self->free_counts);
+  FreeObject((PyObject*)self);
 }
 
 static int Records_init(Records* self, PyObject* args, PyObject* kwargs) {
@@ -307,12 +313,9 @@ static int Call_clear(Call* self) {
 }
 
 static void Call_dealloc(Call* self) {
-  PyTypeObject* type = Py_TYPE(self);
   PyObject_GC_UnTrack(self);
   Call_clear(self);
-  freefunc free_slot = (freefunc)PyType_GetSlot(type, Py_tp_free);
-  free_slot(self);
-  Py_DECREF(type);
+  FreeObject((PyObject*)self);
 }
 
 static PyObject* RecordsType = NULL;
