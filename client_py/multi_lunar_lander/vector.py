@@ -152,7 +152,7 @@ class _Results:
             returned=len(_RETURNED),
             info_keys=tuple(self._info_keys),
             reuse=self._reuse,
-            new_block=self._new_block if self._reuse or self._fresh else None,
+            new_block=_weak_method(self._new_block) if self._reuse or self._fresh else None,
             env_id_dtype=np.dtype(np.int64),  # NumPy's and torch's index type (the engine's is int32).
         )
         self._new_block()
@@ -185,6 +185,14 @@ class _Results:
         """step()'s return value of the call that just wrote the current record, as the class
         says; infos is a new dict either way, with infos["env_id"] (int64) when `with_env_ids`."""
         return self.records.take(with_env_ids)
+
+
+def _weak_method(method):
+    """`method` as a function that refers to its object weakly: handed to the object's own
+    extension Records, it makes no reference cycle, so the results' block goes with the vector
+    env, not at the next cyclic garbage collection."""
+    ref = weakref.WeakMethod(method)
+    return lambda: ref()()
 
 
 def rediscover_interval_value(rediscover_interval_s) -> float:

@@ -98,6 +98,23 @@ def test_copy_true_results_stay_the_callers_across_blocks_and_blocks_are_freed(a
         assert _same([_arrays(result) for result in kept], taken)
 
 
+@pytest.mark.parametrize("copy", [True, False])
+def test_a_closed_vector_env_frees_its_results_without_the_cycle_collector(address, copy):
+    """Nothing of a vector env's results refers back to it: dropped, its blocks go at once."""
+    gc.collect()
+    gc.disable()
+    try:
+        vector = mll.vector_env(4, address=address, n_landers=1, copy=copy)
+        vector.reset(seed=1)
+        vector.step(np.zeros((4, 1), np.int32))
+        results = [weakref.ref(results) for results in vector._results_of.values()]
+        vector.close()
+        del vector
+        assert all(ref() is None for ref in results)
+    finally:
+        gc.enable()
+
+
 def test_copy_true_reuses_the_memory_of_results_nothing_refers_to_and_only_that(address):
     """A call's arrays are written again only once nothing of the caller's refers to them: results
     dropped at once are written again within a few calls; one array of a step kept alone, in a
