@@ -36,14 +36,32 @@ using v1::MultiLunarLander;
 
 // A channel of its own (its own TCP connection): gRPC shares connections
 // between channels with equal arguments, and the load clients must not.
-std::unique_ptr<MultiLunarLander::Stub> NewStub(const std::string& address,
-                                                int max_receive_bytes = -1) {
+std::shared_ptr<grpc::Channel> NewChannel(const std::string& address,
+                                          int max_receive_bytes = -1) {
   static std::atomic<int> channel_id{0};
   grpc::ChannelArguments args;
   args.SetInt("mll.test_channel_id", channel_id++);
   if (max_receive_bytes > 0) args.SetMaxReceiveMessageSize(max_receive_bytes);
-  return MultiLunarLander::NewStub(grpc::CreateCustomChannel(
-      address, grpc::InsecureChannelCredentials(), args));
+  return grpc::CreateCustomChannel(address, grpc::InsecureChannelCredentials(),
+                                   args);
+}
+
+std::unique_ptr<MultiLunarLander::Stub> NewStub(const std::string& address,
+                                                int max_receive_bytes = -1) {
+  return MultiLunarLander::NewStub(NewChannel(address, max_receive_bytes));
+}
+
+// NewStub once its channel is connected (within `timeout`): a load client's
+// first call then never meets a connection attempt that failed while the
+// machine was busy, which gRPC retries only after its backoff and the call
+// would not wait for.
+std::unique_ptr<MultiLunarLander::Stub> ConnectedStub(
+    const std::string& address, absl::Duration timeout) {
+  std::shared_ptr<grpc::Channel> channel = NewChannel(address);
+  EXPECT_TRUE(
+      channel->WaitForConnected(absl::ToChronoTime(absl::Now() + timeout)))
+      << address << " not connected within " << timeout;
+  return MultiLunarLander::NewStub(channel);
 }
 
 std::string Create(MultiLunarLander::Stub& stub, const v1::EnvConfig& config) {
@@ -267,7 +285,7 @@ TEST_F(HeavyBatchTest,
   std::atomic<int> started{0};
   for (int c = 0; c < kClients; ++c) {
     clients.emplace_back([&, c] {
-      auto own = NewStub(server.address);
+      auto own = ConnectedStub(server.address, Scaled(absl::Seconds(30)));
       v1::EnvConfig config = Landers(3);
       config.set_auto_reset(true);
       const std::string name = Create(*own, config);
