@@ -460,7 +460,12 @@ def _plaintext_to_tls(hosts) -> str:
 def _dropped(hosts) -> str:
     """Packets to DROPPED_IP reach the server's namespace (a static neighbour entry gives them
     its veth's MAC address), which does not hold that address and does not forward: dropped
-    without an answer, as a firewall that drops would."""
+    without an answer, as a firewall that drops would. (A new namespace takes its IPv4
+    forwarding from the host's, which a container engine turns on; forwarding, the namespace
+    would answer "host unreachable" once nothing answers its ARP for the address.)"""
+    off = _run_checked("ip", "netns", "exec", hosts["server"].namespace, "sh", "-c",
+                       "echo 0 > /proc/sys/net/ipv4/conf/all/forwarding")
+    assert off.returncode == 0, off.stderr
     link = _run_checked("ip", "-n", hosts["server"].namespace, "-o", "link", "show", "mll-s")
     mac = re.search(r"link/ether ([0-9a-f:]{17})", link.stdout).group(1)
     added = _run_checked("ip", "-n", hosts["trainer"].namespace, "neigh", "replace", DROPPED_IP,
