@@ -28,6 +28,14 @@ reset their envs, and only then are all told to go at once, so the window sees C
 stepping. The server's fixed CPU per call is reported beside: from the server's and the floor's
 CPU per agent-step, (server - floor) x E x L, the CPU a call costs beyond its physics.
 
+--transport_floor measures, in each round, what the transport alone costs the server per call at
+the same rate: `mll_echo_load` (bench/service/echo_load.cc), a bare gRPC stream served with the
+Session's reactor shape, carrying the bytes of a Session StepBatch of E envs x L landers (request by
+batch handle and answer), its server spending the floor's CPU per call (the physics) before each
+answer and its C clients (one connection each) spending the Python clients' CPU per call after
+each. Its server's CPU per call beyond that spent CPU is the transport floor per call, reported
+beside the fixed cost.
+
 --pin (for a host with more than T cores): the server and the floor on cores 0..T-1, the
 clients on the others.
 
@@ -344,9 +352,88 @@ def measure_core(args, threads: int, n_landers: int, cores, lockstep: bool) -> d
     return result
 
 
+def session_message_bytes(envs: int, n_landers: int) -> tuple[int, int]:
+    """Bytes of a packed Session StepBatch of `envs` envs x `n_landers` discrete landers: the
+    request by batch handle (actions only) and its answer, built with the package's generated
+    classes (the arrays zero-filled: their size does not depend on their values)."""
+    from multi_lunar_lander._proto import multi_lunar_lander_pb2 as pb
+
+    def array(dtype, shape, item_bytes):
+        size = item_bytes
+        for dimension in shape:
+            size *= dimension
+        return pb.Array(dtype=dtype, shape=shape, data=bytes(size))
+
+    f32, u8, i32 = pb.DTYPE_FLOAT32, pb.DTYPE_UINT8, pb.DTYPE_INT32
+    per_agent, per_env = [envs, n_landers], [envs]
+    sequence = 1 << 20  # A sequence number of a long run.
+    request = pb.SessionRequest(sequence=sequence, step_batch=pb.StepBatchRequest(
+        packed=pb.PackedSteps(handle=1, actions=array(i32, per_agent, 4))))
+    answer = pb.SessionResponse(sequence=sequence, step_batch=pb.StepBatchResponse(packed=pb.PackedStepData(
+        observations=array(f32, per_agent + [12], 4), rewards=array(f32, per_agent, 4),
+        terminations=array(u8, per_agent, 1), truncations=array(u8, per_agent, 1),
+        stepped=array(u8, per_agent, 1), outcomes=array(u8, per_agent, 1),
+        episode_returns=array(f32, per_agent, 4), episode_lengths=array(i32, per_agent, 4),
+        episode_over=array(u8, per_env, 1), auto_reset=array(u8, per_env, 1), cycles=array(i32, per_env, 4))))
+    return request.ByteSize(), answer.ByteSize()
+
+
+def measure_transport(args, n_landers: int, work_us: float, client_cpu_us: float, cores) -> dict:
+    """The transport floor (--transport_floor): `mll_echo_load --serve` spending `work_us` of CPU
+    per answer, loaded by args.clients C streams of the Session's bytes spending `client_cpu_us`
+    per call; its CPU and answers over a window a second inside either end of the run."""
+    request_bytes, answer_bytes = session_message_bytes(args.envs, n_landers)
+    with tempfile.TemporaryDirectory(prefix="mll_bench_echo_") as directory:
+        port_file = os.path.join(directory, "port")
+        server = subprocess.Popen(
+            _taskset(cores) + [args.echo, "--serve", f"--port_file={port_file}", f"--work_cpu_us={round(work_us)}"],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        load = None
+        try:
+            deadline = time.monotonic() + 30
+            while not (os.path.exists(port_file) and os.path.getsize(port_file) > 0):
+                if time.monotonic() > deadline or server.poll() is not None:
+                    raise RuntimeError("mll_echo_load --serve did not start in 30 s")
+                time.sleep(0.05)
+            address = f"127.0.0.1:{pathlib.Path(port_file).read_text().strip()}"
+            load = subprocess.Popen(
+                [args.echo, f"--load={address}", f"--clients={args.clients}", f"--seconds={args.seconds}",
+                 f"--request_bytes={request_bytes}", f"--response_bytes={answer_bytes}",
+                 f"--client_cpu_us={round(client_cpu_us)}"], stdout=subprocess.PIPE, text=True)
+
+            def answered() -> int:
+                server.stdin.write("\n")
+                server.stdin.flush()
+                return int(server.stdout.readline())
+
+            time.sleep(1.0)
+            first_answers, first_cpu = answered(), process_cpu_s(server.pid)
+            window_start = time.monotonic()
+            time.sleep(args.seconds - 2.0)
+            last_answers, last_cpu = answered(), process_cpu_s(server.pid)
+            window_s = time.monotonic() - window_start
+            load.communicate(timeout=args.seconds + 60)
+            if load.returncode != 0:
+                raise RuntimeError(f"mll_echo_load --load failed ({load.returncode})")
+        finally:
+            for process in (load, server):
+                if process is not None and process.poll() is None:
+                    process.kill()
+                    process.wait()
+    calls = max(1, last_answers - first_answers)
+    cpu_us_per_call = (last_cpu - first_cpu) / calls * 1e6
+    return {"request_bytes": request_bytes, "answer_bytes": answer_bytes, "work_cpu_us": work_us,
+            "client_cpu_us": client_cpu_us, "calls_per_s": calls / window_s,
+            "server_cpu_us_per_call": cpu_us_per_call, "transport_us_per_call": cpu_us_per_call - work_us}
+
+
 def _label(binary: str, servers: list[str]) -> str:
     """"server" alone; with --compare_server, "server" and "compared"."""
     return "server" if binary == servers[0] else "compared"
+
+
+def _transport_us(row: dict) -> str:
+    return f"{row['transport']['transport_us_per_call']:.0f}" if row["transport"] else ""
 
 
 def _ints(text: str) -> list[int]:
@@ -374,6 +461,9 @@ def main() -> int:
     parser.add_argument("--server", default=os.environ.get("MLL_SERVER_BIN", str(REPO / "build/server/service/mll_server")))
     parser.add_argument("--cli", default=str(REPO / "build/client_cpp/mll_cli"))
     parser.add_argument("--core_timing", default=str(REPO / "build/bench/python/mll_core_batch_timing"))
+    parser.add_argument("--echo", default=str(REPO / "build/bench/service/mll_echo_load"))
+    parser.add_argument("--transport_floor", action="store_true",
+                        help="measure the transport floor per call in each round (see above)")
     parser.add_argument("--threads", type=_ints, default=[1, 2, 4, 8], help="server threads, comma-separated")
     parser.add_argument("--n_landers", type=_ints, default=[1, 3], help="landers per env, comma-separated")
     parser.add_argument("--clients", type=int, default=8, help="concurrent clients (mll_cli bench --clients)")
@@ -414,6 +504,13 @@ def main() -> int:
                 measured = {binary: measure_server(args, binary, threads, n_landers, server_cores, client_cores)
                             for binary in order}
                 core = measure_core(args, threads, n_landers, server_cores, lockstep=True)
+                transport = None
+                if args.transport_floor:
+                    client_cpu_us = statistics.mean(
+                        measured[binary]["client_cpu_us_per_call"] for binary in servers)
+                    transport = measure_transport(
+                        args, n_landers, core["cpu_us_per_agent_step"] * args.envs * n_landers,
+                        client_cpu_us, server_cores)
                 for binary in servers:
                     server = measured[binary]
                     # What a call costs the server beyond its physics: its CPU over the window less
@@ -422,7 +519,7 @@ def main() -> int:
                                 - core["cpu_us_per_agent_step"] * server["window_agent_steps"]) / max(
                         1, server["window_calls"])
                     rows.append({"threads": threads, "n_landers": n_landers, "round": round_index,
-                                 "binary": binary, "server": server, "core": core,
+                                 "binary": binary, "server": server, "core": core, "transport": transport,
                                  "fixed_us_per_call": fixed_us,
                                  "ratio": server["server_cpu_us_per_agent_step"] / core["cpu_us_per_agent_step"],
                                  "throughput_vs_core": server["agent_steps_per_s"] / core["agent_steps_per_s"],
@@ -445,8 +542,8 @@ def main() -> int:
           f"{load_after[0]:.2f} after\n")
     print("| T | landers | server | round | load | agent-steps/s | vs core | server CPU us/agent-step "
           "| core CPU us/agent-step | ratio | free-running core us/agent-step | ratio to it "
-          "| server CPU per call beyond the floor, us | context switches/call |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| server CPU per call beyond the floor, us | transport floor per call, us | context switches/call |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for row in rows:
         server, core = row["server"], row["core"]
         print(f"| {row['threads']} | {row['n_landers']} | {_label(row['binary'], servers)} | {row['round'] + 1} "
@@ -454,12 +551,13 @@ def main() -> int:
               f"| {row['throughput_vs_core']:.2f} | {server['server_cpu_us_per_agent_step']:.2f} "
               f"| {core['cpu_us_per_agent_step']:.2f} | {row['ratio']:.2f}x "
               f"| {row['free_running_core']['cpu_us_per_agent_step']:.2f} | {row['ratio_free_running']:.2f}x "
-              f"| {row['fixed_us_per_call']:.0f} | {server['voluntary_switches_per_call']:.1f} |")
+              f"| {row['fixed_us_per_call']:.0f} | {_transport_us(row)} "
+              f"| {server['voluntary_switches_per_call']:.1f} |")
     if args.rounds > 1:
         print("\nMedians over the rounds (range in brackets):\n")
         print("| T | landers | server | ratio to the lockstep floor | server CPU per call beyond the floor, us "
-              "| context switches/call |")
-        print("|---|---|---|---|---|---|")
+              "| transport floor per call, us | context switches/call |")
+        print("|---|---|---|---|---|---|---|")
         for threads in args.threads:
             for n_landers in args.n_landers:
                 for binary in servers:
@@ -470,10 +568,13 @@ def main() -> int:
                     ratios = [row["ratio"] for row in group]
                     fixed = [row["fixed_us_per_call"] for row in group]
                     switches = [row["server"]["voluntary_switches_per_call"] for row in group]
+                    transports = [row["transport"]["transport_us_per_call"] for row in group if row["transport"]]
+                    transport = (f"{statistics.median(transports):.0f} ({min(transports):.0f} to "
+                                 f"{max(transports):.0f})" if transports else "")
                     print(f"| {threads} | {n_landers} | {_label(binary, servers)} "
                           f"| {statistics.median(ratios):.2f}x ({min(ratios):.2f}-{max(ratios):.2f}) "
                           f"| {statistics.median(fixed):.0f} ({min(fixed):.0f} to {max(fixed):.0f}) "
-                          f"| {statistics.median(switches):.2f} |")
+                          f"| {transport} | {statistics.median(switches):.2f} |")
     print(json.dumps({"benchmark": "server_cpu", "clients": args.clients, "clients_kind": args.clients_kind,
                       "envs": args.envs,
                       "transport": args.transport, "seconds": args.seconds, "pin": args.pin, "cores": len(cores),

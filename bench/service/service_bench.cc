@@ -23,6 +23,7 @@
 #include "absl/synchronization/mutex.h"
 #include "benchmark/benchmark.h"
 #include "echo.grpc.pb.h"
+#include "echo_service.h"
 #include "grpcpp/grpcpp.h"
 #include "mll/core/env.h"
 #include "mll/service/convert.h"
@@ -41,47 +42,6 @@ int32_t ActionFor(int64_t step, int agent) {
   constexpr int32_t kCycle[] = {2, 2, 0, 1, 2, 3, 2, 0};
   return kCycle[(step + 3 * agent) % 8];
 }
-
-class EchoService final : public bench::Echo::CallbackService {
-  grpc::ServerUnaryReactor* Unary(grpc::CallbackServerContext* context,
-                                  const bench::EchoRequest* request,
-                                  bench::EchoResponse* response) override {
-    response->mutable_payload()->assign(request->response_size(), 'x');
-    grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
-    reactor->Finish(grpc::Status::OK);
-    return reactor;
-  }
-
-  grpc::ServerBidiReactor<bench::EchoRequest, bench::EchoResponse>* Stream(
-      grpc::CallbackServerContext* /*context*/) override {
-    class Reactor final : public grpc::ServerBidiReactor<bench::EchoRequest,
-                                                         bench::EchoResponse> {
-     public:
-      Reactor() { StartRead(&request_); }
-      void OnReadDone(bool ok) override {
-        if (!ok) {
-          Finish(grpc::Status::OK);
-          return;
-        }
-        response_.mutable_payload()->assign(request_.response_size(), 'x');
-        StartWrite(&response_);
-      }
-      void OnWriteDone(bool ok) override {
-        if (ok) {
-          StartRead(&request_);
-        } else {
-          Finish(grpc::Status::OK);
-        }
-      }
-      void OnDone() override { delete this; }
-
-     private:
-      bench::EchoRequest request_;
-      bench::EchoResponse response_;
-    };
-    return new Reactor();
-  }
-};
 
 // An mll server and an echo server, both on loopback TCP in this process.
 struct Servers {
@@ -108,7 +68,7 @@ struct Servers {
   ~Servers() { echo->Shutdown(); }
 
   std::unique_ptr<Server> mll;
-  EchoService echo_service;
+  bench::EchoService echo_service;
   std::unique_ptr<grpc::Server> echo;
   int echo_port = 0;
   std::unique_ptr<v1::MultiLunarLander::Stub> stub;
