@@ -1,9 +1,8 @@
 // WorkerPool::ParallelFor: every index runs exactly once, done() runs once
 // after all of them, the calling thread runs the first share, shares are
 // contiguous per runner, a busy worker is not woken, a batch is not split
-// below its least share, nor while batches take every core or did a moment
-// ago, a batch does not wait for a worker that has not begun, and concurrent
-// batches do not mix.
+// below its least share, a batch does not wait for a worker that has not
+// begun, and concurrent batches do not mix.
 #include "mll/service/worker_pool.h"
 
 #include <atomic>
@@ -175,47 +174,6 @@ TEST(WorkerPoolTest, ABatchTakesNoMoreRunnersThanCores) {
   std::vector<std::thread::id> ran_on(64);
   RunAndWait(pool, 64, [&](int i) { ran_on[i] = std::this_thread::get_id(); });
   for (int i = 0; i < 64; ++i) EXPECT_EQ(ran_on[i], caller) << i;
-}
-
-// The runners a 64-index batch is shared among.
-int RunnersOfABatch(WorkerPool& pool) {
-  absl::Notification finished;
-  const int runners = pool.ParallelFor(
-      64, [](int) {}, [&] { finished.Notify(); });
-  finished.WaitForNotification();
-  return runners;
-}
-
-// While as many batches as cores are in flight, and for the saturation
-// memory after, a batch runs on its caller alone; once that has passed with
-// no overlap, a lone batch is split again.
-TEST(WorkerPoolTest, ABatchIsNotSplitWhileBatchesTakeEveryCore) {
-  constexpr auto kMemory = std::chrono::milliseconds(300);
-  WorkerPool pool(3, /*cores=*/2, kMemory);
-  EXPECT_EQ(RunnersOfABatch(pool), 2);  // A lone batch on an idle pool.
-
-  // A batch holds a core (on its caller, the thread `other`) while this one
-  // runs: two batches in flight on two cores.
-  absl::Notification other_began, release;
-  std::thread other([&] {
-    RunAndWait(pool, 1, [&](int) {
-      other_began.Notify();
-      release.WaitForNotificationWithTimeout(absl::Seconds(10));
-    });
-  });
-  ASSERT_TRUE(other_began.WaitForNotificationWithTimeout(absl::Seconds(10)));
-  const auto overlapped = std::chrono::steady_clock::now();
-  EXPECT_EQ(RunnersOfABatch(pool), 1);
-  release.Notify();
-  other.join();
-  // Alone again, but within the memory of the overlap.
-  const int runners_within_memory = RunnersOfABatch(pool);
-  if (std::chrono::steady_clock::now() - overlapped < kMemory) {
-    EXPECT_EQ(runners_within_memory, 1);
-  }
-  std::this_thread::sleep_until(overlapped + kMemory +
-                                std::chrono::milliseconds(50));
-  EXPECT_EQ(RunnersOfABatch(pool), 2);
 }
 
 // A runner gets at least min_per_runner indices: a batch of 8 with at least

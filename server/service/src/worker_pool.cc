@@ -4,7 +4,6 @@
 
 #include <algorithm>
 #include <atomic>
-#include <chrono>
 #include <memory>
 #include <utility>
 
@@ -28,11 +27,9 @@ int AllowedCores() {
 
 // Runner 0 of a batch is the calling thread, so `threads` runners need one
 // worker fewer.
-WorkerPool::WorkerPool(int threads, int cores,
-                       std::chrono::nanoseconds saturation_memory)
+WorkerPool::WorkerPool(int threads, int cores)
     : queues_(std::max(threads, 1) - 1),
-      cores_(cores > 0 ? cores : AllowedCores()),
-      saturation_memory_ns_(saturation_memory.count()) {
+      cores_(cores > 0 ? cores : AllowedCores()) {
   const int count = static_cast<int>(queues_.size());
   workers_.reserve(count);
   for (int w = 0; w < count; ++w) {
@@ -67,11 +64,11 @@ void WorkerPool::Run(int worker) {
   }
 }
 
-int WorkerPool::ParallelFor(int count, std::function<void(int)> body,
-                            std::function<void()> done, int min_per_runner) {
+void WorkerPool::ParallelFor(int count, std::function<void(int)> body,
+                             std::function<void()> done, int min_per_runner) {
   if (count <= 0) {
     done();
-    return 0;
+    return;
   }
   // Runner r owns share r = [r * count / runners, (r + 1) * count / runners)
   // and pulls its next index from that share's counter; when its share is
@@ -91,30 +88,11 @@ int WorkerPool::ParallelFor(int count, std::function<void(int)> body,
   // they would take turns on the cores, not step the batch any sooner; nor
   // than shares of at least `min_per_runner` items: a smaller share is not
   // worth the hand-off.
-  //
-  // Nor is a batch split while batches take every core, or did within the
-  // last saturation_memory: under a steady load of more concurrent calls than
-  // cores, a moment with a core free lasts only until the next call comes,
-  // when the split batch's worker would take that core from the call's
-  // thread: a wake-up, a preemption and the batch's envs moving to another
-  // core's cache, for no batch done sooner.
   const int in_flight = in_flight_.fetch_add(1) + 1;
   const int parallel = std::min(threads(), cores_);
-  const int64_t now_ns =
-      std::chrono::duration_cast<std::chrono::nanoseconds>(
-          std::chrono::steady_clock::now().time_since_epoch())
-          .count();
-  if (in_flight >= parallel) {
-    saturated_until_ns_.store(now_ns + saturation_memory_ns_,
-                              std::memory_order_relaxed);
-  }
-  const bool saturated =
-      now_ns < saturated_until_ns_.load(std::memory_order_relaxed);
   const int most_runners =
-      saturated
-          ? 1
-          : std::max(1, std::min({count / std::max(1, min_per_runner),
-                                  (parallel + in_flight - 1) / in_flight}));
+      std::max(1, std::min({count / std::max(1, min_per_runner),
+                            (parallel + in_flight - 1) / in_flight}));
   struct Shared {
     std::function<void(int)> body;
     std::function<void()> done;
@@ -176,7 +154,6 @@ int WorkerPool::ParallelFor(int count, std::function<void(int)> body,
   // (not one after another through the mutex's waiter queue).
   for (WorkerQueue* queue : woken) queue->wake.Signal();
   run_share(0);
-  return static_cast<int>(woken.size()) + 1;
 }
 
 }  // namespace mll::service

@@ -6,8 +6,6 @@
 #define MLL_SERVICE_WORKER_POOL_H_
 
 #include <atomic>
-#include <chrono>
-#include <cstdint>
 #include <deque>
 #include <functional>
 #include <thread>
@@ -20,19 +18,10 @@ namespace mll::service {
 
 class WorkerPool {
  public:
-  // A steady load's calls come within milliseconds of each other; a lone
-  // client's batches find the cores free again this long after the last
-  // overlap.
-  static constexpr std::chrono::milliseconds kSaturationMemory{100};
-
   // Batches run on `threads` (>= 1) threads: the caller's and `threads` - 1
   // workers started here. `cores`: how many of them can run at once (0: the
-  // cores in the process's affinity mask now). `saturation_memory`: how long
-  // after batches last took every core a batch is still not split
-  // (ParallelFor).
-  explicit WorkerPool(
-      int threads, int cores = 0,
-      std::chrono::nanoseconds saturation_memory = kSaturationMemory);
+  // cores in the process's affinity mask now).
+  explicit WorkerPool(int threads, int cores = 0);
   // Runs every task already posted, then joins the workers.
   ~WorkerPool();
   WorkerPool(const WorkerPool&) = delete;
@@ -54,16 +43,12 @@ class WorkerPool {
   // remaining indices of the others' shares. While other batches keep the
   // workers busy, a batch is not split over them: it would only wake them;
   // with B batches in flight, each takes at most ceil(P / B) runners, P
-  // being the lesser of threads() and the cores the process may run on;
-  // while P or more batches are in flight, and for saturation_memory after,
-  // each runs on its caller alone (a steady load of more concurrent calls
-  // than cores keeps every core busy with a call of its own); and
+  // being the lesser of threads() and the cores the process may run on; and
   // a runner gets at least `min_per_runner` indices (fewer runners, not
   // smaller shares), so a small batch is not split into pieces whose work
   // does not pay for waking a thread.
-  // Returns the runners the batch was shared among (0 when count is 0).
-  int ParallelFor(int count, std::function<void(int)> body,
-                  std::function<void()> done, int min_per_runner = 1);
+  void ParallelFor(int count, std::function<void(int)> body,
+                   std::function<void()> done, int min_per_runner = 1);
 
  private:
   // One worker's queue, the condition it sleeps on, and whether it is
@@ -84,10 +69,6 @@ class WorkerPool {
   const int cores_;
   // Batches whose done() has not run yet.
   std::atomic<int> in_flight_{0};
-  const int64_t saturation_memory_ns_;
-  // steady_clock time, in ns, until which batches are not split: the last
-  // time P batches were in flight, plus saturation_memory_ns_.
-  std::atomic<int64_t> saturated_until_ns_{0};
   std::vector<std::thread> workers_;
 };
 
