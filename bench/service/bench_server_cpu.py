@@ -31,10 +31,10 @@ CPU per agent-step, (server - floor) x E x L, the CPU a call costs beyond its ph
 --transport_floor measures, in each round, what the transport alone costs the server per call at
 the same rate: `mll_echo_load` (bench/service/echo_load.cc), a bare gRPC stream served with the
 Session's reactor shape, carrying the bytes of a Session StepBatch of E envs x L landers (request by
-batch handle and answer), its server spending the floor's CPU per call (the physics) before each
-answer and its C clients (one connection each) spending the Python clients' CPU per call after
-each. Its server's CPU per call beyond that spent CPU is the transport floor per call, reported
-beside the fixed cost.
+batch handle and answer), its server spinning for the floor's CPU per call (the physics) before each
+answer and its C clients (one connection each) spinning for the Python clients' CPU per call after
+each. Its server's CPU per call beyond what its spins took is the transport floor per call,
+reported beside the fixed cost.
 
 --pin (for a host with more than T cores): the server and the floor on cores 0..T-1, the
 clients on the others.
@@ -379,14 +379,15 @@ def session_message_bytes(envs: int, n_landers: int) -> tuple[int, int]:
 
 
 def measure_transport(args, n_landers: int, work_us: float, client_cpu_us: float, cores) -> dict:
-    """The transport floor (--transport_floor): `mll_echo_load --serve` spending `work_us` of CPU
-    per answer, loaded by args.clients C streams of the Session's bytes spending `client_cpu_us`
-    per call; its CPU and answers over a window a second inside either end of the run."""
+    """The transport floor (--transport_floor): `mll_echo_load --serve` spinning for `work_us`
+    before each answer, loaded by args.clients C streams of the Session's bytes spinning for
+    `client_cpu_us` after each; its CPU, its spins' CPU and its answers over a window a second
+    inside either end of the run."""
     request_bytes, answer_bytes = session_message_bytes(args.envs, n_landers)
     with tempfile.TemporaryDirectory(prefix="mll_bench_echo_") as directory:
         port_file = os.path.join(directory, "port")
         server = subprocess.Popen(
-            _taskset(cores) + [args.echo, "--serve", f"--port_file={port_file}", f"--work_cpu_us={round(work_us)}"],
+            _taskset(cores) + [args.echo, "--serve", f"--port_file={port_file}", f"--work_us={round(work_us)}"],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         load = None
         try:
@@ -399,18 +400,19 @@ def measure_transport(args, n_landers: int, work_us: float, client_cpu_us: float
             load = subprocess.Popen(
                 [args.echo, f"--load={address}", f"--clients={args.clients}", f"--seconds={args.seconds}",
                  f"--request_bytes={request_bytes}", f"--response_bytes={answer_bytes}",
-                 f"--client_cpu_us={round(client_cpu_us)}"], stdout=subprocess.PIPE, text=True)
+                 f"--client_work_us={round(client_cpu_us)}"], stdout=subprocess.PIPE, text=True)
 
-            def answered() -> int:
+            def answered() -> tuple[int, float]:
                 server.stdin.write("\n")
                 server.stdin.flush()
-                return int(server.stdout.readline())
+                answers, work_cpu_s = server.stdout.readline().split()
+                return int(answers), float(work_cpu_s)
 
             time.sleep(1.0)
-            first_answers, first_cpu = answered(), process_cpu_s(server.pid)
+            (first_answers, first_work_s), first_cpu = answered(), process_cpu_s(server.pid)
             window_start = time.monotonic()
             time.sleep(args.seconds - 2.0)
-            last_answers, last_cpu = answered(), process_cpu_s(server.pid)
+            (last_answers, last_work_s), last_cpu = answered(), process_cpu_s(server.pid)
             window_s = time.monotonic() - window_start
             load.communicate(timeout=args.seconds + 60)
             if load.returncode != 0:
@@ -422,9 +424,11 @@ def measure_transport(args, n_landers: int, work_us: float, client_cpu_us: float
                     process.wait()
     calls = max(1, last_answers - first_answers)
     cpu_us_per_call = (last_cpu - first_cpu) / calls * 1e6
-    return {"request_bytes": request_bytes, "answer_bytes": answer_bytes, "work_cpu_us": work_us,
-            "client_cpu_us": client_cpu_us, "calls_per_s": calls / window_s,
-            "server_cpu_us_per_call": cpu_us_per_call, "transport_us_per_call": cpu_us_per_call - work_us}
+    work_cpu_us_per_call = (last_work_s - first_work_s) / calls * 1e6
+    return {"request_bytes": request_bytes, "answer_bytes": answer_bytes, "work_us": work_us,
+            "work_cpu_us_per_call": work_cpu_us_per_call, "client_work_us": client_cpu_us,
+            "calls_per_s": calls / window_s, "server_cpu_us_per_call": cpu_us_per_call,
+            "transport_us_per_call": cpu_us_per_call - work_cpu_us_per_call}
 
 
 def _label(binary: str, servers: list[str]) -> str:

@@ -2,17 +2,17 @@
 // stream carrying the bytes of a Session's StepBatch, request and answer, with
 // the same callback-API reactor shape as the Session.
 //
-//   mll_echo_load --serve --port_file=F [--work_cpu_us=U]
+//   mll_echo_load --serve --port_file=F [--work_us=U]
 //     serves echo.proto's Echo on 127.0.0.1 (an OS-chosen port, written to
-//     F); each answer first spends U us of the answering thread's CPU (the
-//     physics a real call would run). Each line read on stdin is answered
-//     with the number of stream messages answered so far; it stops at the end
-//     of stdin.
+//     F); each answer first spins for U us (the physics a real call would
+//     run). Each line read on stdin is answered with the stream messages
+//     answered so far and the CPU seconds their spins took; it stops at the
+//     end of stdin.
 //   mll_echo_load --load=ADDRESS --clients=C --seconds=S --request_bytes=Q
-//       --response_bytes=R [--client_cpu_us=W]
+//       --response_bytes=R [--client_work_us=W]
 //     C clients, each on a connection of its own, each a ping-pong stream of
-//     Q-byte requests asking for R-byte answers, for S seconds, spending W us
-//     of its thread's CPU after each answer (what a client does with it);
+//     Q-byte requests asking for R-byte answers, for S seconds, spinning for
+//     W us after each answer (what a client does with it);
 //     prints one JSON line with the calls made.
 #include <atomic>
 #include <chrono>
@@ -33,26 +33,26 @@
 
 ABSL_FLAG(bool, serve, false, "Serve the echo stream (see the file's header).");
 ABSL_FLAG(std::string, port_file, "", "With --serve: where the port goes.");
-ABSL_FLAG(int64_t, work_cpu_us, 0,
-          "With --serve: thread CPU each answer spends first, >= 0.");
+ABSL_FLAG(int64_t, work_us, 0,
+          "With --serve: how long each answer spins first, >= 0.");
 ABSL_FLAG(std::string, load, "", "host:port of an echo server to load.");
 ABSL_FLAG(int, clients, 8, "With --load: concurrent streams, >= 1.");
 ABSL_FLAG(double, seconds, 8.0, "With --load: how long, > 0.");
 ABSL_FLAG(int, request_bytes, 300, "With --load: payload of each request.");
 ABSL_FLAG(int, response_bytes, 4000, "With --load: payload of each answer.");
-ABSL_FLAG(int64_t, client_cpu_us, 0,
-          "With --load: thread CPU each client spends after each answer.");
+ABSL_FLAG(int64_t, client_work_us, 0,
+          "With --load: how long each client spins after each answer, >= 0.");
 
 namespace mll::bench {
 namespace {
 
 int Serve() {
-  const int64_t work_cpu_us = absl::GetFlag(FLAGS_work_cpu_us);
-  if (work_cpu_us < 0 || absl::GetFlag(FLAGS_port_file).empty()) {
-    std::fprintf(stderr, "--serve needs --port_file and --work_cpu_us >= 0\n");
+  const int64_t work_us = absl::GetFlag(FLAGS_work_us);
+  if (work_us < 0 || absl::GetFlag(FLAGS_port_file).empty()) {
+    std::fprintf(stderr, "--serve needs --port_file and --work_us >= 0\n");
     return 2;
   }
-  EchoService service(work_cpu_us);
+  EchoService service(work_us);
   int port = 0;
   grpc::ServerBuilder builder;
   builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(),
@@ -65,7 +65,8 @@ int Serve() {
   }
   std::ofstream(absl::GetFlag(FLAGS_port_file)) << port << "\n";
   for (std::string line; std::getline(std::cin, line);) {
-    std::cout << service.answered() << std::endl;
+    std::cout << service.answered() << " " << service.work_cpu_ns() * 1e-9
+              << std::endl;
   }
   server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(1));
   return 0;
@@ -74,11 +75,11 @@ int Serve() {
 int Load() {
   const int clients = absl::GetFlag(FLAGS_clients);
   const double seconds = absl::GetFlag(FLAGS_seconds);
-  const int64_t client_cpu_us = absl::GetFlag(FLAGS_client_cpu_us);
-  if (clients < 1 || !(seconds > 0) || client_cpu_us < 0) {
+  const int64_t client_work_us = absl::GetFlag(FLAGS_client_work_us);
+  if (clients < 1 || !(seconds > 0) || client_work_us < 0) {
     std::fprintf(stderr,
                  "--load needs --clients >= 1, --seconds > 0 and "
-                 "--client_cpu_us >= 0\n");
+                 "--client_work_us >= 0\n");
     return 2;
   }
   EchoRequest request;
@@ -112,7 +113,7 @@ int Load() {
           break;
         }
         ++made;
-        SpendThreadCpu(client_cpu_us);
+        SpinFor(client_work_us);
       }
       stream->WritesDone();
       stream->Finish().IgnoreError();
