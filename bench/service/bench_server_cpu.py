@@ -53,6 +53,8 @@ Loopback only; every run is bounded by --seconds. Prints a Markdown table and on
     .venv/bin/python bench/service/bench_server_cpu.py --clients_kind python --threads 2,8 --n_landers 1,3
     .venv/bin/python bench/service/bench_server_cpu.py --clients_kind python --threads 2,8 --n_landers 1 \
         --rounds 3 --compare_server /tmp/mll_server_before
+    .venv/bin/python bench/service/bench_server_cpu.py --clients_kind python --threads 2,8 --n_landers 1 \
+        --rounds 4 --transport_floor
 """
 
 from __future__ import annotations
