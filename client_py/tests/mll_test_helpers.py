@@ -283,3 +283,12 @@ def quota_and_roomy_servers(tmp_path, tenants, max_envs_per_token, max_envs=20):
     auth = (f"--auth_token_file={tokens}", f"--max_envs={max_envs}")
     quota = mll.ServerProcess(threads=1, extra_args=(*auth, f"--max_envs_per_token={max_envs_per_token}"))
     return quota, mll.ServerProcess(threads=1, extra_args=auth)
+
+
+def without_log_files(model):
+    """`model` (an SB3 algorithm) with a logger that writes nothing: without one of its own, each
+    learn() makes an empty SB3-<time> directory in the system's temporary directory."""
+    from stable_baselines3.common.logger import Logger
+
+    model.set_logger(Logger(folder=None, output_formats=[]))
+    return model

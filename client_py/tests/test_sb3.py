@@ -11,6 +11,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
 import multi_lunar_lander as mll
 
+from mll_test_helpers import without_log_files
 from test_gym_vector import _CRASH_EARLY, _FALL_AND_HOVER
 
 
@@ -47,7 +48,7 @@ def test_same_bits_as_gym_vector_env_with_same_step_resets(address):
 
 def test_ppo_runs_with_vec_normalize_and_logs_real_episodes_only(address):
     env = VecNormalize(mll.sb3_vec_env(2, address=address, n_landers=2, max_cycles=60))
-    model = PPO("MlpPolicy", env, n_steps=64, batch_size=64, n_epochs=1, seed=0, device="cpu")
+    model = without_log_files(PPO("MlpPolicy", env, n_steps=64, batch_size=64, n_epochs=1, seed=0, device="cpu"))
     model.learn(total_timesteps=2 * 4 * 64)
     assert model.num_timesteps == 512
     # Every lander ends an episode within 60 steps, then idles; only the real ends are logged.

@@ -17,7 +17,7 @@ import multi_lunar_lander as mll
 EXAMPLES = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(EXAMPLES.parent / "client_py" / "tests"))  # The client's test helpers.
 
-from mll_test_helpers import listed_names  # noqa: E402
+from mll_test_helpers import listed_names, without_log_files  # noqa: E402
 
 SHORT = ["--envs", "4", "--landers", "3", "--total-steps", "3072", "--num-steps", "128", "--max-cycles", "200"]
 
@@ -90,8 +90,8 @@ def test_sb3_minibatches_hold_real_transitions_only():
     import ppo_sb3
 
     env = mll.sb3_vec_env(2, n_landers=3, max_cycles=100)
-    model = PPO("MlpPolicy", env, n_steps=128, batch_size=64, n_epochs=1, seed=1, device="cpu",
-                rollout_buffer_class=ppo_sb3.RealTransitionsBuffer)
+    model = without_log_files(PPO("MlpPolicy", env, n_steps=128, batch_size=64, n_epochs=1, seed=1, device="cpu",
+                                  rollout_buffer_class=ppo_sb3.RealTransitionsBuffer))
     model.learn(total_timesteps=128 * 6, callback=ppo_sb3.MarkSteps())  # One rollout of 6 landers.
     env.close()
     buffer = model.rollout_buffer
@@ -149,8 +149,9 @@ def test_sb3_team_credit_of_lone_landers_is_sb3s_own_gae():
             compared.append((team, (buffer.advantages, buffer.returns), buffer.ended.sum(), buffer.cut_off.sum()))
 
     env = mll.sb3_vec_env(4, n_landers=1, max_cycles=40)  # Random landers: some crash, some are cut off.
-    model = PPO("MlpPolicy", env, n_steps=128, batch_size=64, n_epochs=1, seed=1, device="cpu",
-                rollout_buffer_class=ppo_sb3.RealTransitionsBuffer, rollout_buffer_kwargs=dict(team_landers=1))
+    model = without_log_files(PPO("MlpPolicy", env, n_steps=128, batch_size=64, n_epochs=1, seed=1, device="cpu",
+                                  rollout_buffer_class=ppo_sb3.RealTransitionsBuffer,
+                                  rollout_buffer_kwargs=dict(team_landers=1)))
     model.learn(total_timesteps=128 * 4 * 2, callback=CallbackList([ppo_sb3.MarkSteps(), CompareWithSb3()]))
     env.close()
     assert len(compared) == 2
