@@ -76,15 +76,19 @@ int Load() {
   const int clients = absl::GetFlag(FLAGS_clients);
   const double seconds = absl::GetFlag(FLAGS_seconds);
   const int64_t client_work_us = absl::GetFlag(FLAGS_client_work_us);
-  if (clients < 1 || !(seconds > 0) || client_work_us < 0) {
+  const int request_bytes = absl::GetFlag(FLAGS_request_bytes);
+  const int response_bytes = absl::GetFlag(FLAGS_response_bytes);
+  if (clients < 1 || !(seconds > 0) || client_work_us < 0 ||
+      request_bytes < 0 || response_bytes < 0) {
     std::fprintf(stderr,
-                 "--load needs --clients >= 1, --seconds > 0 and "
-                 "--client_work_us >= 0\n");
+                 "--load needs --clients >= 1, --seconds > 0, and "
+                 "--client_work_us, --request_bytes and --response_bytes "
+                 ">= 0\n");
     return 2;
   }
   EchoRequest request;
-  request.mutable_payload()->assign(absl::GetFlag(FLAGS_request_bytes), 'r');
-  request.set_response_size(absl::GetFlag(FLAGS_response_bytes));
+  request.mutable_payload()->assign(request_bytes, 'r');
+  request.set_response_size(response_bytes);
   const auto deadline =
       std::chrono::steady_clock::now() +
       std::chrono::duration_cast<std::chrono::steady_clock::duration>(
