@@ -380,7 +380,8 @@ def session_message_bytes(envs: int, n_landers: int) -> tuple[int, int]:
     return request.ByteSize(), answer.ByteSize()
 
 
-def measure_transport(args, n_landers: int, work_us: float, client_cpu_us: float, cores) -> dict:
+def measure_transport(args, n_landers: int, work_us: float, client_cpu_us: float, server_cores,
+                      client_cores) -> dict:
     """The transport floor (--transport_floor): `mll_echo_load --serve` spinning for `work_us`
     before each answer, loaded by args.clients C streams of the Session's bytes spinning for
     `client_cpu_us` after each; its CPU, its spins' CPU and its answers over a window a second
@@ -389,7 +390,7 @@ def measure_transport(args, n_landers: int, work_us: float, client_cpu_us: float
     with tempfile.TemporaryDirectory(prefix="mll_bench_echo_") as directory:
         port_file = os.path.join(directory, "port")
         server = subprocess.Popen(
-            _taskset(cores) + [args.echo, "--serve", f"--port_file={port_file}", f"--work_us={round(work_us)}"],
+            _taskset(server_cores) + [args.echo, "--serve", f"--port_file={port_file}", f"--work_us={round(work_us)}"],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         load = None
         try:
@@ -400,9 +401,11 @@ def measure_transport(args, n_landers: int, work_us: float, client_cpu_us: float
                 time.sleep(0.05)
             address = f"127.0.0.1:{pathlib.Path(port_file).read_text().strip()}"
             load = subprocess.Popen(
-                [args.echo, f"--load={address}", f"--clients={args.clients}", f"--seconds={args.seconds}",
-                 f"--request_bytes={request_bytes}", f"--response_bytes={answer_bytes}",
-                 f"--client_work_us={round(client_cpu_us)}"], stdout=subprocess.PIPE, text=True)
+                _taskset(client_cores) + [
+                    args.echo, f"--load={address}", f"--clients={args.clients}", f"--seconds={args.seconds}",
+                    f"--request_bytes={request_bytes}", f"--response_bytes={answer_bytes}",
+                    f"--client_work_us={round(client_cpu_us)}"],
+                stdout=subprocess.PIPE, text=True)
 
             def answered() -> tuple[int, float]:
                 server.stdin.write("\n")
@@ -469,7 +472,8 @@ def main() -> int:
     parser.add_argument("--core_timing", default=str(REPO / "build/bench/python/mll_core_batch_timing"))
     parser.add_argument("--echo", default=str(REPO / "build/bench/service/mll_echo_load"))
     parser.add_argument("--transport_floor", action="store_true",
-                        help="measure the transport floor per call in each round (see above)")
+                        help="measure the transport floor per call in each round (see above; sizes its "
+                             "messages with the multi_lunar_lander package)")
     parser.add_argument("--threads", type=_ints, default=[1, 2, 4, 8], help="server threads, comma-separated")
     parser.add_argument("--n_landers", type=_ints, default=[1, 3], help="landers per env, comma-separated")
     parser.add_argument("--clients", type=int, default=8, help="concurrent clients (mll_cli bench --clients)")
@@ -516,7 +520,7 @@ def main() -> int:
                         measured[binary]["client_cpu_us_per_call"] for binary in servers)
                     transport = measure_transport(
                         args, n_landers, core["cpu_us_per_agent_step"] * args.envs * n_landers,
-                        client_cpu_us, server_cores)
+                        client_cpu_us, server_cores, client_cores)
                 for binary in servers:
                     server = measured[binary]
                     # What a call costs the server beyond its physics: its CPU over the window less
