@@ -445,6 +445,22 @@ def _transport_us(row: dict) -> str:
     return f"{row['transport']['transport_us_per_call']:.0f}" if row["transport"] else ""
 
 
+def _transport_ratio(transport: dict | None, core: dict, agent_steps_per_call: int) -> float | None:
+    """The ratio to the lockstep floor of a server whose only cost beside the physics were the
+    transport floor: 1 + transport per call / the floor's CPU for one call's agent-steps."""
+    if transport is None:
+        return None
+    return 1.0 + transport["transport_us_per_call"] / (core["cpu_us_per_agent_step"] * agent_steps_per_call)
+
+
+def _median_range(values: list[float], form: str, unit: str = "", separator: str = " to ") -> str:
+    """"median<unit> (min<separator>max)" of `values` in `form`, or "" when there are none."""
+    if not values:
+        return ""
+    return (f"{statistics.median(values):{form}}{unit} ({min(values):{form}}{separator}"
+            f"{max(values):{form}})")
+
+
 def _ints(text: str) -> list[int]:
     return [int(item) for item in text.split(",") if item]
 
@@ -531,6 +547,7 @@ def main() -> int:
                     rows.append({"threads": threads, "n_landers": n_landers, "round": round_index,
                                  "binary": binary, "server": server, "core": core, "transport": transport,
                                  "fixed_us_per_call": fixed_us,
+                                 "transport_ratio": _transport_ratio(transport, core, args.envs * n_landers),
                                  "ratio": server["server_cpu_us_per_agent_step"] / core["cpu_us_per_agent_step"],
                                  "throughput_vs_core": server["agent_steps_per_s"] / core["agent_steps_per_s"],
                                  "load": os.getloadavg()[0]})
@@ -552,8 +569,9 @@ def main() -> int:
           f"{load_after[0]:.2f} after\n")
     print("| T | landers | server | round | load | agent-steps/s | vs core | server CPU us/agent-step "
           "| core CPU us/agent-step | ratio | free-running core us/agent-step | ratio to it "
-          "| server CPU per call beyond the floor, us | transport floor per call, us | context switches/call |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| server CPU per call beyond the floor, us | transport floor per call, us | the bare stream's ratio "
+          "| context switches/call |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for row in rows:
         server, core = row["server"], row["core"]
         print(f"| {row['threads']} | {row['n_landers']} | {_label(row['binary'], servers)} | {row['round'] + 1} "
@@ -562,12 +580,14 @@ def main() -> int:
               f"| {core['cpu_us_per_agent_step']:.2f} | {row['ratio']:.2f}x "
               f"| {row['free_running_core']['cpu_us_per_agent_step']:.2f} | {row['ratio_free_running']:.2f}x "
               f"| {row['fixed_us_per_call']:.0f} | {_transport_us(row)} "
+              f"| {'' if row['transport_ratio'] is None else format(row['transport_ratio'], '.2f') + 'x'} "
               f"| {server['voluntary_switches_per_call']:.1f} |")
     if args.rounds > 1:
         print("\nMedians over the rounds (range in brackets):\n")
         print("| T | landers | server | ratio to the lockstep floor | server CPU per call beyond the floor, us "
-              "| transport floor per call, us | context switches/call |")
-        print("|---|---|---|---|---|---|---|")
+              "| transport floor per call, us | the bare stream's ratio | beyond the transport floor, us "
+              "| context switches/call |")
+        print("|---|---|---|---|---|---|---|---|---|")
         for threads in args.threads:
             for n_landers in args.n_landers:
                 for binary in servers:
@@ -578,13 +598,17 @@ def main() -> int:
                     ratios = [row["ratio"] for row in group]
                     fixed = [row["fixed_us_per_call"] for row in group]
                     switches = [row["server"]["voluntary_switches_per_call"] for row in group]
-                    transports = [row["transport"]["transport_us_per_call"] for row in group if row["transport"]]
-                    transport = (f"{statistics.median(transports):.0f} ({min(transports):.0f} to "
-                                 f"{max(transports):.0f})" if transports else "")
+                    with_transport = [row for row in group if row["transport"]]
+                    transports = [row["transport"]["transport_us_per_call"] for row in with_transport]
+                    transport_ratios = [row["transport_ratio"] for row in with_transport]
+                    # The server's per-call CPU beyond the bare stream's of the same round.
+                    beyond = [row["fixed_us_per_call"] - row["transport"]["transport_us_per_call"]
+                              for row in with_transport]
                     print(f"| {threads} | {n_landers} | {_label(binary, servers)} "
-                          f"| {statistics.median(ratios):.2f}x ({min(ratios):.2f}-{max(ratios):.2f}) "
-                          f"| {statistics.median(fixed):.0f} ({min(fixed):.0f} to {max(fixed):.0f}) "
-                          f"| {transport} | {statistics.median(switches):.2f} |")
+                          f"| {_median_range(ratios, '.2f', 'x', '-')} "
+                          f"| {_median_range(fixed, '.0f')} | {_median_range(transports, '.0f')} "
+                          f"| {_median_range(transport_ratios, '.2f', 'x', '-')} "
+                          f"| {_median_range(beyond, '.0f')} | {statistics.median(switches):.2f} |")
     print(json.dumps({"benchmark": "server_cpu", "clients": args.clients, "clients_kind": args.clients_kind,
                       "envs": args.envs,
                       "transport": args.transport, "seconds": args.seconds, "pin": args.pin, "cores": len(cores),
