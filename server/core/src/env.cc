@@ -215,6 +215,16 @@ class Env::Impl {
   void FillResult(const std::vector<uint8_t>& stepped,
                   const std::vector<double>& rewards, StepResult* result) const;
 
+  // Step's per-lander working arrays, kept so that a step does not allocate:
+  // filled anew by every Step, never read across steps.
+  struct StepScratch {
+    std::vector<uint8_t> stepped;
+    std::vector<EngineCommand> commands;
+    std::vector<double> rewards;
+    std::vector<uint8_t> damaged;
+  };
+  StepScratch step_scratch_;
+
   internal::Rng rng_;  // Seed 0 until the first seeded Reset.
   std::vector<LanderContacts> contacts_;
   internal::ContactListener listener_;
@@ -618,8 +628,12 @@ absl::Status Env::Impl::Step(const ActionsView& actions, StepResult* result) {
     return status;
   }
   const int n = config_.n_landers;
-  std::vector<uint8_t> stepped(n, 0);
-  std::vector<EngineCommand> commands(n);
+  std::vector<uint8_t>& stepped = step_scratch_.stepped;
+  std::vector<EngineCommand>& commands = step_scratch_.commands;
+  std::vector<double>& rewards = step_scratch_.rewards;
+  std::vector<uint8_t>& damaged = step_scratch_.damaged;
+  stepped.assign(n, 0);
+  commands.assign(n, EngineCommand{});
   for (int i = 0; i < n; ++i) {
     if (!landers_[i].active) continue;
     stepped[i] = 1;
@@ -628,8 +642,8 @@ absl::Status Env::Impl::Step(const ActionsView& actions, StepResult* result) {
   }
   Advance(commands);
 
-  std::vector<double> rewards(n, 0.0);
-  std::vector<uint8_t> damaged(n, 0);
+  rewards.assign(n, 0.0);
+  damaged.assign(n, 0);
   const bool any_damaged =
       ObserveLanders(stepped, commands, &rewards, &damaged);
   ApplyOutcomes(stepped, damaged, any_damaged, &rewards);
