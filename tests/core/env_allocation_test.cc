@@ -74,16 +74,23 @@ Counted OperatorNewsOfSteps(Env& env, int steps, uint32_t seed) {
   return counted;
 }
 
-TEST(EnvAllocationTest, ADiscreteStepDoesNotAllocate) {
-  EnvConfig config;
-  config.n_landers = 3;
+// Resets an env of `config` with `seed` and expects no operator new in its
+// steps that end no lander, over at least 20 such steps.
+void ExpectStepsDoNotAllocate(const EnvConfig& config, uint64_t seed) {
   auto env = testing::MakeEnv(config);
   ASSERT_NE(env, nullptr);
   StepResult reset;
-  env->Reset(7, &reset);
-  const Counted counted = OperatorNewsOfSteps(*env, 200, 1);
+  env->Reset(seed, &reset);
+  const Counted counted =
+      OperatorNewsOfSteps(*env, 200, static_cast<uint32_t>(seed));
   EXPECT_GE(counted.steps, 20);
   EXPECT_EQ(counted.news, 0) << "over " << counted.steps << " steps";
+}
+
+TEST(EnvAllocationTest, ADiscreteStepDoesNotAllocate) {
+  EnvConfig config;
+  config.n_landers = 3;
+  ExpectStepsDoNotAllocate(config, 7);
 }
 
 TEST(EnvAllocationTest, AContinuousStepDoesNotAllocate) {
@@ -92,13 +99,7 @@ TEST(EnvAllocationTest, AContinuousStepDoesNotAllocate) {
   config.continuous = true;
   // The others fly on when one is damaged, so the episode lasts.
   config.terminate_on_damage = false;
-  auto env = testing::MakeEnv(config);
-  ASSERT_NE(env, nullptr);
-  StepResult reset;
-  env->Reset(11, &reset);
-  const Counted counted = OperatorNewsOfSteps(*env, 200, 2);
-  EXPECT_GE(counted.steps, 20);
-  EXPECT_EQ(counted.news, 0) << "over " << counted.steps << " steps";
+  ExpectStepsDoNotAllocate(config, 11);
 }
 
 // The counter sees the allocations it is meant to catch.
