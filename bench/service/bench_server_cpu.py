@@ -441,8 +441,9 @@ def _label(binary: str, servers: list[str]) -> str:
     return "server" if binary == servers[0] else "compared"
 
 
-def _transport_us(row: dict) -> str:
-    return f"{row['transport']['transport_us_per_call']:.0f}" if row["transport"] else ""
+def _or_blank(value: float | None, form: str, unit: str = "") -> str:
+    """`value` in `form` with `unit`, or "" for none (a round without --transport_floor)."""
+    return "" if value is None else f"{value:{form}}{unit}"
 
 
 def _transport_ratio(transport: dict | None, core: dict, agent_steps_per_call: int) -> float | None:
@@ -579,8 +580,9 @@ def main() -> int:
               f"| {row['throughput_vs_core']:.2f} | {server['server_cpu_us_per_agent_step']:.2f} "
               f"| {core['cpu_us_per_agent_step']:.2f} | {row['ratio']:.2f}x "
               f"| {row['free_running_core']['cpu_us_per_agent_step']:.2f} | {row['ratio_free_running']:.2f}x "
-              f"| {row['fixed_us_per_call']:.0f} | {_transport_us(row)} "
-              f"| {'' if row['transport_ratio'] is None else format(row['transport_ratio'], '.2f') + 'x'} "
+              f"| {row['fixed_us_per_call']:.0f} "
+              f"| {_or_blank(row['transport'] and row['transport']['transport_us_per_call'], '.0f')} "
+              f"| {_or_blank(row['transport_ratio'], '.2f', 'x')} "
               f"| {server['voluntary_switches_per_call']:.1f} |")
     if args.rounds > 1:
         print("\nMedians over the rounds (range in brackets):\n")
